@@ -1,0 +1,38 @@
+"""warpnerf: differentiable volume and surface rendering with NVIDIA Warp kernels and PyTorch.
+
+Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
+
+- :func:`generate_rays`, :func:`random_pixels`, :func:`ray_aabb_intersect`
+- :func:`stratified_samples` (dense or packed :class:`Samples`)
+- :func:`render_packed`, :func:`render_dense` (emission-absorption compositing, exact backward)
+- :class:`SDFVolume` (the analytic box/sphere/torus scene), :func:`render_rays` (rays -> image)
+"""
+
+from .fields.sdf_volume import SDFVolume, laplace_cdf
+from .ops import (
+    Samples,
+    generate_rays,
+    packed_info_from_ray_indices,
+    random_pixels,
+    ray_aabb_intersect,
+    render_dense,
+    render_packed,
+    stratified_samples,
+)
+from .render import render_rays
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "generate_rays",
+    "random_pixels",
+    "ray_aabb_intersect",
+    "stratified_samples",
+    "Samples",
+    "render_packed",
+    "render_dense",
+    "packed_info_from_ray_indices",
+    "SDFVolume",
+    "laplace_cdf",
+    "render_rays",
+]

@@ -1,0 +1,16 @@
+"""Torch bridge: one private autograd.Function per kernel family behind a checking public function."""
+
+from .composite import packed_info_from_ray_indices, render_dense, render_packed
+from .rays import generate_rays, random_pixels, ray_aabb_intersect
+from .sampling import Samples, stratified_samples
+
+__all__ = [
+    "generate_rays",
+    "random_pixels",
+    "ray_aabb_intersect",
+    "stratified_samples",
+    "Samples",
+    "render_packed",
+    "render_dense",
+    "packed_info_from_ray_indices",
+]

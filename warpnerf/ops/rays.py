@@ -1,0 +1,126 @@
+"""Torch bridge for ray generation and ray/box intersection (kernels/rays.py). No gradients."""
+
+from __future__ import annotations
+
+import torch
+
+from . import _bridge
+
+__all__ = ["generate_rays", "ray_aabb_intersect", "random_pixels"]
+
+
+def _cameras(c2w, intrinsics):
+    if c2w.dim() == 2:
+        c2w = c2w.unsqueeze(0)
+    if intrinsics.dim() == 1:
+        intrinsics = intrinsics.unsqueeze(0)
+    _bridge.check_float("c2w", c2w, (None, None, 4))
+    if c2w.shape[1] not in (3, 4):
+        raise ValueError(f"c2w must have shape [n_cams, 3|4, 4], got {list(c2w.shape)}")
+    n_cams = c2w.shape[0]
+    _bridge.check_float("intrinsics", intrinsics, (n_cams, 4), c2w.dtype, c2w.device)
+    return c2w.contiguous(), intrinsics.contiguous()
+
+
+def generate_rays(
+    c2w: torch.Tensor,  # [n_cams, 3|4, 4] or [4, 4], OpenGL camera-to-world
+    intrinsics: torch.Tensor,  # [n_cams, 4] or [4]: fx, fy, cx, cy in pixels
+    width: int | None = None,
+    height: int | None = None,
+    *,
+    cam_idx: torch.Tensor | None = None,  # [n] int
+    px: torch.Tensor | None = None,  # [n] continuous pixel x (pixel centre = x + 0.5)
+    py: torch.Tensor | None = None,  # [n]
+    normalize: bool = True,
+):
+    """Pinhole rays, either for every pixel or for a list of (camera, x, y) pixels.
+
+    Every pixel (pass width and height): rays in (camera, row, column) order through pixel centres,
+    ``origins, directions`` of shape [n_cams * height * width, 3]. A batch (pass cam_idx, px, py):
+    one ray per entry, e.g. from :func:`random_pixels`. Direction in camera space
+    ((x - cx) / fx, -(y - cy) / fy, -1), rotated by c2w; unit length if ``normalize``.
+
+    Returns:
+        origins [n, 3], directions [n, 3] (no gradient).
+    """
+    from warpnerf.kernels import rays as K
+
+    c2w, intrinsics = _cameras(c2w, intrinsics)
+    dev, dt = c2w.device, c2w.dtype
+    grid = cam_idx is None
+    if grid:
+        if px is not None or py is not None:
+            raise ValueError("pass cam_idx together with px and py")
+        if width is None or height is None or width <= 0 or height <= 0:
+            raise ValueError("width and height (positive) are needed to generate every pixel's ray")
+        n = c2w.shape[0] * width * height
+        cam_idx = torch.empty(0, device=dev, dtype=torch.int64)
+        px = py = torch.empty(0, device=dev, dtype=dt)
+    else:
+        if px is None or py is None:
+            raise ValueError("pass px and py together with cam_idx")
+        n = cam_idx.shape[0]
+        _bridge.check_float("px", px.to(dt), (n,), dt, dev)
+        _bridge.check_float("py", py.to(dt), (n,), dt, dev)
+        if n and (int(cam_idx.min()) < 0 or int(cam_idx.max()) >= c2w.shape[0]):
+            raise ValueError(f"cam_idx must lie in [0, {c2w.shape[0]})")
+        cam_idx, px, py = cam_idx.to(dev, torch.int64), px.to(dt), py.to(dt)
+        width = height = 0
+    origins = torch.empty(n, 3, device=dev, dtype=dt)
+    directions = torch.empty(n, 3, device=dev, dtype=dt)
+    a = _bridge.arr
+    _bridge.launch(
+        K.generate_rays_fwd,
+        n,
+        [a(c2w), a(intrinsics), int(grid), int(width), int(height), a(cam_idx), a(px), a(py),
+         int(normalize), a(origins), a(directions)],
+        dev,
+    )
+    return origins, directions
+
+
+def random_pixels(n_cams: int, width: int, height: int, batch: int, generator=None, device="cpu"):
+    """A uniform random batch of pixels across all images: cam_idx [batch] int64, px, py [batch]
+    float32 at pixel centres, plus the flat pixel index [batch] (cam, row, column order)."""
+    flat = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
+    flat = flat.to(device)
+    cam = flat // (width * height)
+    rem = flat % (width * height)
+    py = (rem // width).to(torch.float32) + 0.5
+    px = (rem % width).to(torch.float32) + 0.5
+    return cam, px, py, flat
+
+
+def ray_aabb_intersect(
+    origins: torch.Tensor,  # [n, 3]
+    directions: torch.Tensor,  # [n, 3]
+    aabb,  # [6] xmin, ymin, zmin, xmax, ymax, zmax
+    t_min: float = 0.0,
+):
+    """Exact slab intersection of rays with an axis-aligned box, clipped to t >= t_min.
+
+    Axis-parallel rays (zero direction components) are exact, with no 0 * inf; tangent rays hit
+    with t_near == t_far; misses return t_near = t_far = t_min and hit = False.
+
+    Returns:
+        t_near [n], t_far [n], hit [n] bool.
+    """
+    from warpnerf.kernels import rays as K
+
+    _bridge.check_float("origins", origins, (None, 3))
+    n, dev, dt = origins.shape[0], origins.device, origins.dtype
+    _bridge.check_float("directions", directions, (n, 3), dt, dev)
+    box = torch.as_tensor(aabb, device=dev, dtype=dt).reshape(-1)
+    if box.shape != (6,) or bool((box[:3] > box[3:]).any()):
+        raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min <= max")
+    t_near = torch.empty(n, device=dev, dtype=dt)
+    t_far = torch.empty(n, device=dev, dtype=dt)
+    hit = torch.empty(n, device=dev, dtype=torch.bool)
+    a = _bridge.arr
+    _bridge.launch(
+        K.ray_aabb_fwd,
+        n,
+        [a(origins), a(directions), a(box), _bridge.scalar(t_min, dt), a(t_near), a(t_far), a(hit)],
+        dev,
+    )
+    return t_near, t_far, hit
