@@ -19,7 +19,7 @@ from .ops import (
     render_packed,
     stratified_samples,
 )
-from .render import render_rays
+from .render import render_image, render_rays, render_views
 
 __version__ = "0.1.0"
 
@@ -35,4 +35,6 @@ __all__ = [
     "SDFVolume",
     "laplace_cdf",
     "render_rays",
+    "render_image",
+    "render_views",
 ]

@@ -11,7 +11,7 @@ import torch
 
 from .ops import generate_rays, render_packed, stratified_samples
 
-__all__ = ["render_rays", "render_image"]
+__all__ = ["render_rays", "render_image", "render_views"]
 
 
 def render_rays(
@@ -72,3 +72,11 @@ def render_image(c2w, intrinsics, width: int, height: int, near, far, field_fn, 
     return {"rgb": out["rgb"].reshape(height, width, 3),
             "depth": out["depth"].reshape(height, width),
             "opacity": out["opacity"].reshape(height, width)}
+
+
+@torch.no_grad()
+def render_views(c2w, intrinsics, width: int, height: int, near, far, field_fn, **kw):
+    """Renders cameras c2w [N, 4, 4], intrinsics [N, 4]: rgb [N, H, W, 3], depth, opacity [N, H, W]."""
+    outs = [render_image(c2w[i], intrinsics[i], width, height, near, far, field_fn, **kw)
+            for i in range(c2w.shape[0])]
+    return {k: torch.stack([o[k] for o in outs]) for k in ("rgb", "depth", "opacity")}

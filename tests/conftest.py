@@ -1,0 +1,29 @@
+"""Shared fixtures: a ``device`` fixture over cpu and cuda, and fixed seeds for every test."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+_NO_CUDA = "CUDA not available (torch.cuda.is_available() is False): cuda variant skipped"
+
+
+@pytest.fixture(params=["cpu", "cuda"])
+def device(request) -> torch.device:
+    """Every kernel test runs on the CPU and, when there is one, on a CUDA GPU."""
+    if request.param == "cuda" and not torch.cuda.is_available():
+        pytest.skip(_NO_CUDA)
+    return torch.device(request.param)
+
+
+@pytest.fixture(autouse=True)
+def _fixed_seed():
+    """Each test starts from the same torch RNG state, whatever ran before it."""
+    torch.manual_seed(0)
+    yield
+
+
+def pytest_report_header(config) -> str:
+    if torch.cuda.is_available():
+        return f"warpnerf kernels: testing on cpu and {torch.cuda.get_device_name(0)}"
+    return f"warpnerf kernels: testing on cpu only; {_NO_CUDA}"

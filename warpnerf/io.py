@@ -1,0 +1,85 @@
+"""Atomic output writers: every file is written to a temporary name in its folder, then renamed,
+so an interrupted run never leaves a half-written image, video, checkpoint or metrics file."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["atomic_path", "write_json", "write_image", "write_video", "to_uint8", "depth_to_uint8"]
+
+
+@contextlib.contextmanager
+def atomic_path(path):
+    """Yields a temporary path next to ``path`` (same suffix); renames it onto ``path`` on success,
+    removes it on failure."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+
+
+def write_json(path, obj) -> None:
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        json.dump(obj, f, indent=2)
+        f.write("\n")
+
+
+def to_uint8(img) -> np.ndarray:
+    """float image in [0, 1] (torch or numpy, [H, W] or [H, W, C]) -> uint8."""
+    if hasattr(img, "detach"):
+        img = img.detach().cpu().numpy()
+    img = np.nan_to_num(np.asarray(img, dtype=np.float64), nan=0.0)
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def depth_to_uint8(depth, max_value: float | None = None) -> np.ndarray:
+    """Depth [H, W] normalised by its maximum (or ``max_value``) to a grey uint8 image."""
+    if hasattr(depth, "detach"):
+        depth = depth.detach().cpu().numpy()
+    depth = np.asarray(depth, dtype=np.float64)
+    m = float(np.nanmax(depth)) if max_value is None else float(max_value)
+    return to_uint8(depth / m if m > 0 else depth)
+
+
+def write_image(path, img) -> None:
+    import imageio.v3 as iio
+
+    arr = img if getattr(img, "dtype", None) == np.uint8 else to_uint8(img)
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, arr)
+
+
+def write_video(path, frames, fps: int = 20) -> None:
+    """frames: list of uint8 [H, W, 3] (or float in [0, 1]); .gif or .mp4 (needs imageio-ffmpeg)."""
+    import imageio.v2 as imageio
+
+    frames = [f if getattr(f, "dtype", None) == np.uint8 else to_uint8(f) for f in frames]
+    frames = [np.repeat(f[..., None], 3, -1) if f.ndim == 2 else f for f in frames]
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if path.suffix == ".gif":
+            imageio.mimsave(tmp, frames, duration=1000.0 / fps, loop=0)
+        else:
+            # Even sizes for yuv420p; macro_block_size=1 keeps small frames unpadded otherwise.
+            h, w = frames[0].shape[:2]
+            frames = [f[: h - h % 2, : w - w % 2] for f in frames]
+            with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8,
+                                    macro_block_size=1, format="FFMPEG") as wr:
+                for f in frames:
+                    wr.append_data(f)
