@@ -102,11 +102,13 @@ def load_blender(root, split: str = "train", background=(1.0, 1.0, 1.0), downsca
     frames = frames[:max_images] if max_images else frames
     bg = np.asarray(background, dtype=np.float32).reshape(-1)
     images, mats, paths = [], [], []
+    first = None
     for i, fr in enumerate(frames):
         img, ip = _read_image(root, fr.get("file_path"), i, path)
-        if images and img.shape[:2] != images[0].shape[:2]:
+        first = first or img.shape[:2]
+        if img.shape[:2] != first:
             raise UserError(f"{ip}: size {img.shape[1]}x{img.shape[0]} differs from the first "
-                            f"image's {images[0].shape[1]}x{images[0].shape[0]}")
+                            f"image's {first[1]}x{first[0]}")
         if img.shape[-1] == 4:
             a = img[..., 3:]
             img = img[..., :3] * a + bg * (1.0 - a)

@@ -1,0 +1,99 @@
+"""Smoke tests: every demo and CLI command runs as a subprocess with tiny settings."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ._scene import write_box_folder
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONUNBUFFERED="1")
+
+
+def run(args, cwd, check=True):
+    p = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=ENV,
+                       timeout=600)
+    if check and p.returncode != 0:
+        raise AssertionError(f"{args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def last_json(stdout):
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
+def test_cli_help_lists_subcommands(tmp_path):
+    out = run(["-m", "warpnerf.cli", "--help"], tmp_path).stdout
+    for cmd in ("demo", "train", "bench"):
+        assert cmd in out
+
+
+def test_cli_demo_tiny(tmp_path):
+    p = run(["-m", "warpnerf.cli", "demo", "--out", "d", "--iters", "20", "--size", "16",
+             "--frames", "3", "--video-size", "16", "--quiet"], tmp_path)
+    m = json.loads((tmp_path / "d" / "metrics.json").read_text())
+    assert m["center_max_abs_error"] < 0.2 and m["val_psnr"] > 10
+    for f in ("spiral_rgb.mp4", "spiral_rgb.gif", "spiral_depth.gif", "spiral_depth_000.png",
+              "val_gt_fit_diff.png"):
+        assert (tmp_path / "d" / f).stat().st_size > 0, f
+    assert "center" in last_json(p.stdout)
+
+
+def test_cli_user_errors_exit_2_without_traceback(tmp_path):
+    p = run(["-m", "warpnerf.cli", "train", "box", "--data", "missing_dir", "--out", "o"],
+            tmp_path, check=False)
+    assert p.returncode == 2 and "missing_dir" in p.stderr and "Traceback" not in p.stderr
+    p = run(["-m", "warpnerf.cli", "demo", "--iters", "-3"], tmp_path, check=False)
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    p = run(["-m", "warpnerf.cli", "train", "box", "--data", ".", "--out", "o", "--near", "3",
+             "--far", "1"], tmp_path, check=False)
+    assert p.returncode == 2 and "--far" in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_bench_quick(tmp_path):
+    run(["-m", "warpnerf.cli", "bench", "composite", "--quick", "--json", "b.json"], tmp_path)
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert rows and rows[0]["max_err_rgb"] < 1e-4 and rows[0]["max_err_v_sigmas"] < 1e-4
+
+
+def test_demo_01_render_volume(tmp_path):
+    p = run([str(ROOT / "demos" / "01_render_volume.py"), "--out", "o", "--frames", "2",
+             "--size", "16", "--samples", "32", "--shape", "torus"], tmp_path)
+    res = last_json(p.stdout)
+    assert res["frames"] == 2 and 0 < res["covered_pixel_fraction"] < 1
+    assert (tmp_path / "o" / "spiral_rgb.mp4").exists() and (tmp_path / "o" / "spiral_depth_000.png").exists()
+
+
+def test_demo_02_fit_box_builtin(tmp_path):
+    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--out", "o", "--iters", "15", "--size", "16",
+             "--views", "6", "--batch", "512"], tmp_path)
+    res = last_json(p.stdout)
+    assert set(res) >= {"center", "side_lengths", "final_loss"}
+
+
+@pytest.mark.slow
+def test_demo_02_fit_box_data_folder(tmp_path):
+    """--data on a generated Blender folder recovers the box that rendered it."""
+    write_box_folder(tmp_path / "scene", n_views=16, size=40, name="transforms_train.json")
+    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--data", "scene", "--out", "o", "--iters",
+             "150", "--batch", "2048", "--frames", "2"], tmp_path)
+    res = last_json(p.stdout)
+    assert set(res) == {"center", "side_lengths", "final_loss"}
+    from warpnerf.demo import GT_BOX
+
+    assert max(abs(a - b) for a, b in zip(res["center"], GT_BOX["center"])) < 0.02
+    assert max(abs(a - b) for a, b in zip(res["side_lengths"], GT_BOX["side_lengths"])) < 0.02
+    assert (tmp_path / "o" / "result.json").exists()
+
+
+def test_demo_02_bad_data_is_a_clean_error(tmp_path):
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "transforms.json").write_text('{"frames": []}')
+    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--data", "bad", "--out", "o"], tmp_path,
+            check=False)
+    assert p.returncode == 2 and "frames" in p.stderr and "Traceback" not in p.stderr
