@@ -43,11 +43,22 @@ def main(argv=None) -> int:
     rgb, depth = write_spiral(volume, Path(args.out), args.frames, args.size, cfg)
     sec = time.perf_counter() - t0
     rays = args.frames * args.size * args.size
-    print(f"wrote {args.out}/spiral_rgb.mp4, spiral_rgb.gif, spiral_depth.gif, spiral_depth_000.png")
-    print(json.dumps({"shape": args.shape, "frames": args.frames, "size": args.size,
-                      "samples_per_ray": args.samples, "seconds": round(sec, 3),
-                      "rays_per_second": round(rays / sec, 1),
-                      "covered_pixel_fraction": round(float(depth.gt(0).float().mean()), 4)}))
+    print(
+        f"wrote {args.out}/spiral_rgb.mp4, spiral_rgb.gif, spiral_depth.gif, spiral_depth_000.png"
+    )
+    print(
+        json.dumps(
+            {
+                "shape": args.shape,
+                "frames": args.frames,
+                "size": args.size,
+                "samples_per_ray": args.samples,
+                "seconds": round(sec, 3),
+                "rays_per_second": round(rays / sec, 1),
+                "covered_pixel_fraction": round(float(depth.gt(0).float().mean()), 4),
+            }
+        )
+    )
     return 0
 
 

@@ -41,9 +41,12 @@ def fit_builtin(cfg: BoxFitConfig, out: Path, device: str, views: int, size: int
     err_c = max(abs(a - b) for a, b in zip(fit["center"], GT_BOX["center"]))
     err_s = max(abs(a - b) for a, b in zip(fit["side_lengths"], GT_BOX["side_lengths"]))
     res = {k_: fit[k_] for k_ in ("center", "side_lengths", "final_loss")}
-    res |= {"center_max_abs_error": err_c, "side_max_abs_error": err_s,
-            "recovered_within_0.02": bool(err_c <= 0.02 and err_s <= 0.02),
-            "seconds": round(fit["seconds"], 2)}
+    res |= {
+        "center_max_abs_error": err_c,
+        "side_max_abs_error": err_s,
+        "recovered_within_0.02": bool(err_c <= 0.02 and err_s <= 0.02),
+        "seconds": round(fit["seconds"], 2),
+    }
     write_json(out / "result.json", res | {"losses": fit["losses"]})
     return res
 
@@ -69,14 +72,21 @@ def main(argv=None) -> int:
         p.error(f"--far ({args.far}) must be greater than --near ({args.near})")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device available")
-    cfg = BoxFitConfig(iters=args.iters, batch=args.batch, n_samples=args.samples, near=args.near,
-                       far=args.far, lr=args.lr)
+    cfg = BoxFitConfig(
+        iters=args.iters,
+        batch=args.batch,
+        n_samples=args.samples,
+        near=args.near,
+        far=args.far,
+        lr=args.lr,
+    )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     try:
         if args.data:
-            res = run_box_fit_on_folder(args.data, out, cfg, args.device, frames=args.frames,
-                                        progress=True)
+            res = run_box_fit_on_folder(
+                args.data, out, cfg, args.device, frames=args.frames, progress=True
+            )
         else:
             res = fit_builtin(cfg, out, args.device, args.views, args.size)
     except UserError as e:

@@ -1,9 +1,9 @@
 """Pinhole ray generation and ray / axis-aligned-box intersection (pure Warp).
 
 Cameras: intrinsics (fx, fy, cx, cy) in pixels, camera-to-world 4x4 in the OpenGL convention
-(x right, y up, the camera looks down -z). The pixel (x, y) (x to the right, y down, pixel centres at
-integer + 0.5) has the camera-space direction ((x - cx) / fx, -(y - cy) / fy, -1); the world
-direction is R @ d and the origin the camera centre. Rays carry no gradient.
+(x right, y up, the camera looks down -z). The pixel (x, y) (x to the right, y down, pixel
+centres at integer + 0.5) has the camera-space direction ((x - cx) / fx, -(y - cy) / fy, -1);
+the world direction is R @ d and the origin the camera centre. Rays carry no gradient.
 """
 
 from typing import Any
@@ -27,7 +27,7 @@ def generate_rays_fwd(
 ):
     tid = wp.tid()
     half = px.dtype(0.5)
-    cam = int(0)
+    cam = 0
     x = px.dtype(0.0)
     y = px.dtype(0.0)
     if use_grid != 0:
@@ -72,8 +72,8 @@ def ray_aabb_fwd(
 ):
     """Slab test. A zero direction component is handled exactly: the ray is inside that slab for
     every t (origin within [lo, hi]) or for none (origin outside), never 0 * inf = NaN. A tangent
-    ray (t_near == t_far) counts as a hit with an empty interval. Misses get t_near = t_far = t_clip.
-    A NaN anywhere makes the ray a miss with NaN bounds (never a plausible interval)."""
+    ray (t_near == t_far) counts as a hit with an empty interval. Misses get t_near = t_far =
+    t_clip. A NaN anywhere makes the ray a miss with NaN bounds (never a plausible interval)."""
     tid = wp.tid()
     lo = t_clip
     hi = t_near.dtype(wp.inf)
@@ -111,11 +111,23 @@ for _dt in (wp.float32, wp.float64):
     _a2 = wp.array2d(dtype=_dt)
     wp.overload(
         generate_rays_fwd,
-        {"c2w": wp.array3d(dtype=_dt), "intrinsics": _a2, "px": _a1, "py": _a1,
-         "origins": _a2, "directions": _a2},
+        {
+            "c2w": wp.array3d(dtype=_dt),
+            "intrinsics": _a2,
+            "px": _a1,
+            "py": _a1,
+            "origins": _a2,
+            "directions": _a2,
+        },
     )
     wp.overload(
         ray_aabb_fwd,
-        {"origins": _a2, "directions": _a2, "aabb": _a1, "t_clip": _dt, "t_near": _a1,
-         "t_far": _a1},
+        {
+            "origins": _a2,
+            "directions": _a2,
+            "aabb": _a1,
+            "t_clip": _dt,
+            "t_near": _a1,
+            "t_far": _a1,
+        },
     )

@@ -1,8 +1,8 @@
 """Stratified sampling between per-ray near and far (pure Warp).
 
 [near, far] is cut into n equal bins of width D = (far - near) / n. In evaluation the sample
-intervals are the bins themselves. In training each interior bin edge is moved by a uniform offset in
-[-D/2, D/2) (Warp's counter-based RNG, keyed by seed and ray), so the intervals still partition
+intervals are the bins themselves. In training each interior bin edge is moved by a uniform offset
+in [-D/2, D/2) (Warp's counter-based RNG, keyed by seed and ray), so the intervals still partition
 [near, far] exactly, stay ordered, and their midpoints (where fields are evaluated) are jittered.
 A ray with far <= near (a miss) gets no samples in the packed layout and zero-length intervals at
 near in the dense layout.

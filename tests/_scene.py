@@ -14,8 +14,9 @@ from warpnerf.fields import SDFVolume
 from warpnerf.train import BoxFitConfig, render_box_views
 
 
-def write_box_folder(root: Path, n_views=12, size=32, fov=0.7, radius=3.0, name="transforms.json",
-                     rgba=True) -> dict:
+def write_box_folder(
+    root: Path, n_views=12, size=32, fov=0.7, radius=3.0, name="transforms.json", rgba=True
+) -> dict:
     """Renders the reference box into a Blender-format folder (RGBA PNG, alpha = opacity)."""
     import imageio.v3 as iio
 
@@ -27,8 +28,18 @@ def write_box_folder(root: Path, n_views=12, size=32, fov=0.7, radius=3.0, name=
     k = intrinsics_from_fov(size, size, fov).expand(n_views, 4)
     from warpnerf.render import render_views
 
-    out = render_views(cams, k, size, size, cfg.near, cfg.far, gt, n_samples=cfg.n_samples,
-                       mode="alpha", background=0.0)
+    out = render_views(
+        cams,
+        k,
+        size,
+        size,
+        cfg.near,
+        cfg.far,
+        gt,
+        n_samples=cfg.n_samples,
+        mode="alpha",
+        background=0.0,
+    )
     frames = []
     for i in range(n_views):
         a = out["opacity"][i].clamp(0, 1)

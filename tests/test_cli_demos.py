@@ -15,8 +15,9 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 
 
 def run(args, cwd, check=True):
-    p = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=ENV,
-                       timeout=600)
+    p = subprocess.run(
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, env=ENV, timeout=600
+    )
     if check and p.returncode != 0:
         raise AssertionError(f"{args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
@@ -33,24 +34,65 @@ def test_cli_help_lists_subcommands(tmp_path):
 
 
 def test_cli_demo_tiny(tmp_path):
-    p = run(["-m", "warpnerf.cli", "demo", "--out", "d", "--iters", "20", "--size", "16",
-             "--frames", "3", "--video-size", "16", "--quiet"], tmp_path)
+    p = run(
+        [
+            "-m",
+            "warpnerf.cli",
+            "demo",
+            "--out",
+            "d",
+            "--iters",
+            "20",
+            "--size",
+            "16",
+            "--frames",
+            "3",
+            "--video-size",
+            "16",
+            "--quiet",
+        ],
+        tmp_path,
+    )
     m = json.loads((tmp_path / "d" / "metrics.json").read_text())
     assert m["center_max_abs_error"] < 0.2 and m["val_psnr"] > 10
-    for f in ("spiral_rgb.mp4", "spiral_rgb.gif", "spiral_depth.gif", "spiral_depth_000.png",
-              "val_gt_fit_diff.png"):
+    for f in (
+        "spiral_rgb.mp4",
+        "spiral_rgb.gif",
+        "spiral_depth.gif",
+        "spiral_depth_000.png",
+        "val_gt_fit_diff.png",
+    ):
         assert (tmp_path / "d" / f).stat().st_size > 0, f
     assert "center" in last_json(p.stdout)
 
 
 def test_cli_user_errors_exit_2_without_traceback(tmp_path):
-    p = run(["-m", "warpnerf.cli", "train", "box", "--data", "missing_dir", "--out", "o"],
-            tmp_path, check=False)
+    p = run(
+        ["-m", "warpnerf.cli", "train", "box", "--data", "missing_dir", "--out", "o"],
+        tmp_path,
+        check=False,
+    )
     assert p.returncode == 2 and "missing_dir" in p.stderr and "Traceback" not in p.stderr
     p = run(["-m", "warpnerf.cli", "demo", "--iters", "-3"], tmp_path, check=False)
     assert p.returncode == 2 and "Traceback" not in p.stderr
-    p = run(["-m", "warpnerf.cli", "train", "box", "--data", ".", "--out", "o", "--near", "3",
-             "--far", "1"], tmp_path, check=False)
+    p = run(
+        [
+            "-m",
+            "warpnerf.cli",
+            "train",
+            "box",
+            "--data",
+            ".",
+            "--out",
+            "o",
+            "--near",
+            "3",
+            "--far",
+            "1",
+        ],
+        tmp_path,
+        check=False,
+    )
     assert p.returncode == 2 and "--far" in p.stderr
     assert not (tmp_path / "o").exists()
 
@@ -62,16 +104,46 @@ def test_cli_bench_quick(tmp_path):
 
 
 def test_demo_01_render_volume(tmp_path):
-    p = run([str(ROOT / "demos" / "01_render_volume.py"), "--out", "o", "--frames", "2",
-             "--size", "16", "--samples", "32", "--shape", "torus"], tmp_path)
+    p = run(
+        [
+            str(ROOT / "demos" / "01_render_volume.py"),
+            "--out",
+            "o",
+            "--frames",
+            "2",
+            "--size",
+            "16",
+            "--samples",
+            "32",
+            "--shape",
+            "torus",
+        ],
+        tmp_path,
+    )
     res = last_json(p.stdout)
     assert res["frames"] == 2 and 0 < res["covered_pixel_fraction"] < 1
-    assert (tmp_path / "o" / "spiral_rgb.mp4").exists() and (tmp_path / "o" / "spiral_depth_000.png").exists()
+    assert (tmp_path / "o" / "spiral_rgb.mp4").exists() and (
+        tmp_path / "o" / "spiral_depth_000.png"
+    ).exists()
 
 
 def test_demo_02_fit_box_builtin(tmp_path):
-    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--out", "o", "--iters", "15", "--size", "16",
-             "--views", "6", "--batch", "512"], tmp_path)
+    p = run(
+        [
+            str(ROOT / "demos" / "02_fit_box.py"),
+            "--out",
+            "o",
+            "--iters",
+            "15",
+            "--size",
+            "16",
+            "--views",
+            "6",
+            "--batch",
+            "512",
+        ],
+        tmp_path,
+    )
     res = last_json(p.stdout)
     assert set(res) >= {"center", "side_lengths", "final_loss"}
 
@@ -80,8 +152,22 @@ def test_demo_02_fit_box_builtin(tmp_path):
 def test_demo_02_fit_box_data_folder(tmp_path):
     """--data on a generated Blender folder recovers the box that rendered it."""
     write_box_folder(tmp_path / "scene", n_views=16, size=40, name="transforms_train.json")
-    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--data", "scene", "--out", "o", "--iters",
-             "150", "--batch", "2048", "--frames", "2"], tmp_path)
+    p = run(
+        [
+            str(ROOT / "demos" / "02_fit_box.py"),
+            "--data",
+            "scene",
+            "--out",
+            "o",
+            "--iters",
+            "150",
+            "--batch",
+            "2048",
+            "--frames",
+            "2",
+        ],
+        tmp_path,
+    )
     res = last_json(p.stdout)
     assert set(res) == {"center", "side_lengths", "final_loss"}
     from warpnerf.demo import GT_BOX
@@ -94,6 +180,9 @@ def test_demo_02_fit_box_data_folder(tmp_path):
 def test_demo_02_bad_data_is_a_clean_error(tmp_path):
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "transforms.json").write_text('{"frames": []}')
-    p = run([str(ROOT / "demos" / "02_fit_box.py"), "--data", "bad", "--out", "o"], tmp_path,
-            check=False)
+    p = run(
+        [str(ROOT / "demos" / "02_fit_box.py"), "--data", "bad", "--out", "o"],
+        tmp_path,
+        check=False,
+    )
     assert p.returncode == 2 and "frames" in p.stderr and "Traceback" not in p.stderr

@@ -32,8 +32,8 @@ def _packed_case(counts, mode, *, sigma_max=4.0, dtype=F64, device="cpu"):
     t_starts = torch.empty(n, dtype=F64)
     start = 0
     for c in counts.tolist():
-        edges = torch.cumsum(torch.cat([torch.rand(1, dtype=F64), deltas[start:start + c]]), 0)
-        t_starts[start:start + c] = edges[:-1]
+        edges = torch.cumsum(torch.cat([torch.rand(1, dtype=F64), deltas[start : start + c]]), 0)
+        t_starts[start : start + c] = edges[:-1]
         start += c
     t_ends = t_starts + deltas
     if mode == "alpha":
@@ -41,8 +41,16 @@ def _packed_case(counts, mode, *, sigma_max=4.0, dtype=F64, device="cpu"):
     else:
         values = torch.rand(n, dtype=F64) * sigma_max
     rgbs = torch.rand(n, 3, dtype=F64)
-    case = SimpleNamespace(layout="packed", mode=mode, n_rays=n_rays, t_starts=t_starts,
-                           t_ends=t_ends, ray_indices=ray_indices, values=values, rgbs=rgbs)
+    case = SimpleNamespace(
+        layout="packed",
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=t_starts,
+        t_ends=t_ends,
+        ray_indices=ray_indices,
+        values=values,
+        rgbs=rgbs,
+    )
     return _to(case, device, dtype)
 
 
@@ -56,8 +64,16 @@ def _dense_case(n_rays, n_samples, mode, *, sigma_max=4.0, dtype=F64, device="cp
     else:
         values = torch.rand(n_rays, n_samples, dtype=F64) * sigma_max
     rgbs = torch.rand(n_rays, n_samples, 3, dtype=F64)
-    case = SimpleNamespace(layout="dense", mode=mode, n_rays=n_rays, t_starts=t_starts,
-                           t_ends=t_ends, ray_indices=None, values=values, rgbs=rgbs)
+    case = SimpleNamespace(
+        layout="dense",
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=t_starts,
+        t_ends=t_ends,
+        ray_indices=None,
+        values=values,
+        rgbs=rgbs,
+    )
     return _to(case, device, dtype)
 
 
@@ -89,8 +105,11 @@ def _background(kind, n_rays, device, dtype=F64):
 def _upstream(case, return_weights=True):
     """Random upstream gradients for (rgb, depth, opacity[, weights])."""
     dev, dt = case.values.device, case.values.dtype
-    g = [torch.randn(case.n_rays, 3, dtype=F64), torch.randn(case.n_rays, dtype=F64),
-         torch.randn(case.n_rays, dtype=F64)]
+    g = [
+        torch.randn(case.n_rays, 3, dtype=F64),
+        torch.randn(case.n_rays, dtype=F64),
+        torch.randn(case.n_rays, dtype=F64),
+    ]
     if return_weights:
         g.append(torch.randn(case.values.shape, dtype=F64))
     return [x.to(dev, dt) for x in g]
@@ -99,11 +118,28 @@ def _upstream(case, return_weights=True):
 def _render(lib, case, values, rgbs, background, t_threshold=0.0, return_weights=True):
     sig, kw = (None, {"alphas": values}) if case.mode == "alpha" else (values, {})
     if case.layout == "packed":
-        return lib.render_packed(case.t_starts, case.t_ends, case.ray_indices, sig, rgbs,
-                                 case.n_rays, background, t_threshold=t_threshold,
-                                 return_weights=return_weights, **kw)
-    return lib.render_dense(case.t_starts, case.t_ends, sig, rgbs, background,
-                            t_threshold=t_threshold, return_weights=return_weights, **kw)
+        return lib.render_packed(
+            case.t_starts,
+            case.t_ends,
+            case.ray_indices,
+            sig,
+            rgbs,
+            case.n_rays,
+            background,
+            t_threshold=t_threshold,
+            return_weights=return_weights,
+            **kw,
+        )
+    return lib.render_dense(
+        case.t_starts,
+        case.t_ends,
+        sig,
+        rgbs,
+        background,
+        t_threshold=t_threshold,
+        return_weights=return_weights,
+        **kw,
+    )
 
 
 def _run(lib, case, background=None, t_threshold=0.0, upstream=None, return_weights=True):
@@ -227,11 +263,26 @@ def test_packed_equals_dense(device, mode, t_threshold):
     values = (values + (0.05 if mode == "alpha" else 0.0)).to(device)
     rgbs = torch.rand(n_rays, n_s, 3, dtype=F64).to(device)
     bg = _background("per_ray", n_rays, device)
-    dcase = SimpleNamespace(layout="dense", mode=mode, n_rays=n_rays, t_starts=dense.t_starts,
-                            t_ends=dense.t_ends, ray_indices=None, values=values, rgbs=rgbs)
-    pcase = SimpleNamespace(layout="packed", mode=mode, n_rays=n_rays, t_starts=packed.t_starts,
-                            t_ends=packed.t_ends, ray_indices=packed.ray_indices,
-                            values=values.reshape(-1), rgbs=rgbs.reshape(-1, 3))
+    dcase = SimpleNamespace(
+        layout="dense",
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=dense.t_starts,
+        t_ends=dense.t_ends,
+        ray_indices=None,
+        values=values,
+        rgbs=rgbs,
+    )
+    pcase = SimpleNamespace(
+        layout="packed",
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=packed.t_starts,
+        t_ends=packed.t_ends,
+        ray_indices=packed.ray_indices,
+        values=values.reshape(-1),
+        rgbs=rgbs.reshape(-1, 3),
+    )
     g = _upstream(dcase)
     d_out, d_grads = _run(W, dcase, bg, t_threshold, g)
     p_out, p_grads = _run(W, pcase, bg, t_threshold, g[:3] + [g[3].reshape(-1)])
@@ -258,14 +309,27 @@ def _extreme_case(mode, layout, device):
     t_ends = torch.cumsum(deltas, 1)
     t_starts = t_ends - deltas
     values = rows / deltas if mode == "sigma" else rows
-    case = SimpleNamespace(layout="dense", mode=mode, n_rays=n_rays, t_starts=t_starts,
-                           t_ends=t_ends, ray_indices=None, values=values,
-                           rgbs=torch.rand(n_rays, n_s, 3, dtype=F64))
+    case = SimpleNamespace(
+        layout="dense",
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=t_starts,
+        t_ends=t_ends,
+        ray_indices=None,
+        values=values,
+        rgbs=torch.rand(n_rays, n_s, 3, dtype=F64),
+    )
     if layout == "packed":
-        case = SimpleNamespace(layout="packed", mode=mode, n_rays=n_rays,
-                               t_starts=t_starts.reshape(-1), t_ends=t_ends.reshape(-1),
-                               ray_indices=torch.arange(n_rays).repeat_interleave(n_s),
-                               values=values.reshape(-1), rgbs=case.rgbs.reshape(-1, 3))
+        case = SimpleNamespace(
+            layout="packed",
+            mode=mode,
+            n_rays=n_rays,
+            t_starts=t_starts.reshape(-1),
+            t_ends=t_ends.reshape(-1),
+            ray_indices=torch.arange(n_rays).repeat_interleave(n_s),
+            values=values.reshape(-1),
+            rgbs=case.rgbs.reshape(-1, 3),
+        )
     return _to(case, device, F64)
 
 
@@ -288,12 +352,18 @@ def test_extreme_optical_depths(device, layout, mode, t_threshold):
     # Against the reference wherever the reference is itself finite. Its alpha-mode gradient goes
     # through d(-log(1 - a))/da = 1 / (1 - a), which is inf at a = 1 and loses ~1e-9 * 1e-16 / 1e-9
     # relative precision at a = 1 - 1e-9; the rest is compared at float64 tolerance.
-    for a, e, name in zip(out + grads, ref_out + ref_grads,
-                          OUT_NAMES + tuple(_grad_names(case, bg))):
+    for a, e, name in zip(
+        out + grads, ref_out + ref_grads, OUT_NAMES + tuple(_grad_names(case, bg))
+    ):
         fin = torch.isfinite(e)
         assert bool(fin.any())
-        torch.testing.assert_close(a[fin], e[fin], rtol=1e-7 if mode == "alpha" else 1e-10,
-                                   atol=1e-10, msg=lambda m, name=name: f"{name}: {m}")
+        torch.testing.assert_close(
+            a[fin],
+            e[fin],
+            rtol=1e-7 if mode == "alpha" else 1e-10,
+            atol=1e-10,
+            msg=lambda m, name=name: f"{name}: {m}",
+        )
     if mode == "sigma":
         assert bool(torch.isfinite(torch.cat([x.reshape(-1) for x in ref_grads])).all())
 
@@ -307,8 +377,10 @@ def test_zero_length_intervals_contribute_nothing(device):
     t_zero = torch.stack([t0[0], t0[3], t1[5]])
     keep = torch.ones(9, dtype=torch.bool)
     keep[[0, 4, 8]] = False  # inserted before the first, in the middle, after the last sample
-    merged = SimpleNamespace(t_starts=torch.empty(9, dtype=F64, device=device),
-                             values=torch.empty(9, dtype=F64, device=device))
+    merged = SimpleNamespace(
+        t_starts=torch.empty(9, dtype=F64, device=device),
+        values=torch.empty(9, dtype=F64, device=device),
+    )
     merged.t_starts[keep], merged.t_starts[~keep] = t0, t_zero
     t_ends = merged.t_starts.clone()
     t_ends[keep] = t1
@@ -316,10 +388,15 @@ def test_zero_length_intervals_contribute_nothing(device):
     rgbs = torch.rand(9, 3, dtype=F64, device=device)
     rgbs[keep] = base.rgbs
     case = SimpleNamespace(
-        layout="packed", mode="sigma", n_rays=2,
-        t_starts=torch.cat([merged.t_starts, t0]), t_ends=torch.cat([t_ends, t1]),
+        layout="packed",
+        mode="sigma",
+        n_rays=2,
+        t_starts=torch.cat([merged.t_starts, t0]),
+        t_ends=torch.cat([t_ends, t1]),
         ray_indices=torch.tensor([0] * 9 + [1] * 6, device=device),
-        values=torch.cat([merged.values, base.values]), rgbs=torch.cat([rgbs, base.rgbs]))
+        values=torch.cat([merged.values, base.values]),
+        rgbs=torch.cat([rgbs, base.rgbs]),
+    )
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
     g[0][0], g[1][0], g[2][0] = g[0][1], g[1][1], g[2][1]  # same upstream on both rays
@@ -347,8 +424,14 @@ def test_zero_length_intervals_contribute_nothing(device):
 #   weights <= 4.5e-9, gradients <= 7.4e-6, 5.6e-7 of their max;
 # v_background (as an error on T_m): <= 1.5e-5 (it is computed as 1 - opacity, see below).
 # Tolerances below: about 3x the worst measured value.
-LONG_RAY_TOL = {"rgb": 5e-5, "depth": 2e-5, "opacity": 5e-5, "weights": 2e-8, "grad_rel": 3e-5,
-                "v_background": 5e-5}
+LONG_RAY_TOL = {
+    "rgb": 5e-5,
+    "depth": 2e-5,
+    "opacity": 5e-5,
+    "weights": 2e-8,
+    "grad_rel": 3e-5,
+    "v_background": 5e-5,
+}
 
 
 @pytest.mark.parametrize("sigma_max", [1.0, 5.0])
@@ -356,25 +439,32 @@ def test_ten_thousand_samples_float32(device, sigma_max):
     n = 10**4
     ts = torch.sort(torch.rand(n) * 5)[0]
     t0 = torch.cat([torch.zeros(1), ts[:-1]])
-    case32 = SimpleNamespace(layout="packed", mode="sigma", n_rays=1, t_starts=t0, t_ends=ts,
-                             ray_indices=torch.zeros(n, dtype=torch.int64),
-                             values=torch.rand(n) * sigma_max, rgbs=torch.rand(n, 3))
+    case32 = SimpleNamespace(
+        layout="packed",
+        mode="sigma",
+        n_rays=1,
+        t_starts=t0,
+        t_ends=ts,
+        ray_indices=torch.zeros(n, dtype=torch.int64),
+        values=torch.rand(n) * sigma_max,
+        rgbs=torch.rand(n, 3),
+    )
     case32 = _to(case32, device, F32)
     case64 = _to(case32, device, F64)
     bg = torch.rand(3, device=device)
     g = _upstream(case64)
     out64, grads64 = _run(R, case64, bg.double(), 0.0, g)
     out32, grads32 = _run(W, case32, bg, 0.0, [x.float() for x in g])
-    err = {name: (a.double() - e).abs().max().item()
-           for a, e, name in zip(out32, out64, OUT_NAMES)}
+    err = {name: (a.double() - e).abs().max().item() for a, e, name in zip(out32, out64, OUT_NAMES)}
     for a, e, name in zip(grads32[:2], grads64[:2], ("v_sigmas", "v_rgbs")):
         err[name] = ((a.double() - e).abs().max() / e.abs().max()).item()
     # v_background = T_m v_rgb with T_m ~ 1e-6 here: compared in units of |v_rgb| (an absolute
     # error on T_m); its relative accuracy is test_background_gradient_is_final_transmittance's.
-    err["v_background"] = ((grads32[2].double() - grads64[2]).abs().max()
-                           / g[0].abs().max()).item()
-    print(f"\n10^4 samples, sigma_max={sigma_max}, float32 kernel vs float64 reference: "
-          + ", ".join(f"{k} {v:.2e}" for k, v in err.items()))
+    err["v_background"] = ((grads32[2].double() - grads64[2]).abs().max() / g[0].abs().max()).item()
+    print(
+        f"\n10^4 samples, sigma_max={sigma_max}, float32 kernel vs float64 reference: "
+        + ", ".join(f"{k} {v:.2e}" for k, v in err.items())
+    )
     for name in OUT_NAMES:
         assert err[name] <= LONG_RAY_TOL[name], (name, err[name])
     for name in ("v_sigmas", "v_rgbs"):
@@ -418,10 +508,16 @@ def test_background_gradient_is_final_transmittance(device, dtype, tau_total):
     rounding error of 1 - opacity, so the gradient must not be formed as 1 - opacity."""
     n_rays, n_s = 8, 32
     t_starts = torch.arange(n_s, dtype=F64).repeat(n_rays, 1)
-    case = SimpleNamespace(layout="dense", mode="sigma", n_rays=n_rays, t_starts=t_starts,
-                           t_ends=t_starts + 1, ray_indices=None,
-                           values=torch.rand(n_rays, n_s, dtype=F64) * 2 * tau_total / n_s,
-                           rgbs=torch.rand(n_rays, n_s, 3, dtype=F64))
+    case = SimpleNamespace(
+        layout="dense",
+        mode="sigma",
+        n_rays=n_rays,
+        t_starts=t_starts,
+        t_ends=t_starts + 1,
+        ray_indices=None,
+        values=torch.rand(n_rays, n_s, dtype=F64) * 2 * tau_total / n_s,
+        rgbs=torch.rand(n_rays, n_s, 3, dtype=F64),
+    )
     case = _to(case, device, dtype)
     bg = _background("per_ray", n_rays, device, dtype)
     g = [x.abs() for x in _upstream(case)]
@@ -437,8 +533,16 @@ def test_all_rays_empty(device, mode):
     none = torch.empty(0, dtype=F64, device=device)
     bg = torch.rand(4, 3, dtype=F64, device=device, requires_grad=True)
     sig, kw = (None, {"alphas": none}) if mode == "alpha" else (none, {})
-    rgb, depth, opacity = W.render_packed(none, none, torch.empty(0, dtype=torch.int64,
-                                          device=device), sig, none.reshape(0, 3), 4, bg, **kw)
+    rgb, depth, opacity = W.render_packed(
+        none,
+        none,
+        torch.empty(0, dtype=torch.int64, device=device),
+        sig,
+        none.reshape(0, 3),
+        4,
+        bg,
+        **kw,
+    )
     assert torch.equal(rgb, bg.detach())
     assert bool((depth == 0).all()) and bool((opacity == 0).all())
     v = torch.randn(4, 3, dtype=F64, device=device)
@@ -475,17 +579,26 @@ def test_opaque_alpha_gradient(device, position):
     alphas = torch.rand(n, dtype=F64) * 0.9 + 0.05
     alphas[position] = 1.0
     t_starts = torch.arange(n, dtype=F64) * 0.5
-    case = SimpleNamespace(layout="packed", mode="alpha", n_rays=1, t_starts=t_starts,
-                           t_ends=t_starts + 0.5, ray_indices=torch.zeros(n, dtype=torch.int64),
-                           values=alphas, rgbs=torch.rand(n, 3, dtype=F64))
+    case = SimpleNamespace(
+        layout="packed",
+        mode="alpha",
+        n_rays=1,
+        t_starts=t_starts,
+        t_ends=t_starts + 0.5,
+        ray_indices=torch.zeros(n, dtype=torch.int64),
+        values=alphas,
+        rgbs=torch.rand(n, 3, dtype=F64),
+    )
     case = _to(case, device, F64)
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
     out, grads = _run(W, case, bg, 0.0, g)
     v_alpha = grads[0].cpu()
     assert bool(torch.isfinite(v_alpha).all())
-    assert bool((out[3][position + 1:] == 0).all())
-    assert bool((v_alpha[position + 1:] == 0).all()) and bool((grads[1][position + 1:] == 0).all())
+    assert bool((out[3][position + 1 :] == 0).all())
+    assert bool((v_alpha[position + 1 :] == 0).all()) and bool(
+        (grads[1][position + 1 :] == 0).all()
+    )
     # Closed form.
     mids = (0.5 * (case.t_starts + case.t_ends)).cpu()
     e = case.rgbs.cpu() @ g[0][0].cpu() + g[1][0].cpu() * mids + g[2][0].cpu() + g[3].cpu()
@@ -578,13 +691,27 @@ def test_early_termination(device, layout, t_threshold, n_live):
     n_s = 6
     t_starts = torch.arange(n_s, dtype=F64) * 0.5
     sig = torch.full((1, n_s), 2.0, dtype=F64)  # delta 0.5 -> tau 1
-    case = SimpleNamespace(layout="dense", mode="sigma", n_rays=1, t_starts=t_starts[None],
-                           t_ends=t_starts[None] + 0.5, ray_indices=None, values=sig,
-                           rgbs=torch.rand(1, n_s, 3, dtype=F64))
+    case = SimpleNamespace(
+        layout="dense",
+        mode="sigma",
+        n_rays=1,
+        t_starts=t_starts[None],
+        t_ends=t_starts[None] + 0.5,
+        ray_indices=None,
+        values=sig,
+        rgbs=torch.rand(1, n_s, 3, dtype=F64),
+    )
     if layout == "packed":
-        case = SimpleNamespace(layout="packed", mode="sigma", n_rays=1, t_starts=t_starts,
-                               t_ends=t_starts + 0.5, ray_indices=torch.zeros(n_s, dtype=torch.int64),
-                               values=sig[0], rgbs=case.rgbs[0])
+        case = SimpleNamespace(
+            layout="packed",
+            mode="sigma",
+            n_rays=1,
+            t_starts=t_starts,
+            t_ends=t_starts + 0.5,
+            ray_indices=torch.zeros(n_s, dtype=torch.int64),
+            values=sig[0],
+            rgbs=case.rgbs[0],
+        )
     case = _to(case, device, F64)
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
@@ -626,9 +753,14 @@ def test_early_termination_random_matches_reference(device, mode):
 
 
 def _valid_packed(n=6, n_rays=2):
-    return dict(t_starts=torch.zeros(n, dtype=F64), t_ends=torch.ones(n, dtype=F64),
-                ray_indices=torch.tensor([0] * (n // 2) + [1] * (n - n // 2)),
-                sigmas=torch.ones(n, dtype=F64), rgbs=torch.zeros(n, 3, dtype=F64), n_rays=n_rays)
+    return dict(
+        t_starts=torch.zeros(n, dtype=F64),
+        t_ends=torch.ones(n, dtype=F64),
+        ray_indices=torch.tensor([0] * (n // 2) + [1] * (n - n // 2)),
+        sigmas=torch.ones(n, dtype=F64),
+        rgbs=torch.zeros(n, 3, dtype=F64),
+        n_rays=n_rays,
+    )
 
 
 PACKED_BAD = {
@@ -675,8 +807,12 @@ def test_sigmas_xor_alphas(which):
         kw["sigmas"] = None
     with pytest.raises(ValueError, match=r"sigmas.*alphas"):
         W.render_packed(**kw)
-    d = dict(t_starts=torch.zeros(2, 3, dtype=F64), t_ends=torch.ones(2, 3, dtype=F64),
-             sigmas=torch.ones(2, 3, dtype=F64), rgbs=torch.zeros(2, 3, 3, dtype=F64))
+    d = dict(
+        t_starts=torch.zeros(2, 3, dtype=F64),
+        t_ends=torch.ones(2, 3, dtype=F64),
+        sigmas=torch.ones(2, 3, dtype=F64),
+        rgbs=torch.zeros(2, 3, 3, dtype=F64),
+    )
     if which == "both":
         d["alphas"] = torch.full((2, 3), 0.5, dtype=F64)
     else:
@@ -697,8 +833,12 @@ DENSE_BAD = {
 
 @pytest.mark.parametrize("arg", list(DENSE_BAD))
 def test_render_dense_rejects_bad_argument(arg):
-    kw = dict(t_starts=torch.zeros(2, 3, dtype=F64), t_ends=torch.ones(2, 3, dtype=F64),
-              sigmas=torch.ones(2, 3, dtype=F64), rgbs=torch.zeros(2, 3, 3, dtype=F64))
+    kw = dict(
+        t_starts=torch.zeros(2, 3, dtype=F64),
+        t_ends=torch.ones(2, 3, dtype=F64),
+        sigmas=torch.ones(2, 3, dtype=F64),
+        rgbs=torch.zeros(2, 3, 3, dtype=F64),
+    )
     W.render_dense(**kw)
     kw.update(DENSE_BAD[arg])
     with pytest.raises(ValueError, match=rf"\b{arg}\b"):

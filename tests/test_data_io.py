@@ -42,17 +42,31 @@ def _write(root, obj):
     [
         ("{not json", "not valid JSON"),
         ({"camera_angle_x": 0.5}, "'frames'"),
-        ({"frames": [{"file_path": "a", "transform_matrix": np.eye(4).tolist()}]},
-         "camera_angle_x"),
-        ({"camera_angle_x": -1, "frames": [{"file_path": "train/r_0",
-                                             "transform_matrix": np.eye(4).tolist()}]},
-         "camera_angle_x"),
-        ({"camera_angle_x": 0.5, "frames": [{"file_path": "missing",
-                                              "transform_matrix": np.eye(4).tolist()}]},
-         "not found"),
-        ({"camera_angle_x": 0.5, "frames": [{"file_path": "train/r_0",
-                                              "transform_matrix": [[1, 2], [3, 4]]}]},
-         "frames[0].transform_matrix"),
+        (
+            {"frames": [{"file_path": "a", "transform_matrix": np.eye(4).tolist()}]},
+            "camera_angle_x",
+        ),
+        (
+            {
+                "camera_angle_x": -1,
+                "frames": [{"file_path": "train/r_0", "transform_matrix": np.eye(4).tolist()}],
+            },
+            "camera_angle_x",
+        ),
+        (
+            {
+                "camera_angle_x": 0.5,
+                "frames": [{"file_path": "missing", "transform_matrix": np.eye(4).tolist()}],
+            },
+            "not found",
+        ),
+        (
+            {
+                "camera_angle_x": 0.5,
+                "frames": [{"file_path": "train/r_0", "transform_matrix": [[1, 2], [3, 4]]}],
+            },
+            "frames[0].transform_matrix",
+        ),
     ],
 )
 def test_loader_errors_name_file_and_field(tmp_path, box_folder, content, needle):
@@ -69,8 +83,13 @@ def test_loader_missing_folder_and_corrupt_image(tmp_path):
     with pytest.raises(UserError, match="not found"):
         load_blender(tmp_path / "nope")
     (tmp_path / "img.png").write_bytes(b"not a png")
-    _write(tmp_path, {"camera_angle_x": 0.5,
-                      "frames": [{"file_path": "img.png", "transform_matrix": np.eye(4).tolist()}]})
+    _write(
+        tmp_path,
+        {
+            "camera_angle_x": 0.5,
+            "frames": [{"file_path": "img.png", "transform_matrix": np.eye(4).tolist()}],
+        },
+    )
     with pytest.raises(UserError, match="cannot read image"):
         load_blender(tmp_path)
 

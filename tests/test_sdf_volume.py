@@ -13,8 +13,9 @@ def test_laplace_cdf_closed_form_and_symmetry():
 
 
 def test_laplace_cdf_tiny_beta_no_overflow_no_nan_grad():
-    s = torch.tensor([-1e3, -1.0, -1e-9, 0.0, 1e-9, 1.0, 1e3], dtype=torch.float64,
-                     requires_grad=True)
+    s = torch.tensor(
+        [-1e3, -1.0, -1e-9, 0.0, 1e-9, 1.0, 1e3], dtype=torch.float64, requires_grad=True
+    )
     for beta in (1e-2, 1e-6, 1e-12):
         y = laplace_cdf(s, beta)
         (g,) = torch.autograd.grad(y.sum(), s)
@@ -30,14 +31,16 @@ def test_laplace_cdf_gradcheck():
 
 
 def test_sdfs_exact_values():
-    p = torch.tensor([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.25, 0, 0]],
-                     dtype=torch.float64)
+    p = torch.tensor(
+        [[2.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.25, 0, 0]], dtype=torch.float64
+    )
     c = torch.zeros(3, dtype=torch.float64)
     box = sdf_box(p, c, torch.tensor([1.0, 1.0, 1.0], dtype=torch.float64))
-    assert torch.allclose(box, torch.tensor([1.5, -0.5, 2 ** 0.5 / 2, -0.25], dtype=torch.float64))
+    assert torch.allclose(box, torch.tensor([1.5, -0.5, 2**0.5 / 2, -0.25], dtype=torch.float64))
     assert torch.allclose(sdf_sphere(p, c, 0.5), p.norm(dim=-1) - 0.5)
-    torus = sdf_torus(torch.tensor([[0.6, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64), c,
-                      0.6, 0.25)
+    torus = sdf_torus(
+        torch.tensor([[0.6, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64), c, 0.6, 0.25
+    )
     assert torch.allclose(torus, torch.tensor([-0.25, 0.35], dtype=torch.float64))
 
 
@@ -60,4 +63,6 @@ def test_rainbow_color_clamped():
     vol = SDFVolume("box", center=(0.1, 0.2, 0.3))
     p = torch.tensor([[0.1, 0.2, 0.3], [5.0, 5.0, 5.0]])
     c = vol.color(p)
-    assert torch.allclose(c[0], torch.full((3,), 0.02)) and torch.allclose(c[1], torch.full((3,), 0.98))
+    assert torch.allclose(c[0], torch.full((3,), 0.02)) and torch.allclose(
+        c[1], torch.full((3,), 0.98)
+    )

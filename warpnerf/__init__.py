@@ -8,6 +8,7 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 - :class:`SDFVolume` (the analytic box/sphere/torus scene), :func:`render_rays` (rays -> image)
 """
 
+from . import data
 from .fields.sdf_volume import SDFVolume, laplace_cdf
 from .ops import (
     Samples,
@@ -24,6 +25,7 @@ from .render import render_image, render_rays, render_views
 __version__ = "0.1.0"
 
 __all__ = [
+    "data",
     "generate_rays",
     "random_pixels",
     "ray_aabb_intersect",

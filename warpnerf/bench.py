@@ -1,8 +1,8 @@
 """``warpnerf bench``: kernels against their PyTorch twins, measured in the same run.
 
-For each size: median time of the Warp op and of the pure-PyTorch twin (``warpnerf.reference``), both
-float32, forward and forward+backward; throughput in samples/s; bytes the Warp kernels must move
-(each input read once, each output written once) over the measured device copy bandwidth; and the
+For each size: median time of the Warp op and of the pure-PyTorch twin (``warpnerf.reference``),
+both float32, forward and forward+backward; throughput in samples/s; bytes the Warp kernels must
+move (each input read once, each output written once) over the measured device copy bandwidth; and the
 max abs error of the Warp float32 outputs and gradients against the float64 twin on the same inputs.
 """
 
@@ -108,8 +108,13 @@ def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, check_error:
         s64 = sigmas.detach().double().requires_grad_()
         c64 = rgbs.detach().double().requires_grad_()
         r64, d64, _ = reference.render_packed(
-            *(a.double() if a.is_floating_point() else a for a in args), s64, c64, n_rays,
-            background=bg.double(), packed_info=smp.packed_info)
+            *(a.double() if a.is_floating_point() else a for a in args),
+            s64,
+            c64,
+            n_rays,
+            background=bg.double(),
+            packed_info=smp.packed_info,
+        )
         gs64, gc64 = torch.autograd.grad((r64, d64), (s64, c64), (v_rgb.double(), v_depth.double()))
 
         def err(a, b):
@@ -166,11 +171,13 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
 
 
 def markdown_table(result) -> str:
-    head = (f"Device: {result['device_name']} ({result['device']}), measured copy bandwidth "
-            f"{result['copy_bandwidth_GBps']:.0f} GB/s (read+write)\n\n"
-            "| kernel | rays x samples | warp fwd ms | torch fwd ms | warp fwd+bwd ms | "
-            "torch fwd+bwd ms | speedup fwd / fwd+bwd | Gsamples/s fwd+bwd | % copy BW fwd+bwd | "
-            "max err rgb / v_sigmas (vs f64) |\n|---|---|---|---|---|---|---|---|---|---|")
+    head = (
+        f"Device: {result['device_name']} ({result['device']}), measured copy bandwidth "
+        f"{result['copy_bandwidth_GBps']:.0f} GB/s (read+write)\n\n"
+        "| kernel | rays x samples | warp fwd ms | torch fwd ms | warp fwd+bwd ms | "
+        "torch fwd+bwd ms | speedup fwd / fwd+bwd | Gsamples/s fwd+bwd | % copy BW fwd+bwd | "
+        "max err rgb / v_sigmas (vs f64) |\n|---|---|---|---|---|---|---|---|---|---|"
+    )
     lines = [head]
     for r in result["rows"]:
         lines.append(

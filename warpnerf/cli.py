@@ -35,24 +35,56 @@ def _positive(kind):
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
-    m = run_demo(args.out, iters=args.iters, size=args.size, frames=args.frames,
-                 video_size=args.video_size, device=_device(args.device), progress=not args.quiet)
+    m = run_demo(
+        args.out,
+        iters=args.iters,
+        size=args.size,
+        frames=args.frames,
+        video_size=args.video_size,
+        device=_device(args.device),
+        progress=not args.quiet,
+    )
     print(f"wrote {args.out}/metrics.json, videos and images")
-    print(json.dumps({k: m[k] for k in ("center", "side_lengths", "center_max_abs_error",
-                                         "side_max_abs_error", "val_psnr", "total_seconds")}))
+    print(
+        json.dumps(
+            {
+                k: m[k]
+                for k in (
+                    "center",
+                    "side_lengths",
+                    "center_max_abs_error",
+                    "side_max_abs_error",
+                    "val_psnr",
+                    "total_seconds",
+                )
+            }
+        )
+    )
     return 0
 
 
 def cmd_train_box(args) -> int:
-    from .train.box_fit import BoxFitConfig
-    from .train.box_fit import run_box_fit_on_folder
+    from .train.box_fit import BoxFitConfig, run_box_fit_on_folder
 
-    cfg = BoxFitConfig(iters=args.iters, batch=args.batch, n_samples=args.samples, near=args.near,
-                       far=args.far, lr=args.lr, seed=args.seed)
+    cfg = BoxFitConfig(
+        iters=args.iters,
+        batch=args.batch,
+        n_samples=args.samples,
+        near=args.near,
+        far=args.far,
+        lr=args.lr,
+        seed=args.seed,
+    )
     if not cfg.far > cfg.near:
         raise UserError(f"--far ({cfg.far}) must be greater than --near ({cfg.near})")
-    res = run_box_fit_on_folder(args.data, args.out, cfg, device=_device(args.device),
-                                frames=args.frames, progress=not args.quiet)
+    res = run_box_fit_on_folder(
+        args.data,
+        args.out,
+        cfg,
+        device=_device(args.device),
+        frames=args.frames,
+        progress=not args.quiet,
+    )
     print(json.dumps(res))
     return 0
 
@@ -71,8 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="main job: fit an analytic box to rendered views, write a "
-                       "spiral video, images and metrics.json (built-in scene, no data needed)")
+    d = sub.add_parser(
+        "demo",
+        help="main job: fit an analytic box to rendered views, write a "
+        "spiral video, images and metrics.json (built-in scene, no data needed)",
+    )
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     d.add_argument("--device", default="cpu", help="cpu or cuda")
     d.add_argument("--iters", type=_positive(int), default=300)

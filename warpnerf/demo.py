@@ -32,12 +32,25 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
     dev = volume.center.device
     cams = spiral_path(frames, radius=CAMERA_RADIUS).to(dev)
     k = intrinsics_from_fov(size, size, FOV_X).to(dev).expand(frames, 4)
-    out_r = render_views(cams, k, size, size, cfg.near, cfg.far, volume,
-                         n_samples=cfg.n_samples, mode="alpha", background=cfg.background)
+    out_r = render_views(
+        cams,
+        k,
+        size,
+        size,
+        cfg.near,
+        cfg.far,
+        volume,
+        n_samples=cfg.n_samples,
+        mode="alpha",
+        background=cfg.background,
+    )
     rgb, depth = out_r["rgb"].cpu(), out_r["depth"].cpu()
     # Expected depth of the visible surface (depth / opacity), normalised by its maximum.
-    surf = torch.where(out_r["opacity"].cpu() > 1e-3, depth / out_r["opacity"].cpu().clamp_min(1e-3),
-                       torch.zeros_like(depth))
+    surf = torch.where(
+        out_r["opacity"].cpu() > 1e-3,
+        depth / out_r["opacity"].cpu().clamp_min(1e-3),
+        torch.zeros_like(depth),
+    )
     dmax = float(surf.max()) or 1.0
     write_video(out / f"{prefix}_rgb.mp4", [to_uint8(f) for f in rgb])
     write_video(out / f"{prefix}_rgb.gif", [to_uint8(f) for f in rgb])
@@ -46,8 +59,17 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
     return rgb, surf
 
 
-def run_demo(out, iters: int = 300, size: int = 64, n_views: int = 24, frames: int = 40,
-             video_size: int = 128, device: str = "cpu", progress: bool = True, seed: int = 0):
+def run_demo(
+    out,
+    iters: int = 300,
+    size: int = 64,
+    n_views: int = 24,
+    frames: int = 40,
+    video_size: int = 128,
+    device: str = "cpu",
+    progress: bool = True,
+    seed: int = 0,
+):
     """Runs the main job and returns its metrics (also written to ``out/metrics.json``)."""
     t_start = time.perf_counter()
     out = Path(out)
@@ -83,8 +105,8 @@ def run_demo(out, iters: int = 300, size: int = 64, n_views: int = 24, frames: i
         "fit_seconds": fit["seconds"],
         "total_seconds": time.perf_counter() - t_start,
         "device": str(dev),
-        "config": cfg.to_dict() | {"size": size, "n_views": n_views, "frames": frames,
-                                   "video_size": video_size},
+        "config": cfg.to_dict()
+        | {"size": size, "n_views": n_views, "frames": frames, "video_size": video_size},
     }
     write_json(out / "metrics.json", metrics)
     return metrics

@@ -79,7 +79,8 @@ def write_video(path, frames, fps: int = 20) -> None:
             # Even sizes for yuv420p; macro_block_size=1 keeps small frames unpadded otherwise.
             h, w = frames[0].shape[:2]
             frames = [f[: h - h % 2, : w - w % 2] for f in frames]
-            with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8,
-                                    macro_block_size=1, format="FFMPEG") as wr:
+            with imageio.get_writer(
+                tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1, format="FFMPEG"
+            ) as wr:
                 for f in frames:
                     wr.append_data(f)

@@ -44,19 +44,32 @@ def render_rays(
     chunk = chunk or max(n_rays, 1)
     outs = []
     for s in range(0, max(n_rays, 1), chunk):
-        o, d = origins[s:s + chunk], directions[s:s + chunk]
-        smp = stratified_samples(near[s:s + chunk], far[s:s + chunk], n_samples, perturb=perturb,
-                                 seed=seed + s, packed=True)
+        o, d = origins[s : s + chunk], directions[s : s + chunk]
+        smp = stratified_samples(
+            near[s : s + chunk],
+            far[s : s + chunk],
+            n_samples,
+            perturb=perturb,
+            seed=seed + s,
+            packed=True,
+        )
         ri = smp.ray_indices
         positions = o[ri] + d[ri] * smp.midpoints().unsqueeze(-1)
         values, rgbs = field_fn(positions, d[ri])
         bg = background
         if isinstance(bg, torch.Tensor) and bg.dim() == 2:
-            bg = bg[s:s + chunk]
+            bg = bg[s : s + chunk]
         kw = {"alphas": values, "sigmas": None} if mode == "alpha" else {"sigmas": values}
         rgb, depth, opacity = render_packed(
-            smp.t_starts, smp.t_ends, ri, rgbs=rgbs, n_rays=o.shape[0], background=bg,
-            packed_info=smp.packed_info, t_threshold=t_threshold, **kw,
+            smp.t_starts,
+            smp.t_ends,
+            ri,
+            rgbs=rgbs,
+            n_rays=o.shape[0],
+            background=bg,
+            packed_info=smp.packed_info,
+            t_threshold=t_threshold,
+            **kw,
         )
         outs.append((rgb, depth, opacity))
     rgb, depth, opacity = (torch.cat(x) for x in zip(*outs))
@@ -64,19 +77,24 @@ def render_rays(
 
 
 @torch.no_grad()
-def render_image(c2w, intrinsics, width: int, height: int, near, far, field_fn, *,
-                 chunk: int = 16384, **kw):
-    """Renders one camera (c2w [4, 4], intrinsics [4]) to rgb [H, W, 3], depth and opacity [H, W]."""
+def render_image(
+    c2w, intrinsics, width: int, height: int, near, far, field_fn, *, chunk: int = 16384, **kw
+):
+    """One camera (c2w [4, 4], intrinsics [4]) to rgb [H, W, 3], depth and opacity [H, W]."""
     o, d = generate_rays(c2w, intrinsics, width, height)
     out = render_rays(o, d, near, far, field_fn, chunk=chunk, **kw)
-    return {"rgb": out["rgb"].reshape(height, width, 3),
-            "depth": out["depth"].reshape(height, width),
-            "opacity": out["opacity"].reshape(height, width)}
+    return {
+        "rgb": out["rgb"].reshape(height, width, 3),
+        "depth": out["depth"].reshape(height, width),
+        "opacity": out["opacity"].reshape(height, width),
+    }
 
 
 @torch.no_grad()
 def render_views(c2w, intrinsics, width: int, height: int, near, far, field_fn, **kw):
-    """Renders cameras c2w [N, 4, 4], intrinsics [N, 4]: rgb [N, H, W, 3], depth, opacity [N, H, W]."""
-    outs = [render_image(c2w[i], intrinsics[i], width, height, near, far, field_fn, **kw)
-            for i in range(c2w.shape[0])]
+    """Cameras c2w [N, 4, 4], intrinsics [N, 4] to rgb [N, H, W, 3], depth, opacity [N, H, W]."""
+    outs = [
+        render_image(c2w[i], intrinsics[i], width, height, near, far, field_fn, **kw)
+        for i in range(c2w.shape[0])
+    ]
     return {k: torch.stack([o[k] for o in outs]) for k in ("rgb", "depth", "opacity")}

@@ -23,11 +23,15 @@ def find_transforms(root: Path, split: str) -> Path:
 
 def _number(js, key, path, positive=True):
     v = js.get(key)
-    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or (
-        positive and v <= 0
+    if (
+        not isinstance(v, (int, float))
+        or isinstance(v, bool)
+        or not math.isfinite(v)
+        or (positive and v <= 0)
     ):
-        raise UserError(f"{path}: field '{key}' must be a {'positive ' if positive else ''}number, "
-                        f"got {v!r}")
+        raise UserError(
+            f"{path}: field '{key}' must be a {'positive ' if positive else ''}number, got {v!r}"
+        )
     return float(v)
 
 
@@ -38,8 +42,10 @@ def _matrix(frame, i, path):
     except (TypeError, ValueError):
         arr = None
     if arr is None or arr.shape not in ((4, 4), (3, 4)) or not np.isfinite(arr).all():
-        raise UserError(f"{path}: frames[{i}].transform_matrix must be a finite 4x4 (or 3x4) list "
-                        "of numbers (camera-to-world, OpenGL convention)")
+        raise UserError(
+            f"{path}: frames[{i}].transform_matrix must be a finite 4x4 (or 3x4) list "
+            "of numbers (camera-to-world, OpenGL convention)"
+        )
     if arr.shape == (3, 4):
         arr = np.vstack([arr, [0.0, 0.0, 0.0, 1.0]])
     return arr
@@ -53,8 +59,10 @@ def _read_image(root: Path, file_path, i, path):
     candidates += [p.with_name(p.name + ext) for ext in (".png", ".jpg", ".jpeg")]
     img_path = next((c for c in candidates if c.is_file()), None)
     if img_path is None:
-        raise UserError(f"{path}: frames[{i}].file_path: image {p} not found (.png added when "
-                        "the path has no extension)")
+        raise UserError(
+            f"{path}: frames[{i}].file_path: image {p} not found (.png added when "
+            "the path has no extension)"
+        )
     import imageio.v3 as iio
 
     try:
@@ -69,8 +77,13 @@ def _read_image(root: Path, file_path, i, path):
     return img.astype(np.float32) / scale, img_path
 
 
-def load_blender(root, split: str = "train", background=(1.0, 1.0, 1.0), downscale: int = 1,
-                 max_images: int | None = None):
+def load_blender(
+    root,
+    split: str = "train",
+    background=(1.0, 1.0, 1.0),
+    downscale: int = 1,
+    max_images: int | None = None,
+):
     """Loads a Blender-format folder.
 
     Reads ``transforms_{split}.json`` (or ``transforms.json``): ``camera_angle_x`` (horizontal FOV,
@@ -107,8 +120,10 @@ def load_blender(root, split: str = "train", background=(1.0, 1.0, 1.0), downsca
         img, ip = _read_image(root, fr.get("file_path"), i, path)
         first = first or img.shape[:2]
         if img.shape[:2] != first:
-            raise UserError(f"{ip}: size {img.shape[1]}x{img.shape[0]} differs from the first "
-                            f"image's {first[1]}x{first[0]}")
+            raise UserError(
+                f"{ip}: size {img.shape[1]}x{img.shape[0]} differs from the first "
+                f"image's {first[1]}x{first[0]}"
+            )
         if img.shape[-1] == 4:
             a = img[..., 3:]
             img = img[..., :3] * a + bg * (1.0 - a)

@@ -34,17 +34,28 @@ def intrinsics_from_fov(width: int, height: int, fov_x: float, dtype=torch.float
     return torch.tensor([f, f, 0.5 * width, 0.5 * height], dtype=dtype)
 
 
-def spiral_path(n_frames: int, radius: float = 4.0, elevation=(15.0, 45.0), turns: float = 1.0,
-                target=(0.0, 0.0, 0.0), dtype=torch.float32) -> torch.Tensor:
+def spiral_path(
+    n_frames: int,
+    radius: float = 4.0,
+    elevation=(15.0, 45.0),
+    turns: float = 1.0,
+    target=(0.0, 0.0, 0.0),
+    dtype=torch.float32,
+) -> torch.Tensor:
     """[n_frames, 4, 4] cameras circling ``target`` (z up) while the elevation (degrees) swings
     from the first value to the second and back."""
     mats = []
     for i in range(n_frames):
         s = i / max(n_frames, 1)
         az = 2.0 * math.pi * turns * s
-        el = math.radians(elevation[0] + (elevation[1] - elevation[0]) * 0.5 * (1 - math.cos(2 * math.pi * s)))
-        eye = (radius * math.cos(el) * math.cos(az), radius * math.cos(el) * math.sin(az),
-               radius * math.sin(el))
+        el = math.radians(
+            elevation[0] + (elevation[1] - elevation[0]) * 0.5 * (1 - math.cos(2 * math.pi * s))
+        )
+        eye = (
+            radius * math.cos(el) * math.cos(az),
+            radius * math.cos(el) * math.sin(az),
+            radius * math.sin(el),
+        )
         eye = tuple(e + t for e, t in zip(eye, target))
         mats.append(look_at(eye, target, dtype=dtype))
     return torch.stack(mats)
@@ -59,6 +70,7 @@ def orbit_views(n_views: int, radius: float = 4.0, seed: int = 0, dtype=torch.fl
         z = 1.0 - 2.0 * (i + 0.5) / n_views
         r = math.sqrt(max(1.0 - z * z, 0.0))
         th = golden * i + seed
-        mats.append(look_at((radius * r * math.cos(th), radius * r * math.sin(th), radius * z),
-                            dtype=dtype))
+        mats.append(
+            look_at((radius * r * math.cos(th), radius * r * math.sin(th), radius * z), dtype=dtype)
+        )
     return torch.stack(mats)

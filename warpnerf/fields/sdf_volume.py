@@ -51,9 +51,19 @@ class SDFVolume(nn.Module):
 
     SHAPES = ("box", "sphere", "torus")
 
-    def __init__(self, shape="box", center=(0.0, 0.0, 0.0), side_lengths=(1.0, 1.0, 1.0),
-                 radius=0.5, major_radius=0.6, minor_radius=0.25, alpha=1.0, beta=0.05,
-                 color="rainbow", dtype=torch.float32):
+    def __init__(
+        self,
+        shape="box",
+        center=(0.0, 0.0, 0.0),
+        side_lengths=(1.0, 1.0, 1.0),
+        radius=0.5,
+        major_radius=0.6,
+        minor_radius=0.25,
+        alpha=1.0,
+        beta=0.05,
+        color="rainbow",
+        dtype=torch.float32,
+    ):
         super().__init__()
         if shape not in self.SHAPES:
             raise ValueError(f"shape must be one of {self.SHAPES}, got {shape!r}")

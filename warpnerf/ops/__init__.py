@@ -1,4 +1,5 @@
-"""Torch bridge: one private autograd.Function per kernel family behind a checking public function."""
+"""Torch bridge: one private autograd.Function per kernel family, behind a checking
+public function."""
 
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
 from .rays import generate_rays, random_pixels, ray_aabb_intersect

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 
 import torch
-
 import warp as _warp
 
 # Silence Warp's banner and per-module compile lines unless asked for (no init, no compile here).

@@ -17,8 +17,19 @@ class _Composite(torch.autograd.Function):
     """values = sigmas or alphas; returns (rgb, depth, opacity, weights)."""
 
     @staticmethod
-    def forward(ctx, packed_info, n_dense, t_starts, t_ends, values, use_alpha, rgbs, background,
-                t_threshold, want_weights):
+    def forward(
+        ctx,
+        packed_info,
+        n_dense,
+        t_starts,
+        t_ends,
+        values,
+        use_alpha,
+        rgbs,
+        background,
+        t_threshold,
+        want_weights,
+    ):
         from warpnerf.kernels import composite as K
 
         dev, dt = values.device, values.dtype
@@ -34,9 +45,24 @@ class _Composite(torch.autograd.Function):
         _bridge.launch(
             K.composite_fwd,
             n_rays,
-            [a(packed_info), n_dense, a(t_starts), a(t_ends), a(values), int(use_alpha), a(rgbs),
-             a(background), _bridge.scalar(t_threshold, dt), int(want_weights), a(rgb), a(depth), a(opacity),
-             a(trans), a(weights), a(n_eff)],
+            [
+                a(packed_info),
+                n_dense,
+                a(t_starts),
+                a(t_ends),
+                a(values),
+                int(use_alpha),
+                a(rgbs),
+                a(background),
+                _bridge.scalar(t_threshold, dt),
+                int(want_weights),
+                a(rgb),
+                a(depth),
+                a(opacity),
+                a(trans),
+                a(weights),
+                a(n_eff),
+            ],
             dev,
         )
         ctx.save_for_backward(
@@ -69,9 +95,24 @@ class _Composite(torch.autograd.Function):
         _bridge.launch(
             K.composite_bwd,
             n_rays,
-            [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values), int(ctx.use_alpha),
-             a(rgbs), a(background), a(trans), a(n_eff), a(v_rgb), a(v_depth), a(v_opacity),
-             a(v_weights), a(v_values), a(v_rgbs)],
+            [
+                a(packed_info),
+                ctx.n_dense,
+                a(t_starts),
+                a(t_ends),
+                a(values),
+                int(ctx.use_alpha),
+                a(rgbs),
+                a(background),
+                a(trans),
+                a(n_eff),
+                a(v_rgb),
+                a(v_depth),
+                a(v_opacity),
+                a(v_weights),
+                a(v_values),
+                a(v_rgbs),
+            ],
             dev,
         )
         v_background = None
@@ -103,7 +144,9 @@ def _background(background, n_rays, device, dtype):
         return bg.reshape(1, 3)
     if bg.shape == (n_rays, 3):
         return bg
-    raise ValueError(f"background must be a scalar, [3] or [n_rays={n_rays}, 3], got {list(bg.shape)}")
+    raise ValueError(
+        f"background must be a scalar, [3] or [n_rays={n_rays}, 3], got {list(bg.shape)}"
+    )
 
 
 def _values(sigmas, alphas):
@@ -143,20 +186,32 @@ def render_packed(
     n = values.shape[0] if values.dim() == 1 else -1
     dev, dt = values.device, values.dtype
     _bridge.check_float("sigmas" if not use_alpha else "alphas", values, (None,))
-    for name, t, shape in (("t_starts", t_starts, (n,)), ("t_ends", t_ends, (n,)),
-                           ("rgbs", rgbs, (n, 3))):
+    for name, t, shape in (
+        ("t_starts", t_starts, (n,)),
+        ("t_ends", t_ends, (n,)),
+        ("rgbs", rgbs, (n, 3)),
+    ):
         _bridge.check_float(name, t, shape, dt, dev)
     if ray_indices.shape != (n,):
         raise ValueError(f"ray_indices must have shape [{n}], got {list(ray_indices.shape)}")
     if packed_info is None:
         packed_info = packed_info_from_ray_indices(ray_indices.to(dev), n_rays)
     elif packed_info.shape != (n_rays, 2):
-        raise ValueError(f"packed_info must have shape [{n_rays}, 2], got {list(packed_info.shape)}")
+        raise ValueError(
+            f"packed_info must have shape [{n_rays}, 2], got {list(packed_info.shape)}"
+        )
     bg = _background(background, n_rays, dev, dt)
     rgb, depth, opacity, weights = _Composite.apply(
-        packed_info.to(dev, torch.int32).contiguous(), 0, t_starts.contiguous(),
-        t_ends.contiguous(), values.contiguous(), use_alpha, rgbs.contiguous(), bg,
-        float(t_threshold), bool(return_weights),
+        packed_info.to(dev, torch.int32).contiguous(),
+        0,
+        t_starts.contiguous(),
+        t_ends.contiguous(),
+        values.contiguous(),
+        use_alpha,
+        rgbs.contiguous(),
+        bg,
+        float(t_threshold),
+        bool(return_weights),
     )
     return (rgb, depth, opacity, weights) if return_weights else (rgb, depth, opacity)
 
@@ -182,8 +237,11 @@ def render_dense(
     _bridge.check_float(name, values, (None, None))
     n_rays, n_s = values.shape
     dev, dt = values.device, values.dtype
-    for nm, t, shape in (("t_starts", t_starts, (n_rays, n_s)), ("t_ends", t_ends, (n_rays, n_s)),
-                         ("rgbs", rgbs, (n_rays, n_s, 3))):
+    for nm, t, shape in (
+        ("t_starts", t_starts, (n_rays, n_s)),
+        ("t_ends", t_ends, (n_rays, n_s)),
+        ("rgbs", rgbs, (n_rays, n_s, 3)),
+    ):
         _bridge.check_float(nm, t, shape, dt, dev)
     bg = _background(background, n_rays, dev, dt)
     empty_info = torch.empty(n_rays, 2, device=dev, dtype=torch.int32)
@@ -193,9 +251,16 @@ def render_dense(
         out = (rgb, zeros, zeros.clone())
         return out + (values.clone(),) if return_weights else out
     rgb, depth, opacity, weights = _Composite.apply(
-        empty_info, n_s, t_starts.reshape(-1).contiguous(), t_ends.reshape(-1).contiguous(),
-        values.reshape(-1).contiguous(), use_alpha, rgbs.reshape(-1, 3).contiguous(), bg,
-        float(t_threshold), bool(return_weights),
+        empty_info,
+        n_s,
+        t_starts.reshape(-1).contiguous(),
+        t_ends.reshape(-1).contiguous(),
+        values.reshape(-1).contiguous(),
+        use_alpha,
+        rgbs.reshape(-1, 3).contiguous(),
+        bg,
+        float(t_threshold),
+        bool(return_weights),
     )
     if return_weights:
         return rgb, depth, opacity, weights.reshape(n_rays, n_s)

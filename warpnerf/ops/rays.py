@@ -72,8 +72,19 @@ def generate_rays(
     _bridge.launch(
         K.generate_rays_fwd,
         n,
-        [a(c2w), a(intrinsics), int(grid), int(width), int(height), a(cam_idx), a(px), a(py),
-         int(normalize), a(origins), a(directions)],
+        [
+            a(c2w),
+            a(intrinsics),
+            int(grid),
+            int(width),
+            int(height),
+            a(cam_idx),
+            a(px),
+            a(py),
+            int(normalize),
+            a(origins),
+            a(directions),
+        ],
         dev,
     )
     return origins, directions

@@ -37,7 +37,8 @@ def stratified_samples(
 
     Evaluation (perturb=False): n equal bins, fields evaluated at bin midpoints. Training
     (perturb=True): interior bin edges jittered uniformly by up to half a bin (Warp RNG keyed by
-    ``seed`` and ray index; pass a new seed every step). Packed: rays with far <= near get no samples.
+    ``seed`` and ray index; pass a new seed every step). Packed: rays with far <= near get no
+    samples.
     Non-finite near/far raise ValueError (they would otherwise yield plausible-looking samples).
     """
     from warpnerf.kernels import sampling as K
@@ -65,8 +66,17 @@ def stratified_samples(
     _bridge.launch(
         K.stratified_fwd,
         n_rays,
-        [a(near), a(far), int(n_samples), a(packed_info), int(perturb), int(seed) & 0x7FFFFFFF,
-         a(t_starts), a(t_ends), a(ray_indices)],
+        [
+            a(near),
+            a(far),
+            int(n_samples),
+            a(packed_info),
+            int(perturb),
+            int(seed) & 0x7FFFFFFF,
+            a(t_starts),
+            a(t_ends),
+            a(ray_indices),
+        ],
         dev,
     )
     if packed:

@@ -4,5 +4,10 @@ from .composite import render_dense, render_packed
 from .rays import generate_rays, ray_aabb_intersect
 from .sampling import stratified_samples
 
-__all__ = ["generate_rays", "ray_aabb_intersect", "stratified_samples", "render_dense",
-           "render_packed"]
+__all__ = [
+    "generate_rays",
+    "ray_aabb_intersect",
+    "stratified_samples",
+    "render_dense",
+    "render_packed",
+]

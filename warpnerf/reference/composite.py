@@ -21,8 +21,17 @@ def _alpha_tau(values, deltas, use_alpha):
     return -torch.expm1(-tau), tau
 
 
-def render_dense(t_starts, t_ends, sigmas, rgbs, background=None, *, alphas=None,
-                 t_threshold=0.0, return_weights=False):
+def render_dense(
+    t_starts,
+    t_ends,
+    sigmas,
+    rgbs,
+    background=None,
+    *,
+    alphas=None,
+    t_threshold=0.0,
+    return_weights=False,
+):
     """Reference for :func:`warpnerf.render_dense` (shapes [n_rays, n_samples])."""
     values, use_alpha = _values(sigmas, alphas)
     n_rays = values.shape[0]
@@ -43,8 +52,20 @@ def render_dense(t_starts, t_ends, sigmas, rgbs, background=None, *, alphas=None
     return (rgb, depth, opacity, weights) if return_weights else (rgb, depth, opacity)
 
 
-def render_packed(t_starts, t_ends, ray_indices, sigmas, rgbs, n_rays, background=None, *,
-                  alphas=None, packed_info=None, t_threshold=0.0, return_weights=False):
+def render_packed(
+    t_starts,
+    t_ends,
+    ray_indices,
+    sigmas,
+    rgbs,
+    n_rays,
+    background=None,
+    *,
+    alphas=None,
+    packed_info=None,
+    t_threshold=0.0,
+    return_weights=False,
+):
     """Reference for :func:`warpnerf.render_packed` (packed samples, sorted ray_indices)."""
     values, use_alpha = _values(sigmas, alphas)
     if packed_info is None:
@@ -61,8 +82,13 @@ def render_packed(t_starts, t_ends, ray_indices, sigmas, rgbs, n_rays, backgroun
 
     t0 = dense(t_starts)
     out = render_dense(
-        t0, t0 + dense(t_ends - t_starts), None if use_alpha else dense(values), dense(rgbs),
-        background, alphas=dense(values) if use_alpha else None, t_threshold=t_threshold,
+        t0,
+        t0 + dense(t_ends - t_starts),
+        None if use_alpha else dense(values),
+        dense(rgbs),
+        background,
+        alphas=dense(values) if use_alpha else None,
+        t_threshold=t_threshold,
         return_weights=True,
     )
     rgb, depth, opacity, weights = out

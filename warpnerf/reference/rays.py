@@ -7,8 +7,9 @@ import torch
 __all__ = ["generate_rays", "ray_aabb_intersect"]
 
 
-def generate_rays(c2w, intrinsics, width=None, height=None, *, cam_idx=None, px=None, py=None,
-                  normalize=True):
+def generate_rays(
+    c2w, intrinsics, width=None, height=None, *, cam_idx=None, px=None, py=None, normalize=True
+):
     """Reference for :func:`warpnerf.generate_rays`."""
     if c2w.dim() == 2:
         c2w = c2w.unsqueeze(0)
@@ -17,14 +18,23 @@ def generate_rays(c2w, intrinsics, width=None, height=None, *, cam_idx=None, px=
     dt, dev = c2w.dtype, c2w.device
     if cam_idx is None:
         n_cams = c2w.shape[0]
-        ys, xs = torch.meshgrid(torch.arange(height, dtype=dt, device=dev),
-                                torch.arange(width, dtype=dt, device=dev), indexing="ij")
+        ys, xs = torch.meshgrid(
+            torch.arange(height, dtype=dt, device=dev),
+            torch.arange(width, dtype=dt, device=dev),
+            indexing="ij",
+        )
         cam_idx = torch.arange(n_cams, device=dev).repeat_interleave(width * height)
         px = (xs.reshape(-1) + 0.5).repeat(n_cams)
         py = (ys.reshape(-1) + 0.5).repeat(n_cams)
     k = intrinsics[cam_idx]
-    d_cam = torch.stack([(px.to(dt) - k[:, 2]) / k[:, 0], -(py.to(dt) - k[:, 3]) / k[:, 1],
-                         -torch.ones_like(k[:, 0])], -1)
+    d_cam = torch.stack(
+        [
+            (px.to(dt) - k[:, 2]) / k[:, 0],
+            -(py.to(dt) - k[:, 3]) / k[:, 1],
+            -torch.ones_like(k[:, 0]),
+        ],
+        -1,
+    )
     m = c2w[cam_idx]
     directions = (m[:, :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
     if normalize:

@@ -28,5 +28,9 @@ def stratified_samples(near, far, n_samples, *, perturb=False, seed=0, packed=Fa
     counts = torch.where(keep, n_samples, 0)
     starts = torch.cumsum(counts, 0) - counts
     ray_indices = torch.arange(n_rays, device=near.device).repeat_interleave(counts)
-    return Samples(t_starts[keep].reshape(-1), t_ends[keep].reshape(-1), ray_indices,
-                   torch.stack([starts, counts], -1).to(torch.int32))
+    return Samples(
+        t_starts[keep].reshape(-1),
+        t_ends[keep].reshape(-1),
+        ray_indices,
+        torch.stack([starts, counts], -1).to(torch.int32),
+    )

@@ -41,13 +41,31 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
 
 def render_box_views(volume, c2w, intrinsics, width, height, cfg: BoxFitConfig):
     """Renders every camera with the box task's settings: rgb [N, H, W, 3], depth [N, H, W]."""
-    out = render_views(c2w, intrinsics, width, height, cfg.near, cfg.far, volume,
-                       n_samples=cfg.n_samples, mode="alpha", background=cfg.background)
+    out = render_views(
+        c2w,
+        intrinsics,
+        width,
+        height,
+        cfg.near,
+        cfg.far,
+        volume,
+        n_samples=cfg.n_samples,
+        mode="alpha",
+        background=cfg.background,
+    )
     return out["rgb"], out["depth"]
 
 
-def fit_box(images, c2w, intrinsics, cfg: BoxFitConfig, init_center=(0.0, 0.0, 0.0),
-            init_sides=(1.0, 1.0, 1.0), progress: bool = False, log_every: int = 0):
+def fit_box(
+    images,
+    c2w,
+    intrinsics,
+    cfg: BoxFitConfig,
+    init_center=(0.0, 0.0, 0.0),
+    init_sides=(1.0, 1.0, 1.0),
+    progress: bool = False,
+    log_every: int = 0,
+):
     """Optimises a rainbow box's center and side lengths so its renders match ``images``.
 
     Args:
@@ -59,8 +77,13 @@ def fit_box(images, c2w, intrinsics, cfg: BoxFitConfig, init_center=(0.0, 0.0, 0
         and the fitted ``volume``.
     """
     n_img, h, w, _ = images.shape
-    volume = SDFVolume("box", center=tuple(init_center), side_lengths=tuple(init_sides),
-                       alpha=cfg.alpha, beta=cfg.beta)
+    volume = SDFVolume(
+        "box",
+        center=tuple(init_center),
+        side_lengths=tuple(init_sides),
+        alpha=cfg.alpha,
+        beta=cfg.beta,
+    )
     opt = torch.optim.Adam(volume.parameters(), lr=cfg.lr)
     gamma = cfg.lr_final_ratio ** (1.0 / max(cfg.iters, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
@@ -74,11 +97,22 @@ def fit_box(images, c2w, intrinsics, cfg: BoxFitConfig, init_center=(0.0, 0.0, 0
 
         bar = tqdm(total=cfg.iters, desc="fit box", unit="step", leave=False, disable=None)
     for step in range(cfg.iters):
-        cam, px, py, flat = random_pixels(n_img, w, h, cfg.batch, generator=gen,
-                                          device=images.device)
+        cam, px, py, flat = random_pixels(
+            n_img, w, h, cfg.batch, generator=gen, device=images.device
+        )
         o, d = generate_rays(c2w, intrinsics, cam_idx=cam, px=px, py=py)
-        out = render_rays(o, d, cfg.near, cfg.far, volume, n_samples=cfg.n_samples, mode="alpha",
-                          background=cfg.background, perturb=True, seed=cfg.seed * 100003 + step)
+        out = render_rays(
+            o,
+            d,
+            cfg.near,
+            cfg.far,
+            volume,
+            n_samples=cfg.n_samples,
+            mode="alpha",
+            background=cfg.background,
+            perturb=True,
+            seed=cfg.seed * 100003 + step,
+        )
         loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -106,8 +140,9 @@ def fit_box(images, c2w, intrinsics, cfg: BoxFitConfig, init_center=(0.0, 0.0, 0
     }
 
 
-def run_box_fit_on_folder(data, out, cfg: BoxFitConfig, device: str = "cpu", frames: int = 40,
-                          progress: bool = False):
+def run_box_fit_on_folder(
+    data, out, cfg: BoxFitConfig, device: str = "cpu", frames: int = 40, progress: bool = False
+):
     """The seed's box task on a Blender-format folder: images alpha-composited on black, fits the
     rainbow box, writes ``result.json``, ``config.json`` and (frames > 0) a spiral video of the fit.
 
@@ -123,8 +158,9 @@ def run_box_fit_on_folder(data, out, cfg: BoxFitConfig, device: str = "cpu", fra
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device})
-    fit = fit_box(ds["images"].to(dev), ds["c2w"].to(dev), ds["intrinsics"].to(dev), cfg,
-                  progress=progress)
+    fit = fit_box(
+        ds["images"].to(dev), ds["c2w"].to(dev), ds["intrinsics"].to(dev), cfg, progress=progress
+    )
     volume = fit.pop("volume")
     result = {k: fit[k] for k in ("center", "side_lengths", "final_loss")}
     write_json(out / "result.json", result | {"seconds": fit["seconds"], "losses": fit["losses"]})
