@@ -2,8 +2,8 @@
 
 For each size: median time of the Warp op and of the pure-PyTorch twin (``warpnerf.reference``),
 both float32, forward and forward+backward; throughput in samples/s; bytes the Warp kernels must
-move (each input read once, each output written once) over the measured device copy bandwidth; and the
-max abs error of the Warp float32 outputs and gradients against the float64 twin on the same inputs.
+move (each input read once, each output written once) over the measured device copy bandwidth;
+and the max abs error of the Warp float32 outputs and gradients against the float64 twin on the same inputs.
 """
 
 from __future__ import annotations
@@ -141,6 +141,8 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
 
     dev = torch.device(device)
     if dev.type == "cuda":
+        if dev.index is None:
+            dev = torch.device("cuda", torch.cuda.current_device())
         torch.cuda.set_device(dev)
         name = torch.cuda.get_device_name(dev)
         bw = measure_copy_bandwidth(dev, 1 << 30)
