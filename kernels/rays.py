@@ -78,6 +78,7 @@ def ray_aabb_fwd(
     lo = t_clip
     hi = t_near.dtype(wp.inf)
     ok = True
+    bad = False
     for a in range(3):
         o = origins[tid, a]
         d = directions[tid, a]
@@ -92,8 +93,10 @@ def ray_aabb_fwd(
             lo = wp.max(lo, wp.min(t1, t2))
             hi = wp.min(hi, wp.max(t1, t2))
         if wp.isnan(o) or wp.isnan(d):
-            ok = False
-            lo = t_near.dtype(wp.nan)
+            bad = True  # flagged, not folded into lo: CUDA's fmin/fmax drop NaN operands
+    if bad:
+        ok = False
+        lo = t_near.dtype(wp.nan)
     if ok and lo <= hi:
         t_near[tid] = lo
         t_far[tid] = hi

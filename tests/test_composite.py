@@ -23,6 +23,30 @@ OUT_NAMES = ("rgb", "depth", "opacity", "weights")
 # helpers
 
 
+def _mk(layout, mode, n_rays, t_starts, t_ends, ray_indices, values, rgbs):
+    """A test case: samples ([n] packed or [n_rays, n_samples] dense) and their inputs."""
+    return SimpleNamespace(
+        layout=layout,
+        mode=mode,
+        n_rays=n_rays,
+        t_starts=t_starts,
+        t_ends=t_ends,
+        ray_indices=ray_indices,
+        values=values,
+        rgbs=rgbs,
+    )
+
+
+def _pack(case):
+    """The dense case as a packed one (every ray keeps all its samples)."""
+    n_rays, n_s = case.values.shape
+    ray_indices = torch.arange(n_rays, device=case.values.device).repeat_interleave(n_s)
+    flat = [x.reshape(-1) for x in (case.t_starts, case.t_ends, case.values)]
+    return _mk(
+        "packed", case.mode, n_rays, *flat[:2], ray_indices, flat[2], case.rgbs.reshape(-1, 3)
+    )
+
+
 def _packed_case(counts, mode, *, sigma_max=4.0, dtype=F64, device="cpu"):
     """Random packed samples: per-ray ordered, touching intervals starting at a random near."""
     counts = torch.as_tensor(counts, dtype=torch.int64)
@@ -41,16 +65,7 @@ def _packed_case(counts, mode, *, sigma_max=4.0, dtype=F64, device="cpu"):
     else:
         values = torch.rand(n, dtype=F64) * sigma_max
     rgbs = torch.rand(n, 3, dtype=F64)
-    case = SimpleNamespace(
-        layout="packed",
-        mode=mode,
-        n_rays=n_rays,
-        t_starts=t_starts,
-        t_ends=t_ends,
-        ray_indices=ray_indices,
-        values=values,
-        rgbs=rgbs,
-    )
+    case = _mk("packed", mode, n_rays, t_starts, t_ends, ray_indices, values, rgbs)
     return _to(case, device, dtype)
 
 
@@ -64,16 +79,7 @@ def _dense_case(n_rays, n_samples, mode, *, sigma_max=4.0, dtype=F64, device="cp
     else:
         values = torch.rand(n_rays, n_samples, dtype=F64) * sigma_max
     rgbs = torch.rand(n_rays, n_samples, 3, dtype=F64)
-    case = SimpleNamespace(
-        layout="dense",
-        mode=mode,
-        n_rays=n_rays,
-        t_starts=t_starts,
-        t_ends=t_ends,
-        ray_indices=None,
-        values=values,
-        rgbs=rgbs,
-    )
+    case = _mk("dense", mode, n_rays, t_starts, t_ends, None, values, rgbs)
     return _to(case, device, dtype)
 
 
@@ -143,7 +149,7 @@ def _render(lib, case, values, rgbs, background, t_threshold=0.0, return_weights
 
 
 def _run(lib, case, background=None, t_threshold=0.0, upstream=None, return_weights=True):
-    """Outputs (detached) and, given upstream gradients, d<upstream, outputs> / d(values, rgbs[, bg])."""
+    """Outputs (detached) and, with upstream gradients g, d<g, outputs> / d(values, rgbs[, bg])."""
     values = case.values.detach().clone().requires_grad_()
     rgbs = case.rgbs.detach().clone().requires_grad_()
     bg = None if background is None else background.detach().clone().requires_grad_()
@@ -187,12 +193,11 @@ def test_matches_reference_float64(device, layout, mode, bg_kind, t_threshold):
         full, _ = _run(R, case, bg, 0.0)
         assert bool((full[3] != ref_out[3]).any()), "no ray terminated early: weak test data"
     # Weights sum to the opacity.
-    w = out[3] if layout == "dense" else torch.zeros(case.n_rays, dtype=F64, device=device)
     if layout == "packed":
-        w = w.index_add(0, case.ray_indices, out[3])
+        w_sum = torch.zeros_like(out[2]).index_add(0, case.ray_indices, out[3])
     else:
-        w = w.sum(1)
-    torch.testing.assert_close(w, out[2], rtol=0, atol=1e-12)
+        w_sum = out[3].sum(1)
+    torch.testing.assert_close(w_sum, out[2], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode", ["sigma", "alpha"])
@@ -263,26 +268,9 @@ def test_packed_equals_dense(device, mode, t_threshold):
     values = (values + (0.05 if mode == "alpha" else 0.0)).to(device)
     rgbs = torch.rand(n_rays, n_s, 3, dtype=F64).to(device)
     bg = _background("per_ray", n_rays, device)
-    dcase = SimpleNamespace(
-        layout="dense",
-        mode=mode,
-        n_rays=n_rays,
-        t_starts=dense.t_starts,
-        t_ends=dense.t_ends,
-        ray_indices=None,
-        values=values,
-        rgbs=rgbs,
-    )
-    pcase = SimpleNamespace(
-        layout="packed",
-        mode=mode,
-        n_rays=n_rays,
-        t_starts=packed.t_starts,
-        t_ends=packed.t_ends,
-        ray_indices=packed.ray_indices,
-        values=values.reshape(-1),
-        rgbs=rgbs.reshape(-1, 3),
-    )
+    dcase = _mk("dense", mode, n_rays, dense.t_starts, dense.t_ends, None, values, rgbs)
+    pcase = _pack(dcase)
+    pcase.ray_indices, pcase.t_starts, pcase.t_ends = packed[2], packed[0], packed[1]
     g = _upstream(dcase)
     d_out, d_grads = _run(W, dcase, bg, t_threshold, g)
     p_out, p_grads = _run(W, pcase, bg, t_threshold, g[:3] + [g[3].reshape(-1)])
@@ -309,28 +297,9 @@ def _extreme_case(mode, layout, device):
     t_ends = torch.cumsum(deltas, 1)
     t_starts = t_ends - deltas
     values = rows / deltas if mode == "sigma" else rows
-    case = SimpleNamespace(
-        layout="dense",
-        mode=mode,
-        n_rays=n_rays,
-        t_starts=t_starts,
-        t_ends=t_ends,
-        ray_indices=None,
-        values=values,
-        rgbs=torch.rand(n_rays, n_s, 3, dtype=F64),
-    )
-    if layout == "packed":
-        case = SimpleNamespace(
-            layout="packed",
-            mode=mode,
-            n_rays=n_rays,
-            t_starts=t_starts.reshape(-1),
-            t_ends=t_ends.reshape(-1),
-            ray_indices=torch.arange(n_rays).repeat_interleave(n_s),
-            values=values.reshape(-1),
-            rgbs=case.rgbs.reshape(-1, 3),
-        )
-    return _to(case, device, F64)
+    rgbs = torch.rand(n_rays, n_s, 3, dtype=F64)
+    case = _mk("dense", mode, n_rays, t_starts, t_ends, None, values, rgbs)
+    return _to(_pack(case) if layout == "packed" else case, device, F64)
 
 
 @pytest.mark.parametrize("t_threshold", [0.0, 1e-2])
@@ -350,8 +319,8 @@ def test_extreme_optical_depths(device, layout, mode, t_threshold):
     w_sum = weights.sum(1) if layout == "dense" else weights.reshape(case.n_rays, -1).sum(1)
     torch.testing.assert_close(w_sum, opacity, rtol=0, atol=1e-15)
     # Against the reference wherever the reference is itself finite. Its alpha-mode gradient goes
-    # through d(-log(1 - a))/da = 1 / (1 - a), which is inf at a = 1 and loses ~1e-9 * 1e-16 / 1e-9
-    # relative precision at a = 1 - 1e-9; the rest is compared at float64 tolerance.
+    # through d(-log(1 - a))/da = 1 / (1 - a): inf at a = 1 (NaN gradient, skipped), and at
+    # a = 1 - 1e-9, 1 - a carries a relative rounding error of ~1e-16 / 1e-9 = 1e-7.
     for a, e, name in zip(
         out + grads, ref_out + ref_grads, OUT_NAMES + tuple(_grad_names(case, bg))
     ):
@@ -387,16 +356,10 @@ def test_zero_length_intervals_contribute_nothing(device):
     merged.values[keep], merged.values[~keep] = base.values, sig_zero
     rgbs = torch.rand(9, 3, dtype=F64, device=device)
     rgbs[keep] = base.rgbs
-    case = SimpleNamespace(
-        layout="packed",
-        mode="sigma",
-        n_rays=2,
-        t_starts=torch.cat([merged.t_starts, t0]),
-        t_ends=torch.cat([t_ends, t1]),
-        ray_indices=torch.tensor([0] * 9 + [1] * 6, device=device),
-        values=torch.cat([merged.values, base.values]),
-        rgbs=torch.cat([rgbs, base.rgbs]),
-    )
+    t_s, t_e = torch.cat([merged.t_starts, t0]), torch.cat([t_ends, t1])
+    idx = torch.tensor([0] * 9 + [1] * 6, device=device)
+    values, rgbs = torch.cat([merged.values, base.values]), torch.cat([rgbs, base.rgbs])
+    case = _mk("packed", "sigma", 2, t_s, t_e, idx, values, rgbs)
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
     g[0][0], g[1][0], g[2][0] = g[0][1], g[1][1], g[2][1]  # same upstream on both rays
@@ -439,16 +402,8 @@ def test_ten_thousand_samples_float32(device, sigma_max):
     n = 10**4
     ts = torch.sort(torch.rand(n) * 5)[0]
     t0 = torch.cat([torch.zeros(1), ts[:-1]])
-    case32 = SimpleNamespace(
-        layout="packed",
-        mode="sigma",
-        n_rays=1,
-        t_starts=t0,
-        t_ends=ts,
-        ray_indices=torch.zeros(n, dtype=torch.int64),
-        values=torch.rand(n) * sigma_max,
-        rgbs=torch.rand(n, 3),
-    )
+    idx = torch.zeros(n, dtype=torch.int64)
+    case32 = _mk("packed", "sigma", 1, t0, ts, idx, torch.rand(n) * sigma_max, torch.rand(n, 3))
     case32 = _to(case32, device, F32)
     case64 = _to(case32, device, F64)
     bg = torch.rand(3, device=device)
@@ -501,23 +456,18 @@ def test_empty_rays(device, mode):
     assert torch.equal(grads2[0], grads[0]) and torch.equal(grads2[1], grads[1])
 
 
-@pytest.mark.parametrize("dtype, tau_total", [(F32, 12.0), (F32, 20.0), (F64, 30.0)])
+@pytest.mark.parametrize(
+    "dtype, tau_total", [(F32, 12.0), (F32, 20.0), (F64, 30.0)], ids=["f32-12", "f32-20", "f64-30"]
+)
 def test_background_gradient_is_final_transmittance(device, dtype, tau_total):
     """d rgb / d background = T_m, the transmittance the forward multiplies the background by
     (exp of the log-space sum, > 0). On nearly opaque rays T_m ~ e^-tau_total lies below the
     rounding error of 1 - opacity, so the gradient must not be formed as 1 - opacity."""
     n_rays, n_s = 8, 32
     t_starts = torch.arange(n_s, dtype=F64).repeat(n_rays, 1)
-    case = SimpleNamespace(
-        layout="dense",
-        mode="sigma",
-        n_rays=n_rays,
-        t_starts=t_starts,
-        t_ends=t_starts + 1,
-        ray_indices=None,
-        values=torch.rand(n_rays, n_s, dtype=F64) * 2 * tau_total / n_s,
-        rgbs=torch.rand(n_rays, n_s, 3, dtype=F64),
-    )
+    sig = torch.rand(n_rays, n_s, dtype=F64) * 2 * tau_total / n_s
+    rgbs = torch.rand(n_rays, n_s, 3, dtype=F64)
+    case = _mk("dense", "sigma", n_rays, t_starts, t_starts + 1, None, sig, rgbs)
     case = _to(case, device, dtype)
     bg = _background("per_ray", n_rays, device, dtype)
     g = [x.abs() for x in _upstream(case)]
@@ -579,16 +529,8 @@ def test_opaque_alpha_gradient(device, position):
     alphas = torch.rand(n, dtype=F64) * 0.9 + 0.05
     alphas[position] = 1.0
     t_starts = torch.arange(n, dtype=F64) * 0.5
-    case = SimpleNamespace(
-        layout="packed",
-        mode="alpha",
-        n_rays=1,
-        t_starts=t_starts,
-        t_ends=t_starts + 0.5,
-        ray_indices=torch.zeros(n, dtype=torch.int64),
-        values=alphas,
-        rgbs=torch.rand(n, 3, dtype=F64),
-    )
+    idx, rgbs = torch.zeros(n, dtype=torch.int64), torch.rand(n, 3, dtype=F64)
+    case = _mk("packed", "alpha", 1, t_starts, t_starts + 0.5, idx, alphas, rgbs)
     case = _to(case, device, F64)
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
@@ -691,28 +633,9 @@ def test_early_termination(device, layout, t_threshold, n_live):
     n_s = 6
     t_starts = torch.arange(n_s, dtype=F64) * 0.5
     sig = torch.full((1, n_s), 2.0, dtype=F64)  # delta 0.5 -> tau 1
-    case = SimpleNamespace(
-        layout="dense",
-        mode="sigma",
-        n_rays=1,
-        t_starts=t_starts[None],
-        t_ends=t_starts[None] + 0.5,
-        ray_indices=None,
-        values=sig,
-        rgbs=torch.rand(1, n_s, 3, dtype=F64),
-    )
-    if layout == "packed":
-        case = SimpleNamespace(
-            layout="packed",
-            mode="sigma",
-            n_rays=1,
-            t_starts=t_starts,
-            t_ends=t_starts + 0.5,
-            ray_indices=torch.zeros(n_s, dtype=torch.int64),
-            values=sig[0],
-            rgbs=case.rgbs[0],
-        )
-    case = _to(case, device, F64)
+    rgbs = torch.rand(1, n_s, 3, dtype=F64)
+    case = _mk("dense", "sigma", 1, t_starts[None], t_starts[None] + 0.5, None, sig, rgbs)
+    case = _to(_pack(case) if layout == "packed" else case, device, F64)
     bg = torch.rand(3, dtype=F64, device=device)
     g = _upstream(case)
     out, grads = _run(W, case, bg, t_threshold, g)
