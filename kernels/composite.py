@@ -99,6 +99,7 @@ def composite_fwd(
     out_rgb: wp.array2d(dtype=Any),  # [n_rays, 3]
     out_depth: wp.array(dtype=Any),  # [n_rays]
     out_opacity: wp.array(dtype=Any),  # [n_rays]
+    out_t_final: wp.array(dtype=Any),  # [n_rays] T_m, the background's weight
     trans: wp.array(dtype=Any),  # [n] T_i, 0 after termination
     weights: wp.array(dtype=Any),  # [n] or [0]
     n_eff: wp.array(dtype=wp.int32),  # [n_rays] samples actually composited
@@ -144,6 +145,7 @@ def composite_fwd(
     out_rgb[r, 2] = c2 + t_end * background[b, 2]
     out_depth[r] = depth
     out_opacity[r] = acc
+    out_t_final[r] = t_end
     n_eff[r] = m
 
 
@@ -214,6 +216,7 @@ def _overloads(dtype):
     a2 = wp.array2d(dtype=dtype)
     common = {"t_starts": a1, "t_ends": a1, "values": a1, "rgbs": a2, "background": a2}
     fwd = dict(common, t_threshold=dtype, out_rgb=a2, out_depth=a1, out_opacity=a1, trans=a1)
+    fwd["out_t_final"] = a1
     fwd["weights"] = a1
     bwd = dict(common, trans=a1, v_rgb=a2, v_depth=a1, v_opacity=a1, v_weights=a1)
     bwd.update(v_values=a1, v_rgbs=a2)

@@ -385,14 +385,15 @@ def test_zero_length_intervals_contribute_nothing(device):
 #   v_sigmas, v_rgbs <= 6.6e-6, 1.0e-6 of their max;
 # sigma_max 5 (opacity ~0.999997): rgb <= 1.6e-5, depth <= 3.4e-6, opacity <= 1.4e-5,
 #   weights <= 4.5e-9, gradients <= 7.4e-6, 5.6e-7 of their max;
-# v_background (as an error on T_m): <= 1.5e-5 (it is computed as 1 - opacity, see below).
-# Tolerances below: about 3x the worst measured value.
+# v_background (as an error on T_m): <= 1.5e-5.
+# On an H100 (CUDA's float32 exp/log differ from the CPU's by a few ulp) v_sigmas reached 5.5e-5
+# of its max (2026-11-22). Tolerances below: about 3x the worst measured value on either device.
 LONG_RAY_TOL = {
     "rgb": 5e-5,
     "depth": 2e-5,
     "opacity": 5e-5,
     "weights": 2e-8,
-    "grad_rel": 3e-5,
+    "grad_rel": 1.5e-4,
     "v_background": 5e-5,
 }
 

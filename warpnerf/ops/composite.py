@@ -38,6 +38,7 @@ class _Composite(torch.autograd.Function):
         rgb = torch.empty(n_rays, 3, device=dev, dtype=dt)
         depth = torch.empty(n_rays, device=dev, dtype=dt)
         opacity = torch.empty(n_rays, device=dev, dtype=dt)
+        t_final = torch.empty(n_rays, device=dev, dtype=dt)
         trans = torch.empty(n, device=dev, dtype=dt)
         weights = torch.empty(n if want_weights else 0, device=dev, dtype=dt)
         n_eff = torch.empty(n_rays, device=dev, dtype=torch.int32)
@@ -59,6 +60,7 @@ class _Composite(torch.autograd.Function):
                 a(rgb),
                 a(depth),
                 a(opacity),
+                a(t_final),
                 a(trans),
                 a(weights),
                 a(n_eff),
@@ -66,7 +68,7 @@ class _Composite(torch.autograd.Function):
             dev,
         )
         ctx.save_for_backward(
-            packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, opacity
+            packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final
         )
         ctx.n_dense, ctx.use_alpha, ctx.n_rays = n_dense, use_alpha, n_rays
         ctx.mark_non_differentiable(n_eff)
@@ -77,7 +79,7 @@ class _Composite(torch.autograd.Function):
         from warpnerf.kernels import composite as K
 
         saved = ctx.saved_tensors
-        packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, opacity = saved
+        packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final = saved
         dev, dt = values.device, values.dtype
         n_rays = ctx.n_rays
 
@@ -117,8 +119,9 @@ class _Composite(torch.autograd.Function):
         )
         v_background = None
         if ctx.needs_input_grad[7]:
-            # d rgb / d background = T_m = 1 - opacity (up to rounding).
-            v_bg = (1.0 - opacity).unsqueeze(-1) * v_rgb
+            # d rgb / d background = T_m, the forward's own final transmittance (not 1 - opacity,
+            # whose rounding error exceeds T_m on nearly opaque rays).
+            v_bg = t_final.unsqueeze(-1) * v_rgb
             v_background = v_bg.sum(0, keepdim=True) if background.shape[0] == 1 else v_bg
         return None, None, None, None, v_values, None, v_rgbs, v_background, None, None
 

@@ -83,7 +83,7 @@ def fit_box(
         side_lengths=tuple(init_sides),
         alpha=cfg.alpha,
         beta=cfg.beta,
-    )
+    ).to(images.device)
     opt = torch.optim.Adam(volume.parameters(), lr=cfg.lr)
     gamma = cfg.lr_final_ratio ** (1.0 / max(cfg.iters, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
