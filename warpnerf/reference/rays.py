@@ -54,6 +54,8 @@ def ray_aabb_intersect(origins, directions, aabb, t_min=0.0):
     lo = torch.where(zero, -inf, torch.minimum(t1, t2)).amax(-1).clamp_min(t_min)
     hi = torch.where(zero, inf, torch.maximum(t1, t2)).amin(-1)
     hit = (lo <= hi) & (inside | ~zero).all(-1)
-    t_near = torch.where(hit, lo, torch.full_like(lo, t_min))
-    t_far = torch.where(hit, hi, torch.full_like(hi, t_min))
-    return t_near, t_far, hit
+    # A NaN anywhere: a miss with NaN bounds, never a plausible interval.
+    bad = origins.isnan().any(-1) | directions.isnan().any(-1)
+    hit = hit & ~bad
+    miss = torch.where(bad, torch.full_like(lo, float("nan")), torch.full_like(lo, t_min))
+    return torch.where(hit, lo, miss), torch.where(hit, hi, miss), hit
