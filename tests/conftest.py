@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+import warp as wp
+
+# CPU launches honour the block width, so the cooperative (tiled) kernels run their real multi-lane
+# code on the CPU too, not the one-lane degenerate walk Warp uses on CPUs by default.
+wp.config.enable_cpu_blocks = True
 
 _NO_CUDA = "CUDA not available (torch.cuda.is_available() is False): cuda variant skipped"
 

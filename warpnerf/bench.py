@@ -3,7 +3,8 @@
 For each size: median time of the Warp op and of the pure-PyTorch twin (``warpnerf.reference``),
 both float32, forward and forward+backward; throughput in samples/s; bytes the Warp kernels must
 move (each input read once, each output written once) over the measured device copy bandwidth;
-and the max abs error of the Warp float32 outputs and gradients against the float64 twin on the same inputs.
+and the max abs error of the Warp float32 outputs and gradients against the float64 twin on the
+same inputs.
 """
 
 from __future__ import annotations

@@ -75,3 +75,14 @@ def check_float(name: str, t: torch.Tensor, shape: tuple, dtype=None, device=Non
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
+
+
+def launch_tiled(kernel, n_blocks: int, block_dim: int, inputs: list, device: torch.device) -> None:
+    """One block of ``block_dim`` threads per item (Warp runs CPU blocks with one lane)."""
+    wp = _wp()
+    if n_blocks == 0:
+        return
+    dev = wp_device(device)
+    stream = wp.stream_from_torch(device) if device.type == "cuda" else None
+    wp.launch_tiled(kernel, dim=[n_blocks], inputs=inputs, device=dev, block_dim=block_dim,
+                    stream=stream)

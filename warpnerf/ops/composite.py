@@ -13,6 +13,16 @@ from . import _bridge
 __all__ = ["render_packed", "render_dense", "packed_info_from_ray_indices"]
 
 
+# Which kernels composite float32 densities: "tiled" (one block per ray, coalesced loads; the
+# default) or "sequential" (one thread per ray, the only choice for float64 and for alphas). Tests
+# switch this to check the two against each other; users have no reason to.
+_IMPL = {"float32_sigma": "tiled", "block_dim": 32}
+
+
+def _use_tiled(values: torch.Tensor, use_alpha: int) -> bool:
+    return values.dtype == torch.float32 and not use_alpha and _IMPL["float32_sigma"] == "tiled"
+
+
 class _Composite(torch.autograd.Function):
     """values = sigmas or alphas; returns (rgb, depth, opacity, weights)."""
 
@@ -35,38 +45,35 @@ class _Composite(torch.autograd.Function):
         dev, dt = values.device, values.dtype
         n_rays = packed_info.shape[0] if n_dense == 0 else values.shape[0] // max(n_dense, 1)
         n = values.shape[0]
-        rgb = torch.empty(n_rays, 3, device=dev, dtype=dt)
-        depth = torch.empty(n_rays, device=dev, dtype=dt)
-        opacity = torch.empty(n_rays, device=dev, dtype=dt)
-        t_final = torch.empty(n_rays, device=dev, dtype=dt)
-        trans = torch.empty(n, device=dev, dtype=dt)
-        weights = torch.empty(n if want_weights else 0, device=dev, dtype=dt)
-        n_eff = torch.empty(n_rays, device=dev, dtype=torch.int32)
+
+        def new(*shape, dtype=dt):
+            return torch.empty(shape, device=dev, dtype=dtype)
+
+        rgb, depth, opacity, t_final = new(n_rays, 3), new(n_rays), new(n_rays), new(n_rays)
+        trans, weights = new(n), new(n if want_weights else 0)
+        n_eff = new(n_rays, dtype=torch.int32)
         a = _bridge.arr
-        _bridge.launch(
-            K.composite_fwd,
-            n_rays,
-            [
-                a(packed_info),
-                n_dense,
-                a(t_starts),
-                a(t_ends),
-                a(values),
-                int(use_alpha),
-                a(rgbs),
-                a(background),
-                _bridge.scalar(t_threshold, dt),
-                int(want_weights),
-                a(rgb),
-                a(depth),
-                a(opacity),
-                a(t_final),
-                a(trans),
-                a(weights),
-                a(n_eff),
-            ],
-            dev,
-        )
+        head = [a(packed_info), n_dense, a(t_starts), a(t_ends), a(values)]
+        tail = [
+            a(rgbs),
+            a(background),
+            _bridge.scalar(t_threshold, dt),
+            int(want_weights),
+            a(rgb),
+            a(depth),
+            a(opacity),
+            a(t_final),
+            a(trans),
+            a(weights),
+            a(n_eff),
+        ]
+        ctx.tiled = _use_tiled(values, use_alpha)
+        if ctx.tiled:
+            _bridge.launch_tiled(
+                K.composite_fwd_tiled, n_rays, _IMPL["block_dim"], head + tail, dev
+            )
+        else:
+            _bridge.launch(K.composite_fwd, n_rays, head + [int(use_alpha)] + tail, dev)
         ctx.save_for_backward(
             packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final
         )
@@ -94,29 +101,14 @@ class _Composite(torch.autograd.Function):
         v_values = torch.empty_like(values)
         v_rgbs = torch.empty_like(rgbs)
         a = _bridge.arr
-        _bridge.launch(
-            K.composite_bwd,
-            n_rays,
-            [
-                a(packed_info),
-                ctx.n_dense,
-                a(t_starts),
-                a(t_ends),
-                a(values),
-                int(ctx.use_alpha),
-                a(rgbs),
-                a(background),
-                a(trans),
-                a(n_eff),
-                a(v_rgb),
-                a(v_depth),
-                a(v_opacity),
-                a(v_weights),
-                a(v_values),
-                a(v_rgbs),
-            ],
-            dev,
-        )
+        head = [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values)]
+        upstream = [a(v_rgb), a(v_depth), a(v_opacity), a(v_weights), a(v_values), a(v_rgbs)]
+        if ctx.tiled:
+            inputs = head + [a(rgbs), a(background), a(trans), a(n_eff), a(t_final)] + upstream
+            _bridge.launch_tiled(K.composite_bwd_tiled, n_rays, _IMPL["block_dim"], inputs, dev)
+        else:
+            inputs = head + [int(ctx.use_alpha), a(rgbs), a(background), a(trans), a(n_eff)]
+            _bridge.launch(K.composite_bwd, n_rays, inputs + upstream, dev)
         v_background = None
         if ctx.needs_input_grad[7]:
             # d rgb / d background = T_m, the forward's own final transmittance (not 1 - opacity,
