@@ -153,12 +153,27 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
     repeats = 20 if dev.type == "cuda" else 3
     rows = []
     if kernel in ("composite", "all"):
-        for n_rays, n_s in _sizes(dev, quick):
-            row = _composite_case(n_rays, n_s, dev, repeats, check_error=True)
-            row["kernel"] = "composite_packed"
-            row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
-            row["bw_pct_fwdbwd"] = 100 * row["bytes_fwdbwd"] / (row["warp_fwdbwd_ms"] / 1e3) / bw
-            rows.append(row)
+        from .ops import composite as C
+
+        # The default float32 path (cooperative kernels, one block of 32 lanes per ray), a wider
+        # block, and the one-thread-per-ray kernels, each against the PyTorch twin.
+        variants = [("composite_packed", "tiled", 32), ("composite_packed_seq", "sequential", 32)]
+        if dev.type == "cuda":
+            variants.insert(1, ("composite_packed_b128", "tiled", 128))
+        saved = dict(C._IMPL)
+        try:
+            for n_rays, n_s in _sizes(dev, quick):
+                for label, impl, block in variants:
+                    C._IMPL.update(float32_sigma=impl, block_dim=block)
+                    row = _composite_case(n_rays, n_s, dev, repeats, check_error=True)
+                    row["kernel"] = label
+                    row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
+                    row["bw_pct_fwdbwd"] = (
+                        100 * row["bytes_fwdbwd"] / (row["warp_fwdbwd_ms"] / 1e3) / bw
+                    )
+                    rows.append(row)
+        finally:
+            C._IMPL.update(saved)
     result = {
         "device": str(dev),
         "device_name": name,
