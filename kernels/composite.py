@@ -77,6 +77,58 @@ def optical_depth(use_alpha: int, value: Any, delta: Any):
 
 
 @wp.func
+def upstream_scalar(
+    g0: Any,
+    g1: Any,
+    g2: Any,
+    gd: Any,
+    ga: Any,
+    rgbs: wp.array2d(dtype=Any),
+    t_starts: wp.array(dtype=Any),
+    t_ends: wp.array(dtype=Any),
+    v_weights: wp.array(dtype=Any),
+    i: int,
+):
+    """All upstream gradients of a sample as one scalar:
+    e_i = v_rgb . c_i + v_depth * t_i + v_opacity + v_weights_i (v_weights may be empty)."""
+    e = g0 * rgbs[i, 0] + g1 * rgbs[i, 1] + g2 * rgbs[i, 2]
+    e += gd * type(gd)(0.5) * (t_starts[i] + t_ends[i]) + ga
+    if v_weights.shape[0] > 0:
+        e += v_weights[i]
+    return e
+
+
+@wp.func
+def store_ray(
+    r: int,
+    c0: Any,
+    c1: Any,
+    c2: Any,
+    depth: Any,
+    opacity: Any,
+    t_end: Any,
+    m: int,
+    background: wp.array2d(dtype=Any),
+    out_rgb: wp.array2d(dtype=Any),
+    out_depth: wp.array(dtype=Any),
+    out_opacity: wp.array(dtype=Any),
+    out_t_final: wp.array(dtype=Any),
+    n_eff: wp.array(dtype=wp.int32),
+):
+    """Writes one ray's outputs; the background (shared [1, 3] or per ray) gets weight T_m."""
+    b = 0
+    if background.shape[0] > 1:
+        b = r
+    out_rgb[r, 0] = c0 + t_end * background[b, 0]
+    out_rgb[r, 1] = c1 + t_end * background[b, 1]
+    out_rgb[r, 2] = c2 + t_end * background[b, 2]
+    out_depth[r] = depth
+    out_opacity[r] = opacity
+    out_t_final[r] = t_end
+    n_eff[r] = m
+
+
+@wp.func
 def ray_range(r: int, n_dense: int, packed_info: wp.array2d(dtype=wp.int32)):
     if n_dense > 0:
         return r * n_dense, n_dense
@@ -136,17 +188,22 @@ def composite_fwd(
         trans[start + k] = zero
         if want_weights != 0:
             weights[start + k] = zero
-    b = 0
-    if background.shape[0] > 1:
-        b = r
-    t_end = wp.exp(log_t)
-    out_rgb[r, 0] = c0 + t_end * background[b, 0]
-    out_rgb[r, 1] = c1 + t_end * background[b, 1]
-    out_rgb[r, 2] = c2 + t_end * background[b, 2]
-    out_depth[r] = depth
-    out_opacity[r] = acc
-    out_t_final[r] = t_end
-    n_eff[r] = m
+    store_ray(
+        r,
+        c0,
+        c1,
+        c2,
+        depth,
+        acc,
+        wp.exp(log_t),
+        m,
+        background,
+        out_rgb,
+        out_depth,
+        out_opacity,
+        out_t_final,
+        n_eff,
+    )
 
 
 @wp.kernel(enable_backward=False)
@@ -172,7 +229,6 @@ def composite_bwd(
     r = wp.tid()
     start, count = ray_range(r, n_dense, packed_info)
     zero = t_starts.dtype(0.0)
-    half = t_starts.dtype(0.5)
     m = int(n_eff[r])
     for k in range(m, count):
         i = start + k
@@ -188,7 +244,6 @@ def composite_bwd(
     g2 = v_rgb[r, 2]
     gd = v_depth[r]
     ga = v_opacity[r]
-    has_vw = v_weights.shape[0] > 0
     s = g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2]
     for kk in range(m):
         i = start + m - 1 - kk
@@ -196,10 +251,7 @@ def composite_bwd(
         tau, alpha, keep = optical_depth(use_alpha, values[i], delta)
         t = trans[i]
         w = t * alpha
-        e = g0 * rgbs[i, 0] + g1 * rgbs[i, 1] + g2 * rgbs[i, 2]
-        e += gd * half * (t_starts[i] + t_ends[i]) + ga
-        if has_vw:
-            e += v_weights[i]
+        e = upstream_scalar(g0, g1, g2, gd, ga, rgbs, t_starts, t_ends, v_weights, i)
         diff = e - s
         if use_alpha != 0:
             v_values[i] = t * diff
@@ -321,17 +373,22 @@ def composite_fwd_tiled(
     op = block_sum(op)
     m = wp.tile_extract(wp.tile_sum(wp.tile(live_count)), 0)
     if lane == 0:
-        b = 0
-        if background.shape[0] > 1:
-            b = r
-        t_end = wp.exp(-acc)
-        out_rgb[r, 0] = c0 + t_end * background[b, 0]
-        out_rgb[r, 1] = c1 + t_end * background[b, 1]
-        out_rgb[r, 2] = c2 + t_end * background[b, 2]
-        out_depth[r] = depth
-        out_opacity[r] = op
-        out_t_final[r] = t_end
-        n_eff[r] = m
+        store_ray(
+            r,
+            c0,
+            c1,
+            c2,
+            depth,
+            op,
+            wp.exp(-acc),
+            m,
+            background,
+            out_rgb,
+            out_depth,
+            out_opacity,
+            out_t_final,
+            n_eff,
+        )
 
 
 @wp.kernel(enable_backward=False)
@@ -370,7 +427,6 @@ def composite_bwd_tiled(
     g2 = v_rgb[r, 2]
     gd = v_depth[r]
     ga = v_opacity[r]
-    has_vw = v_weights.shape[0] > 0
     carry = t_final[r] * (g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2])
     n_chunks = (m + bd - 1) // bd
     for q in range(n_chunks):
@@ -387,10 +443,7 @@ def composite_bwd_tiled(
             t = trans[i]
             w = t * alpha
             tk = t * keep
-            e = g0 * rgbs[i, 0] + g1 * rgbs[i, 1] + g2 * rgbs[i, 2]
-            e += gd * 0.5 * (t_starts[i] + t_ends[i]) + ga
-            if has_vw:
-                e += v_weights[i]
+            e = upstream_scalar(g0, g1, g2, gd, ga, rgbs, t_starts, t_ends, v_weights, i)
             term = w * e
         # Terms are bounded by |e| (w <= 1), so inclusive - term has only rounding-level error.
         behind = wp.untile(wp.tile_scan_inclusive(wp.tile(term))) - term

@@ -32,18 +32,7 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
     dev = volume.center.device
     cams = spiral_path(frames, radius=CAMERA_RADIUS).to(dev)
     k = intrinsics_from_fov(size, size, FOV_X).to(dev).expand(frames, 4)
-    out_r = render_views(
-        cams,
-        k,
-        size,
-        size,
-        cfg.near,
-        cfg.far,
-        volume,
-        n_samples=cfg.n_samples,
-        mode="alpha",
-        background=cfg.background,
-    )
+    out_r = render_views(cams, k, size, size, cfg.near, cfg.far, volume, **cfg.render_kwargs())
     rgb, depth = out_r["rgb"].cpu(), out_r["depth"].cpu()
     # Expected depth of the visible surface (depth / opacity), normalised by its maximum.
     surf = torch.where(

@@ -84,5 +84,6 @@ def launch_tiled(kernel, n_blocks: int, block_dim: int, inputs: list, device: to
         return
     dev = wp_device(device)
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
-    wp.launch_tiled(kernel, dim=[n_blocks], inputs=inputs, device=dev, block_dim=block_dim,
-                    stream=stream)
+    wp.launch_tiled(
+        kernel, dim=[n_blocks], inputs=inputs, device=dev, block_dim=block_dim, stream=stream
+    )

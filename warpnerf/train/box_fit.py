@@ -33,6 +33,10 @@ class BoxFitConfig:
     def to_dict(self):
         return asdict(self)
 
+    def render_kwargs(self) -> dict:
+        """The box task's compositing settings for render_rays / render_views."""
+        return {"n_samples": self.n_samples, "mode": "alpha", "background": self.background}
+
 
 def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
     mse = float(((pred - gt) ** 2).mean())
@@ -42,16 +46,7 @@ def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
 def render_box_views(volume, c2w, intrinsics, width, height, cfg: BoxFitConfig):
     """Renders every camera with the box task's settings: rgb [N, H, W, 3], depth [N, H, W]."""
     out = render_views(
-        c2w,
-        intrinsics,
-        width,
-        height,
-        cfg.near,
-        cfg.far,
-        volume,
-        n_samples=cfg.n_samples,
-        mode="alpha",
-        background=cfg.background,
+        c2w, intrinsics, width, height, cfg.near, cfg.far, volume, **cfg.render_kwargs()
     )
     return out["rgb"], out["depth"]
 
@@ -107,11 +102,9 @@ def fit_box(
             cfg.near,
             cfg.far,
             volume,
-            n_samples=cfg.n_samples,
-            mode="alpha",
-            background=cfg.background,
             perturb=True,
             seed=cfg.seed * 100003 + step,
+            **cfg.render_kwargs(),
         )
         loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
         opt.zero_grad(set_to_none=True)
