@@ -5,7 +5,8 @@ import pytest
 from warpnerf.data import intrinsics_from_fov, orbit_views
 from warpnerf.demo import GT_BOX
 from warpnerf.fields import SDFVolume
-from warpnerf.train import BoxFitConfig, fit_box, psnr, render_box_views
+from warpnerf.metrics import psnr
+from warpnerf.train import BoxFitConfig, fit_box, render_box_views
 
 
 def _max_err(a, b):

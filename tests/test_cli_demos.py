@@ -186,3 +186,114 @@ def test_demo_02_bad_data_is_a_clean_error(tmp_path):
         check=False,
     )
     assert p.returncode == 2 and "frames" in p.stderr and "Traceback" not in p.stderr
+
+
+TINY_NERF = [
+    "--iters",
+    "4",
+    "--batch",
+    "64",
+    "--samples",
+    "8",
+    "--layers",
+    "2",
+    "--width",
+    "16",
+    "--builtin-size",
+    "12",
+    "--eval-images",
+    "1",
+]
+
+
+def test_cli_train_eval_render_nerf(tmp_path):
+    p = run(
+        [
+            "-m",
+            "warpnerf.cli",
+            "train",
+            "nerf",
+            "--data",
+            "builtin",
+            "--out",
+            "r",
+            "--iters",
+            "4",
+            "--batch",
+            "64",
+            "--samples",
+            "8",
+            "--layers",
+            "2",
+            "--width",
+            "16",
+            "--pos-freqs",
+            "2",
+            "--dir-freqs",
+            "1",
+            "--builtin-size",
+            "12",
+            "--val-every",
+            "2",
+            "--ckpt-every",
+            "2",
+            "--coarse-fine",
+            "--fine-samples",
+            "8",
+            "--quiet",
+        ],
+        tmp_path,
+    )
+    assert last_json(p.stdout)["step"] == 4
+    cfg = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert cfg["n_fine"] == 8 and cfg["near"] == 1.0 and cfg["lr_decay_steps"] == 4
+    p = run(
+        [
+            "-m",
+            "warpnerf.cli",
+            "train",
+            "nerf",
+            "--out",
+            "r",
+            "--resume",
+            "--iters",
+            "6",
+            "--quiet",
+        ],
+        tmp_path,
+    )
+    assert last_json(p.stdout)["step"] == 6
+    p = run(["-m", "warpnerf.cli", "eval", "r", "--split", "val", "--max-images", "1"], tmp_path)
+    assert last_json(p.stdout)["n_images"] == 1
+    run(["-m", "warpnerf.cli", "render", "r", "--frames", "2", "--size", "8x6"], tmp_path)
+    assert (tmp_path / "r" / "render_spiral" / "rgb.mp4").exists()
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["train", "nerf", "--data", "missing_dir", "--out", "o"], "missing_dir"),
+        (["train", "nerf", "--out", "o"], "--data"),
+        (["train", "nerf", "--out", "o", "--resume", "--iters", "3"], "not a training run"),
+        (["eval", "nothing"], "not a training run"),
+        (["render", "nothing", "--size", "10by3"], "WxH"),
+        (["train", "nerf", "--data", "builtin", "--out", "o", "--near", "5", "--far", "1"], "near"),
+    ],
+)
+def test_cli_nerf_user_errors(tmp_path, args, needle):
+    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
+    assert p.returncode == 2, p.stderr
+    assert needle in p.stderr and "Traceback" not in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    "demo", ["03_nerf_lego.py", "04_nerf_view_dependence.py", "05_positional_encoding.py"]
+)
+def test_nerf_demos_tiny(tmp_path, demo):
+    extra = ["--frames", "2"] if demo.startswith("03") else []
+    p = run([str(ROOT / "demos" / demo), "--out", "o", *TINY_NERF, *extra], tmp_path)
+    res = last_json(p.stdout)
+    assert res and all(v == v for v in res.values() if isinstance(v, float))  # no NaN
+    if demo.startswith("05"):
+        assert (tmp_path / "o" / "grid.png").exists() and set(res) == {"psnr_0", "psnr_3", "psnr_6"}

@@ -89,6 +89,97 @@ def cmd_train_box(args) -> int:
     return 0
 
 
+def cmd_train_nerf(args) -> int:
+    from .train.nerf import NeRFConfig, train_nerf
+
+    if args.resume:
+        cfg = NeRFConfig(iters=args.iters or 0, device=_device(args.device))
+        if args.iters is None:
+            raise UserError("--resume needs --iters (the total number of steps to reach)")
+        hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet)
+    else:
+        if args.data is None:
+            raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
+        builtin = args.data == "builtin"
+        if builtin:
+            from .data.synthetic import FAR, NEAR
+        near = args.near if args.near is not None else (NEAR if builtin else 2.0)
+        far = args.far if args.far is not None else (FAR if builtin else 6.0)
+        cfg = NeRFConfig(
+            data=args.data,
+            iters=args.iters or 20000,
+            batch=args.batch,
+            lr=args.lr,
+            lr_final=args.lr_final,
+            n_coarse=args.samples,
+            n_fine=args.fine_samples if args.coarse_fine else 0,
+            view_dependence=args.view_dependence,
+            n_layers=args.layers,
+            width=args.width,
+            pos_freqs=args.pos_freqs,
+            dir_freqs=args.dir_freqs,
+            near=near,
+            far=far,
+            downscale=args.downscale,
+            max_images=args.max_images,
+            val_every=args.val_every,
+            val_images=args.val_images,
+            ckpt_every=args.ckpt_every,
+            seed=args.seed,
+            device=_device(args.device),
+            builtin_size=args.builtin_size,
+            max_seconds=args.max_seconds,
+            tf32=args.tf32,
+            t_threshold=args.t_threshold,
+        )
+        hist = train_nerf(cfg, args.out, progress=not args.quiet)
+    last = {
+        "step": hist["step"][-1] if hist["step"] else 0,
+        "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,
+        "val_psnr": hist["val_psnr"][-1] if hist["val_psnr"] else None,
+        "seconds": hist["seconds"][-1] if hist["seconds"] else 0.0,
+    }
+    print(json.dumps(last))
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from .train.nerf_eval import evaluate_run
+
+    m = evaluate_run(
+        args.run,
+        args.split,
+        device=_device(args.device) if args.device else None,
+        max_images=args.max_images,
+    )
+    print(json.dumps({k: m[k] for k in ("split", "step", "n_images", "psnr", "ssim")}))
+    return 0
+
+
+def _size(text):
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 400x400, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return w, h
+
+
+def cmd_render(args) -> int:
+    from .train.nerf_eval import render_run
+
+    res = render_run(
+        args.run,
+        args.path,
+        args.frames,
+        args.size,
+        device=_device(args.device) if args.device else None,
+    )
+    print(json.dumps(res))
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_bench
 
@@ -117,7 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=cmd_demo)
 
-    t = sub.add_parser("train", help="train a model on data (box: fit an SDF box to images)")
+    t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
     tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
     tb.add_argument("--data", required=True, help="folder with transforms*.json and PNG images")
@@ -133,6 +224,65 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--frames", type=int, default=40, help="spiral video frames (0: none)")
     tb.add_argument("--quiet", action="store_true")
     tb.set_defaults(func=cmd_train_box)
+
+    tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
+    tn.add_argument(
+        "--data", help="Blender or nerfstudio folder, or 'builtin' for the small built-in scene"
+    )
+    tn.add_argument("--out", required=True, help="run folder (config, checkpoint, history)")
+    tn.add_argument("--resume", action="store_true", help="continue the run in --out exactly")
+    tn.add_argument("--device", default="cpu")
+    tn.add_argument("--iters", type=_positive(int), default=None, help="total steps (20000)")
+    tn.add_argument("--batch", type=_positive(int), default=1024, help="rays per step")
+    tn.add_argument("--lr", type=_positive(float), default=5e-4)
+    tn.add_argument("--lr-final", type=_positive(float), default=5e-5)
+    tn.add_argument("--samples", type=_positive(int), default=64, help="coarse samples per ray")
+    tn.add_argument("--coarse-fine", action="store_true", help="add the fine network")
+    tn.add_argument("--fine-samples", type=_positive(int), default=64)
+    tn.add_argument("--view-dependence", action=argparse.BooleanOptionalAction, default=True)
+    tn.add_argument("--layers", type=_positive(int), default=8)
+    tn.add_argument("--width", type=_positive(int), default=256)
+    tn.add_argument("--pos-freqs", type=int, default=10)
+    tn.add_argument("--dir-freqs", type=int, default=4)
+    tn.add_argument("--near", type=float, default=None, help="default 2 (1 for builtin)")
+    tn.add_argument("--far", type=float, default=None, help="default 6 (4 for builtin)")
+    tn.add_argument("--downscale", type=_positive(int), default=1)
+    tn.add_argument("--max-images", type=int, default=0, help="0 = all training images")
+    tn.add_argument("--builtin-size", type=_positive(int), default=48)
+    tn.add_argument("--val-every", type=_positive(int), default=1000)
+    tn.add_argument("--val-images", type=int, default=2)
+    tn.add_argument("--ckpt-every", type=_positive(int), default=1000)
+    tn.add_argument("--seed", type=int, default=0)
+    tn.add_argument(
+        "--max-seconds",
+        type=float,
+        default=0.0,
+        help="stop after this much training time (0: run all --iters)",
+    )
+    tn.add_argument("--tf32", action="store_true", help="TF32 matrix products on CUDA")
+    tn.add_argument(
+        "--t-threshold",
+        type=float,
+        default=1e-4,
+        help="early ray termination below this transmittance (0: off)",
+    )
+    tn.add_argument("--quiet", action="store_true")
+    tn.set_defaults(func=cmd_train_nerf)
+
+    e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
+    e.add_argument("run", help="run folder written by 'warpnerf train nerf'")
+    e.add_argument("--split", default="val", choices=["train", "val", "test"])
+    e.add_argument("--device", default=None, help="default: the run's device")
+    e.add_argument("--max-images", type=int, default=0, help="0 = all images of the split")
+    e.set_defaults(func=cmd_eval)
+
+    r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
+    r.add_argument("run")
+    r.add_argument("--path", default="spiral", choices=["spiral", "orbit"])
+    r.add_argument("--frames", type=_positive(int), default=40)
+    r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
+    r.add_argument("--device", default=None)
+    r.set_defaults(func=cmd_render)
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
     b.add_argument("kernel", nargs="?", default="composite", choices=["composite", "all"])

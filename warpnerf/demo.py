@@ -16,8 +16,9 @@ import torch
 from .data.cameras import intrinsics_from_fov, orbit_views, spiral_path
 from .fields.sdf_volume import SDFVolume
 from .io import depth_to_uint8, to_uint8, write_image, write_json, write_video
+from .metrics import psnr
 from .render import render_views
-from .train.box_fit import BoxFitConfig, fit_box, psnr, render_box_views
+from .train.box_fit import BoxFitConfig, fit_box, render_box_views
 
 __all__ = ["GT_BOX", "run_demo", "write_spiral"]
 

@@ -11,7 +11,7 @@ import torch
 
 from .ops import generate_rays, render_packed, stratified_samples
 
-__all__ = ["render_rays", "render_image", "render_views"]
+__all__ = ["render_rays", "render_image", "render_views", "render_nerf"]
 
 
 def render_rays(
@@ -98,3 +98,67 @@ def render_views(c2w, intrinsics, width: int, height: int, near, far, field_fn, 
         for i in range(c2w.shape[0])
     ]
     return {k: torch.stack([o[k] for o in outs]) for k in ("rgb", "depth", "opacity")}
+
+
+def render_nerf(
+    fields: dict,
+    origins: torch.Tensor,  # [n_rays, 3]
+    directions: torch.Tensor,  # [n_rays, 3] unit length
+    near: float,
+    far: float,
+    *,
+    n_coarse: int = 64,
+    n_fine: int = 0,
+    perturb: bool = False,
+    seed: int = 0,
+    background=1.0,
+    t_threshold: float = 1e-4,
+    chunk: int | None = None,
+):
+    """NeRF's hierarchical volume rendering through the Warp kernels.
+
+    ``fields["coarse"]`` is evaluated at ``n_coarse`` stratified samples per ray; with
+    ``fields["fine"]`` and ``n_fine > 0``, ``n_fine`` more positions are drawn from the coarse
+    weights (inverse CDF) and the fine field is evaluated on the union of coarse and fine intervals.
+    Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
+    """
+    n_rays = origins.shape[0]
+    chunk = chunk or max(n_rays, 1)
+    dev, dt = origins.device, origins.dtype
+    outs = []
+    for s in range(0, max(n_rays, 1), chunk):
+        o, d = origins[s : s + chunk], directions[s : s + chunk]
+        m = o.shape[0]
+        nr = torch.full((m,), float(near), device=dev, dtype=dt)
+        fr = torch.full((m,), float(far), device=dev, dtype=dt)
+        smp = stratified_samples(nr, fr, n_coarse, perturb=perturb, seed=seed + s, packed=True)
+        res = _shade(fields["coarse"], o, d, smp, background, t_threshold, want_weights=True)
+        out = {"rgb_coarse": res[0]}
+        if fields.get("fine") is not None and n_fine > 0:
+            from .ops.sampling import importance_samples
+
+            fine = importance_samples(
+                smp, res[3].detach(), n_fine, perturb=perturb, seed=seed + s + 7919
+            )
+            res = _shade(fields["fine"], o, d, fine, background, t_threshold, want_weights=False)
+        out.update(rgb=res[0], depth=res[1], opacity=res[2])
+        outs.append(out)
+    return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
+
+
+def _shade(field, o, d, smp, background, t_threshold, want_weights):
+    ri = smp.ray_indices
+    positions = o[ri] + d[ri] * smp.midpoints().unsqueeze(-1)
+    sigmas, rgbs = field(positions, d[ri])
+    return render_packed(
+        smp.t_starts,
+        smp.t_ends,
+        ri,
+        sigmas,
+        rgbs,
+        o.shape[0],
+        background,
+        packed_info=smp.packed_info,
+        t_threshold=t_threshold,
+        return_weights=want_weights,
+    )

@@ -1,9 +1,20 @@
-"""Blender / NeRF-synthetic style folders: transforms JSON + images, validated with clear errors."""
+"""Blender / NeRF-synthetic style folders: transforms JSON + images, validated with clear errors.
+
+Also holds the pieces every transforms-JSON loader shares (argument checks, JSON and field
+validation, image reading, alpha compositing, area downscaling, the hold-out split rule); the
+nerfstudio loader (``nerfstudio.py``) reuses them.
+
+Downscaling by an integer ``d`` averages ``d x d`` pixel blocks (area average, after compositing).
+When the image size is not a multiple of ``d`` the last rows / columns are cropped first (at the
+bottom / right, so pixel coordinates keep their origin): the result is ``(W // d) x (H // d)`` and
+the intrinsics are the full-resolution ones divided by ``d``.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+import numbers
 from pathlib import Path
 
 import numpy as np
@@ -11,52 +22,131 @@ import torch
 
 from ..errors import UserError
 
-__all__ = ["load_blender", "find_transforms"]
+__all__ = ["load_blender", "find_transforms", "split_indices", "HOLDOUT_EVERY", "SPLITS"]
+
+SPLITS = ("train", "val", "test")
+# Folders without per-split files: every HOLDOUT_EVERY-th frame (index 0, 8, 16, ...) is held out
+# for val/test; train gets the others.
+HOLDOUT_EVERY = 8
+_IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
 def find_transforms(root: Path, split: str) -> Path:
+    """``transforms_{split}.json`` if present, else ``transforms.json``; UserError if neither."""
     for name in (f"transforms_{split}.json", "transforms.json"):
         if (root / name).is_file():
             return root / name
     raise UserError(f"{root}: no transforms_{split}.json or transforms.json found")
 
 
-def _number(js, key, path, positive=True):
-    v = js.get(key)
-    if (
-        not isinstance(v, (int, float))
-        or isinstance(v, bool)
-        or not math.isfinite(v)
-        or (positive and v <= 0)
-    ):
+def split_indices(n_frames: int, split: str, path) -> list[int]:
+    """Frame indices of ``split`` for a file without split files: ``val`` and ``test`` are the
+    frames ``i % 8 == 0``, ``train`` all the others (JSON order)."""
+    held = split != "train"
+    idx = [i for i in range(n_frames) if (i % HOLDOUT_EVERY == 0) == held]
+    if not idx:
         raise UserError(
-            f"{path}: field '{key}' must be a {'positive ' if positive else ''}number, got {v!r}"
+            f"{path}: split '{split}' is empty: {n_frames} frame(s), and without split files "
+            f"val/test are the frames i % {HOLDOUT_EVERY} == 0 and train the others"
         )
+    return idx
+
+
+def _check_args(split, background, downscale, max_images) -> np.ndarray:
+    """Validates the loader arguments; returns the background as a float32 [3] array."""
+    if split not in SPLITS:
+        raise UserError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
+    if not isinstance(downscale, numbers.Integral) or isinstance(downscale, bool) or downscale < 1:
+        raise UserError(f"downscale must be a positive integer, got {downscale!r}")
+    if max_images is not None and (
+        not isinstance(max_images, numbers.Integral)
+        or isinstance(max_images, bool)
+        or max_images < 1
+    ):
+        raise UserError(f"max_images must be None or a positive integer, got {max_images!r}")
+    try:
+        bg = np.asarray(background, dtype=np.float32).reshape(-1)
+    except (TypeError, ValueError):
+        bg = np.zeros(0, np.float32)
+    if bg.size == 1:
+        bg = bg.repeat(3)
+    if bg.size != 3 or not np.isfinite(bg).all():
+        raise UserError(f"background must be 3 finite numbers (RGB in [0, 1]), got {background!r}")
+    return bg
+
+
+def _open_root(root, split, background, downscale, max_images) -> tuple[Path, np.ndarray]:
+    """(root as a Path, background [3]) after checking the arguments and that the folder exists."""
+    bg = _check_args(split, background, downscale, max_images)
+    root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"{root}: data folder not found")
+    return root, bg
+
+
+def _read_json(path: Path) -> tuple[dict, list]:
+    """Parses a transforms file: a JSON object whose 'frames' is a non-empty list of objects."""
+    try:
+        js = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise UserError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(js, dict):
+        raise UserError(f"{path}: expected a JSON object with 'frames'")
+    frames = js.get("frames")
+    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) for f in frames):
+        raise UserError(f"{path}: field 'frames' must be a non-empty list of objects")
+    return js, frames
+
+
+def _number(v, field: str, path, positive: bool = True, integer: bool = False) -> float:
+    """``v`` as a float, or UserError naming ``path`` and ``field`` (finite; > 0; integral)."""
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    ok = ok and (not positive or v > 0) and (not integer or float(v).is_integer())
+    if not ok:
+        what = ("positive " if positive else "") + ("integer" if integer else "number")
+        raise UserError(f"{path}: field '{field}' must be a {what}, got {v!r}")
     return float(v)
 
 
-def _matrix(frame, i, path):
+def _matrix(frame, i, path) -> np.ndarray:
+    """frames[i].transform_matrix as a float64 [4, 4] (3x4 accepted) camera-to-world."""
     m = frame.get("transform_matrix")
     try:
         arr = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError):
         arr = None
-    if arr is None or arr.shape not in ((4, 4), (3, 4)) or not np.isfinite(arr).all():
+    if m is None:
+        got = "missing"
+    elif arr is None:
+        got = "not a list of numbers"
+    elif arr.shape not in ((4, 4), (3, 4)):
+        got = f"shape {list(arr.shape)}"
+    elif not np.isfinite(arr).all():
+        got = "non-finite values"
+    else:
+        got = None
+    if got is not None:
         raise UserError(
             f"{path}: frames[{i}].transform_matrix must be a finite 4x4 (or 3x4) list "
-            "of numbers (camera-to-world, OpenGL convention)"
+            f"of numbers (camera-to-world, OpenGL convention); got {got}"
         )
     if arr.shape == (3, 4):
         arr = np.vstack([arr, [0.0, 0.0, 0.0, 1.0]])
+    if np.abs(arr[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-4:
+        raise UserError(
+            f"{path}: frames[{i}].transform_matrix last row must be [0, 0, 0, 1], got "
+            f"{arr[3].tolist()} (a transposed matrix?)"
+        )
     return arr
 
 
-def _read_image(root: Path, file_path, i, path):
+def _read_image(root: Path, file_path, i, path) -> tuple[np.ndarray, Path]:
+    """frames[i].file_path as float32 [H, W, 3|4] in [0, 1]; '.png' tried when no extension."""
     if not isinstance(file_path, str) or not file_path:
         raise UserError(f"{path}: frames[{i}].file_path must be a non-empty string")
     p = root / file_path
-    candidates = [p] if p.suffix.lower() in (".png", ".jpg", ".jpeg") else []
-    candidates += [p.with_name(p.name + ext) for ext in (".png", ".jpg", ".jpeg")]
+    candidates = [p] if p.suffix.lower() in _IMAGE_EXTS else []
+    candidates += [p.with_name(p.name + ext) for ext in _IMAGE_EXTS]
     img_path = next((c for c in candidates if c.is_file()), None)
     if img_path is None:
         raise UserError(
@@ -68,13 +158,88 @@ def _read_image(root: Path, file_path, i, path):
     try:
         img = np.asarray(iio.imread(img_path))
     except Exception as e:  # imageio raises many types for corrupt files
-        raise UserError(f"{img_path}: cannot read image ({e})") from None
+        raise UserError(
+            f"{img_path}: cannot read image (frames[{i}].file_path in {path}): {e}"
+        ) from None
     if img.ndim == 2:
-        img = img[..., None].repeat(3, -1)
+        img = img[..., None]
+    if img.ndim == 3 and img.shape[-1] in (1, 2):  # grey, grey + alpha
+        img = np.concatenate([img[..., :1].repeat(3, -1), img[..., 1:]], -1)
     if img.ndim != 3 or img.shape[-1] not in (3, 4):
-        raise UserError(f"{img_path}: expected an RGB or RGBA image, got shape {img.shape}")
-    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+        raise UserError(
+            f"{img_path}: expected an RGB or RGBA image, got shape {img.shape} "
+            f"(frames[{i}].file_path in {path})"
+        )
+    if img.dtype == np.uint8:
+        scale = 255.0
+    elif img.dtype == np.uint16:
+        scale = 65535.0
+    else:
+        raise UserError(f"{img_path}: expected 8- or 16-bit pixels, got {img.dtype}")
     return img.astype(np.float32) / scale, img_path
+
+
+def _composite(img: np.ndarray, bg: np.ndarray) -> np.ndarray:
+    """RGBA (straight alpha) over ``bg``: rgb * a + bg * (1 - a); RGB passes through."""
+    if img.shape[-1] == 4:
+        a = img[..., 3:]
+        img = img[..., :3] * a + bg * (1.0 - a)
+    return img
+
+
+def _area_downscale(img: np.ndarray, d: int) -> np.ndarray:
+    """Mean over d x d blocks after cropping the bottom / right to a multiple of d."""
+    if d == 1:
+        return img
+    h, w = img.shape[0] // d, img.shape[1] // d
+    return img[: h * d, : w * d].reshape(h, d, w, d, img.shape[-1]).mean((1, 3))
+
+
+def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
+    """Reads, validates, composites and downscales frames[indices].
+
+    ``sizes`` (optional): the declared (h, w) of each selected frame, checked against the file.
+    Returns images [N, h, w, 3] float32 array, c2w [N, 4, 4] float64 array, paths, (H, W) at
+    full resolution.
+    """
+    images, mats, paths = [], [], []
+    first = None
+    for j, i in enumerate(indices):
+        fr = frames[i]
+        mats.append(_matrix(fr, i, path))
+        img, ip = _read_image(root, fr.get("file_path"), i, path)
+        hw = img.shape[:2]
+        if sizes is not None and hw != tuple(sizes[j]):
+            raise UserError(
+                f"{ip}: image is {hw[1]}x{hw[0]} (w x h) but {path} frames[{i}] expects "
+                f"w x h = {sizes[j][1]}x{sizes[j][0]} (fields 'w', 'h')"
+            )
+        if first is None:
+            first = (hw, ip)
+            if hw[0] < downscale or hw[1] < downscale:
+                raise UserError(
+                    f"downscale {downscale} is larger than the image {ip} ({hw[1]}x{hw[0]})"
+                )
+        elif hw != first[0]:
+            raise UserError(
+                f"{ip}: size {hw[1]}x{hw[0]} differs from {first[1]}'s {first[0][1]}x"
+                f"{first[0][0]} (frames[{i}] in {path}); all images of a split must have one size"
+            )
+        images.append(_area_downscale(_composite(img, bg), downscale).astype(np.float32))
+        paths.append(str(ip))
+    return np.stack(images), np.stack(mats), paths, first[0]
+
+
+def _result(images, c2w, intrinsics, paths, fmt) -> dict:
+    return {
+        "images": torch.from_numpy(np.ascontiguousarray(images)),
+        "c2w": torch.from_numpy(c2w).float(),
+        "intrinsics": torch.as_tensor(intrinsics, dtype=torch.float32),
+        "width": int(images.shape[2]),
+        "height": int(images.shape[1]),
+        "paths": paths,
+        "format": fmt,
+    }
 
 
 def load_blender(
@@ -83,76 +248,52 @@ def load_blender(
     background=(1.0, 1.0, 1.0),
     downscale: int = 1,
     max_images: int | None = None,
-):
-    """Loads a Blender-format folder.
+    *,
+    holdout: bool = False,
+) -> dict:
+    """Loads a Blender-format (NeRF-synthetic) folder.
 
     Reads ``transforms_{split}.json`` (or ``transforms.json``): ``camera_angle_x`` (horizontal FOV,
-    radians) or ``fl_x``/``fl_y`` (+ optional ``cx``/``cy``) in pixels, and ``frames[]`` with
-    ``file_path`` (extension optional) and ``transform_matrix`` (camera-to-world, OpenGL). RGBA
-    images are composited onto ``background``.
+    radians; focal = 0.5 W / tan(0.5 camera_angle_x), principal point at the centre) or
+    ``fl_x``/``fl_y`` (+ optional ``cx``/``cy``) in pixels, and ``frames[]`` with ``file_path``
+    (no extension: ``.png`` is added; ``.png``/``.jpg`` accepted) and ``transform_matrix``
+    (camera-to-world, OpenGL). RGBA images are composited onto ``background``; ``downscale`` is an
+    area average (see the module docstring for the crop rule).
+
+    Args:
+        split: "train", "val" or "test".
+        max_images: keep the first ``max_images`` frames of the split.
+        holdout: when only ``transforms.json`` exists, apply the hold-out rule (val/test = frames
+            ``i % 8 == 0``, train = the others) instead of returning every frame for every split.
 
     Returns:
-        dict with images [N, H, W, 3] float32, c2w [N, 4, 4] float32, intrinsics [N, 4]
-        (fx, fy, cx, cy), width, height, paths.
+        dict with images [N, H, W, 3] float32 in [0, 1], c2w [N, 4, 4] float32, intrinsics [N, 4]
+        float32 (fx, fy, cx, cy in pixels of the returned images), width, height, paths,
+        format ("blender").
     """
-    root = Path(root)
-    if not root.is_dir():
-        raise UserError(f"{root}: data folder not found")
+    root, bg = _open_root(root, split, background, downscale, max_images)
     path = find_transforms(root, split)
-    try:
-        js = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(js, dict):
-        raise UserError(f"{path}: expected a JSON object with 'frames'")
-    frames = js.get("frames")
-    if not isinstance(frames, list) or not frames or not all(isinstance(f, dict) for f in frames):
-        raise UserError(f"{path}: field 'frames' must be a non-empty list of objects")
+    js, frames = _read_json(path)
     if "camera_angle_x" not in js and "fl_x" not in js:
         raise UserError(f"{path}: needs 'camera_angle_x' (radians) or 'fl_x'/'fl_y' (pixels)")
-    if downscale < 1 or int(downscale) != downscale:
-        raise UserError(f"downscale must be a positive integer, got {downscale}")
-    frames = frames[:max_images] if max_images else frames
-    bg = np.asarray(background, dtype=np.float32).reshape(-1)
-    images, mats, paths = [], [], []
-    first = None
-    for i, fr in enumerate(frames):
-        img, ip = _read_image(root, fr.get("file_path"), i, path)
-        first = first or img.shape[:2]
-        if img.shape[:2] != first:
-            raise UserError(
-                f"{ip}: size {img.shape[1]}x{img.shape[0]} differs from the first "
-                f"image's {first[1]}x{first[0]}"
-            )
-        if img.shape[-1] == 4:
-            a = img[..., 3:]
-            img = img[..., :3] * a + bg * (1.0 - a)
-        if downscale > 1:
-            h, w = img.shape[0] // downscale * downscale, img.shape[1] // downscale * downscale
-            img = img[:h, :w].reshape(h // downscale, downscale, w // downscale, downscale, 3)
-            img = img.mean((1, 3))
-        images.append(img.astype(np.float32))
-        mats.append(_matrix(fr, i, path))
-        paths.append(str(ip))
-    h, w = images[0].shape[:2]
-    full_w, full_h = w * downscale, h * downscale
+    indices = list(range(len(frames)))
+    if holdout and path.name == "transforms.json":
+        indices = split_indices(len(frames), split, path)
+    indices = indices[:max_images]
+    # Intrinsics are validated before reading any image.
     if "fl_x" in js:
-        fx = _number(js, "fl_x", path)
-        fy = _number(js, "fl_y", path) if "fl_y" in js else fx
-        cx = _number(js, "cx", path, positive=False) if "cx" in js else 0.5 * full_w
-        cy = _number(js, "cy", path, positive=False) if "cy" in js else 0.5 * full_h
+        fx = _number(js["fl_x"], "fl_x", path)
+        fy = _number(js["fl_y"], "fl_y", path) if "fl_y" in js else fx
     else:
-        fov = _number(js, "camera_angle_x", path)
+        fov = _number(js["camera_angle_x"], "camera_angle_x", path)
         if fov >= math.pi:
-            raise UserError(f"{path}: camera_angle_x must be below pi radians, got {fov}")
+            raise UserError(f"{path}: field 'camera_angle_x' must be below pi radians, got {fov}")
+    images, c2w, paths, (full_h, full_w) = _load_frames(root, path, frames, indices, bg, downscale)
+    if "fl_x" in js:
+        cx = _number(js["cx"], "cx", path, positive=False) if "cx" in js else 0.5 * full_w
+        cy = _number(js["cy"], "cy", path, positive=False) if "cy" in js else 0.5 * full_h
+    else:
         fx = fy = 0.5 * full_w / math.tan(0.5 * fov)
         cx, cy = 0.5 * full_w, 0.5 * full_h
-    k = torch.tensor([fx, fy, cx, cy], dtype=torch.float32) / downscale
-    return {
-        "images": torch.from_numpy(np.stack(images)),
-        "c2w": torch.from_numpy(np.stack(mats)).float(),
-        "intrinsics": k.expand(len(images), 4).clone(),
-        "width": w,
-        "height": h,
-        "paths": paths,
-    }
+    k = np.array([fx, fy, cx, cy], dtype=np.float64) / downscale
+    return _result(images, c2w, np.tile(k, (len(paths), 1)), paths, "blender")

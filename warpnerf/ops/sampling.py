@@ -1,4 +1,4 @@
-"""Torch bridge for stratified sampling (kernels/sampling.py). No gradients."""
+"""Torch bridge for stratified and importance sampling (kernels/sampling.py). No gradients."""
 
 from __future__ import annotations
 
@@ -8,7 +8,15 @@ import torch
 
 from . import _bridge
 
-__all__ = ["stratified_samples", "Samples"]
+__all__ = ["stratified_samples", "importance_samples", "Samples"]
+
+# Padding of the importance PDF: a constant density worth this much mass per interval on equal
+# bins (NeRF's ``weights + 1e-5``); see kernels/sampling.py.
+PDF_PADDING = 1e-5
+# XORed into importance_samples' seed so that the seed given to stratified_samples for the same
+# rays gives an unrelated random stream (with one stream, on uniform weights, every new position
+# would sit exactly half a bin before a jittered coarse edge).
+_IMPORTANCE_SALT = 0x5BD1E995
 
 
 class Samples(NamedTuple):
@@ -82,3 +90,136 @@ def stratified_samples(
     if packed:
         return Samples(t_starts, t_ends, ray_indices, packed_info)
     return Samples(t_starts.reshape(n_rays, n_samples), t_ends.reshape(n_rays, n_samples))
+
+
+def importance_samples(
+    samples: Samples,
+    weights: torch.Tensor,  # [n_rays, n_c] dense or [n] packed, >= 0
+    n_fine: int,
+    *,
+    perturb: bool = False,
+    seed: int = 0,
+) -> Samples:
+    """Hierarchical (coarse-to-fine) sampling: the coarse intervals merged with n_fine new edges.
+
+    The coarse intervals must partition each ray's [near, far] (as :func:`stratified_samples`
+    makes them); ``weights`` are their compositing weights (detached here). New edge positions
+    are drawn by the inverse CDF of the piecewise-constant PDF p_i ~ w_i + eps * n_c * len_i / L
+    (eps = ``PDF_PADDING``, L = far - near; all-zero weights sample uniformly by length) at
+    u_j = (j + 1/2) / n_fine, or u_j = (j + U_j) / n_fine with U_j from Warp's RNG keyed by
+    ``seed`` and ray when ``perturb``. The n_c + 1 coarse edges and the n_fine new ones, merged in
+    order, give n_c + n_fine intervals that still partition [near, far] (zero-length ones allowed):
+    evaluate the fine field at their midpoints. Same layout out as in: dense
+    [n_rays, n_c + n_fine], or packed with ``packed_info`` counts n_c + n_fine (0 stays 0).
+
+    Raises ValueError for bad shapes/dtypes/devices, n_fine < 1, weights that are negative or not
+    finite (a NaN weight would silently skew every sample of its ray) and samples that are not
+    finite, ordered and contiguous along each ray.
+    """
+    from warpnerf.kernels import sampling as K
+
+    if not isinstance(samples, Samples):
+        raise ValueError(f"samples must be a Samples tuple, got {type(samples).__name__}")
+    if isinstance(n_fine, bool) or not isinstance(n_fine, int) or n_fine < 1:
+        raise ValueError(f"n_fine must be an int >= 1, got {n_fine!r}")
+    ts, te, packed_info = samples.t_starts, samples.t_ends, samples.packed_info
+    packed = packed_info is not None
+    _bridge.check_float("samples.t_starts", ts, (None,) if packed else (None, None))
+    dev, dt = ts.device, ts.dtype
+    _bridge.check_float("samples.t_ends", te, tuple(ts.shape), dt, dev)
+    _bridge.check_float("weights", weights, tuple(ts.shape), dt, dev)
+    ts, te, w = ts.detach().contiguous(), te.detach().contiguous(), weights.detach().contiguous()
+    if packed:
+        n_rays, n_c = _check_packed(samples, ts.shape[0], dev), 0
+        counts = packed_info[:, 1].long()
+        first = torch.zeros(ts.shape[0] + 1, dtype=torch.bool, device=dev)
+        first[packed_info[:, 0].long().clamp(0, ts.shape[0])[counts > 0]] = True  # ray starts
+        joined = (te[:-1] == ts[1:]) | first[1:-1]
+        out_counts = torch.where(counts > 0, counts + n_fine, 0)
+        n_out = out_counts.sum()
+        in_range = (packed_info[:, 0] >= 0) & (counts >= 0)
+        in_range &= packed_info[:, 0].long() + counts <= ts.shape[0]
+    else:
+        n_rays, n_c = ts.shape
+        if samples.ray_indices is not None:
+            raise ValueError("samples: dense samples (no packed_info) must have ray_indices None")
+        if n_c < 1:
+            raise ValueError("samples: dense samples need at least one interval per ray")
+        joined = te[:, :-1] == ts[:, 1:]
+        n_out = torch.tensor(n_rays * (n_c + n_fine), device=dev)
+        in_range = torch.ones((), dtype=torch.bool, device=dev)
+    flags = torch.stack(
+        [
+            in_range.all(),
+            torch.isfinite(w).all(),
+            (w >= 0).all(),
+            torch.isfinite(ts).all() & torch.isfinite(te).all(),
+            (te >= ts).all(),
+            joined.all(),
+        ]
+    )
+    ok_range, finite_w, pos_w, finite_t, ordered, contiguous, n_out = [
+        int(x) for x in torch.cat([flags.long(), n_out.reshape(1).long()]).tolist()
+    ]  # one device sync for all the checks
+    if not ok_range:
+        raise ValueError("samples.packed_info has a (start, count) outside the samples")
+    if not finite_w:
+        raise ValueError("weights must be finite (a NaN/Inf weight would skew its ray's PDF)")
+    if not pos_w:
+        raise ValueError("weights must be >= 0")
+    if not finite_t:
+        raise ValueError("samples must have finite t_starts and t_ends")
+    if not ordered:
+        raise ValueError("samples must have t_ends >= t_starts")
+    if not contiguous:
+        raise ValueError("samples must partition each ray: t_ends[k] == t_starts[k + 1] within it")
+
+    if packed:
+        out_info = torch.stack([torch.cumsum(out_counts, 0) - out_counts, out_counts], -1)
+        out_info = out_info.to(torch.int32)
+        out_ray_indices = torch.empty(n_out, device=dev, dtype=torch.int64)
+        in_info = packed_info.contiguous()
+    else:
+        out_info = in_info = torch.empty(0, 2, device=dev, dtype=torch.int32)
+        out_ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
+    out_starts = torch.empty(n_out, device=dev, dtype=dt)
+    out_ends = torch.empty(n_out, device=dev, dtype=dt)
+    a = _bridge.arr
+    _bridge.launch(
+        K.importance_fwd,
+        n_rays,
+        [
+            a(ts.reshape(-1)),
+            a(te.reshape(-1)),
+            a(w.reshape(-1)),
+            int(n_c),
+            a(in_info),
+            int(n_fine),
+            _bridge.scalar(PDF_PADDING, dt),
+            int(perturb),
+            (int(seed) ^ _IMPORTANCE_SALT) & 0x7FFFFFFF,
+            a(out_info),
+            a(out_starts),
+            a(out_ends),
+            a(out_ray_indices),
+        ],
+        dev,
+    )
+    if packed:
+        return Samples(out_starts, out_ends, out_ray_indices, out_info)
+    shape = (n_rays, n_c + n_fine)
+    return Samples(out_starts.reshape(shape), out_ends.reshape(shape))
+
+
+def _check_packed(samples: Samples, n: int, dev: torch.device) -> int:
+    """Checks a packed Samples' packed_info [n_rays, 2] int32 and ray_indices [n] int64; n_rays."""
+    info, ray_indices = samples.packed_info, samples.ray_indices
+    if not isinstance(info, torch.Tensor) or info.dtype != torch.int32 or info.dim() != 2:
+        raise ValueError("samples.packed_info must be an int32 tensor [n_rays, 2]")
+    if info.shape[1] != 2 or info.device != dev:
+        raise ValueError(f"samples.packed_info must be [n_rays, 2] on {dev}, got {info.shape}")
+    if not isinstance(ray_indices, torch.Tensor) or ray_indices.dtype != torch.int64:
+        raise ValueError("samples.ray_indices must be an int64 tensor [n] in the packed layout")
+    if tuple(ray_indices.shape) != (n,) or ray_indices.device != dev:
+        raise ValueError(f"samples.ray_indices must have shape [{n}] on {dev}")
+    return info.shape[0]

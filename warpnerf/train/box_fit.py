@@ -3,7 +3,6 @@ compositing path: random ray batches across all images, MSE, Adam."""
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict, dataclass
 
@@ -13,7 +12,7 @@ from ..fields.sdf_volume import SDFVolume
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
 
-__all__ = ["BoxFitConfig", "fit_box", "render_box_views", "psnr"]
+__all__ = ["BoxFitConfig", "fit_box", "render_box_views"]
 
 
 @dataclass
@@ -36,11 +35,6 @@ class BoxFitConfig:
     def render_kwargs(self) -> dict:
         """The box task's compositing settings for render_rays / render_views."""
         return {"n_samples": self.n_samples, "mode": "alpha", "background": self.background}
-
-
-def psnr(pred: torch.Tensor, gt: torch.Tensor) -> float:
-    mse = float(((pred - gt) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
 
 
 def render_box_views(volume, c2w, intrinsics, width, height, cfg: BoxFitConfig):

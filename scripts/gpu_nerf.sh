@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# NeRF figures on the lent GPU (see docs/PERFORMANCE.md). Usage: gpu_nerf.sh materials|lego_seed|lego_full
+# Expects Warp importable and the package installed; data under .devdata/ (carried); writes $OUT.
+set -u
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+common="--device cuda --tf32 --layers 8 --width 256 --pos-freqs 10 --dir-freqs 4 --batch 4096 --quiet"
+case "$1" in
+materials)
+  for vd in view-dependence no-view-dependence; do
+    python3 -m warpnerf.cli train nerf --data .devdata/materials --out /tmp/mat_$vd --$vd $common \
+      --samples 128 --iters 20000 --max-seconds ${SECS:-190} --val-every 1000 --val-images 2 \
+      2>&1 | tail -4 | tee -a "$OUT/log.txt"
+    python3 -m warpnerf.cli eval /tmp/mat_$vd --split val 2>&1 | tail -1 | tee -a "$OUT/log.txt"
+    cp /tmp/mat_$vd/history.json "$OUT/materials_${vd}_history.json"
+    cp /tmp/mat_$vd/eval_val/metrics.json "$OUT/materials_${vd}_metrics.json"
+  done
+  cp /tmp/mat_view-dependence/eval_val/val_003.png "$OUT/materials_vd_val_003.png"
+  cp /tmp/mat_no-view-dependence/eval_val/val_003.png "$OUT/materials_novd_val_003.png"
+  ;;
+lego_seed|lego_full)
+  if [ "$1" = lego_seed ]; then extra="--downscale 3 --samples 128"; else extra="--samples 64 --coarse-fine --fine-samples 128"; fi
+  python3 -m warpnerf.cli train nerf --data .devdata/lego --out /tmp/$1 $common $extra \
+    --iters 30000 --max-seconds ${SECS:-420} --val-every 1000 --val-images 2 2>&1 | tail -6 | tee -a "$OUT/log.txt"
+  python3 -m warpnerf.cli eval /tmp/$1 --split val --max-images ${EVAL_IMAGES:-25} 2>&1 | tail -1 | tee -a "$OUT/log.txt"
+  cp /tmp/$1/history.json "$OUT/$1_history.json"
+  cp /tmp/$1/eval_val/metrics.json "$OUT/$1_metrics.json"
+  cp /tmp/$1/eval_val/val_000.png "$OUT/$1_val_000.png"
+  cp /tmp/$1/config.json "$OUT/$1_config.json"
+  ;;
+esac
+nvidia-smi --query-gpu=name,driver_version --format=csv,noheader >> "$OUT/log.txt"

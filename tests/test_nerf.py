@@ -1,0 +1,150 @@
+"""NeRF model, training loop, exact resume, evaluation and rendering on the tiny built-in scene."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from warpnerf.errors import UserError
+from warpnerf.fields.encoding import PositionalEncoding
+from warpnerf.fields.nerf import NeRFField
+from warpnerf.train import NeRFConfig, evaluate_run, render_run, train_nerf
+from warpnerf.train.nerf_eval import camera_path
+
+
+def tiny(**kw) -> NeRFConfig:
+    base = dict(
+        iters=6,
+        batch=128,
+        n_coarse=16,
+        n_layers=2,
+        width=16,
+        skip=1,
+        pos_freqs=3,
+        dir_freqs=1,
+        near=1.0,
+        far=4.0,
+        builtin_size=12,
+        val_every=3,
+        val_images=1,
+        ckpt_every=3,
+        lr=5e-3,
+        lr_final=5e-4,
+    )
+    base.update(kw)
+    return NeRFConfig(**base)
+
+
+def test_positional_encoding_values():
+    enc = PositionalEncoding(2)
+    x = torch.tensor([[0.5, -1.0, 2.0]])
+    y = enc(x)
+    assert y.shape == (1, 3 * 5) and enc.out_dim == 15
+    xf = x.unsqueeze(-1) * torch.tensor([1.0, 2.0])
+    assert torch.allclose(y, torch.cat([x, torch.sin(xf).flatten(1), torch.cos(xf).flatten(1)], -1))
+    assert torch.equal(PositionalEncoding(0)(x), x)
+    with pytest.raises(ValueError):
+        PositionalEncoding(-1)
+
+
+@pytest.mark.parametrize("view_dependence", [True, False])
+def test_field_view_dependence(view_dependence):
+    torch.manual_seed(0)
+    f = NeRFField(
+        n_layers=3, width=32, skip=2, pos_freqs=4, dir_freqs=2, view_dependence=view_dependence
+    )
+    p = torch.randn(64, 3)
+    d1 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    d2 = torch.nn.functional.normalize(torch.randn(64, 3), dim=-1)
+    s1, c1 = f(p, d1)
+    s2, c2 = f(p, d2)
+    assert torch.equal(s1, s2)  # density never sees the direction
+    assert (s1 >= 0).all() and ((c1 > 0) & (c1 < 1)).all()
+    assert torch.equal(c1, c2) != view_dependence
+    assert f.n_parameters() == sum(p.numel() for p in f.parameters())
+
+
+@pytest.mark.parametrize("n_fine", [0, 8])
+def test_resume_continues_exactly(tmp_path, n_fine):
+    straight = train_nerf(tiny(n_fine=n_fine), tmp_path / "a", progress=False, log=lambda *a: 0)
+    cfg = tiny(n_fine=n_fine, iters=3, lr_decay_steps=6)  # the straight run's schedule
+    train_nerf(cfg, tmp_path / "b", progress=False, log=lambda *a: 0)
+    resumed = train_nerf(
+        tiny(iters=6), tmp_path / "b", resume=True, progress=False, log=lambda *a: 0
+    )
+    assert resumed["loss"] == straight["loss"]  # same batches, same jitter, same optimiser state
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    for level in ("coarse", "fine"):
+        if a["fields"][level] is None:
+            continue
+        for k, v in a["fields"][level].items():
+            assert torch.equal(v, b["fields"][level][k]), (level, k)
+    saved = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert saved["iters"] == 6 and saved["n_fine"] == n_fine
+
+
+def test_run_folder_guards(tmp_path):
+    train_nerf(tiny(iters=3), tmp_path / "r", progress=False, log=lambda *a: 0)
+    with pytest.raises(UserError, match="already holds a run"):
+        train_nerf(tiny(iters=3), tmp_path / "r", progress=False)
+    with pytest.raises(UserError, match="not a training run"):
+        train_nerf(tiny(), tmp_path / "nothing", resume=True, progress=False)
+    with pytest.raises(UserError, match="near"):
+        train_nerf(tiny(near=3.0, far=2.0), tmp_path / "x", progress=False)
+
+
+def test_eval_and_render_write_outputs(tmp_path):
+    run = tmp_path / "r"
+    train_nerf(tiny(n_fine=8), run, progress=False, log=lambda *a: 0)
+    m = evaluate_run(run, "val", max_images=2)
+    assert m["n_images"] == 2 and 0 < m["psnr"] < 60 and -1 <= m["ssim"] <= 1
+    assert (run / "eval_val" / "metrics.json").exists() and (
+        run / "eval_val" / "val_001.png"
+    ).exists()
+    import imageio.v3 as iio
+
+    side = iio.imread(run / "eval_val" / "val_000.png")
+    assert side.shape == (12, 36, 3)  # ground truth | prediction | depth
+    r = render_run(run, "orbit", frames=3, size=(10, 8))
+    assert r["frames"] == 3
+    for f in ("rgb.mp4", "rgb.gif", "depth.mp4", "depth.gif", "rgb_002.png"):
+        assert (run / "render_orbit" / f).stat().st_size > 0
+
+
+def test_camera_path_circles_the_target():
+    from warpnerf.data import orbit_views
+
+    cams = orbit_views(20, radius=3.0)
+    for kind in ("orbit", "spiral"):
+        path = camera_path(cams, kind, 12)
+        centres = path[:, :3, 3]
+        assert torch.allclose(centres.norm(dim=-1), torch.full((12,), 3.0), atol=1e-3)
+        fwd = -path[:, :3, 2]
+        assert torch.allclose((fwd * -centres).sum(-1) / 3.0, torch.ones(12), atol=1e-4)
+    with pytest.raises(UserError):
+        camera_path(cams, "zigzag", 4)
+
+
+@pytest.mark.slow
+def test_builtin_scene_trains_to_psnr_floor(tmp_path):
+    """CPU convergence on the built-in 24x24 scene: measured 25.4 dB val after 300 steps (28 s
+    of training on a 2-core Xeon, 2026-11-22); the floor leaves 2.4 dB of margin."""
+    cfg = tiny(
+        iters=300,
+        batch=512,
+        n_coarse=32,
+        n_layers=4,
+        width=64,
+        skip=2,
+        pos_freqs=6,
+        dir_freqs=2,
+        builtin_size=24,
+        val_every=300,
+        val_images=4,
+        ckpt_every=300,
+    )
+    hist = train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
+    assert hist["val_psnr"][-1] >= 23.0, hist["val_psnr"]

@@ -1,0 +1,104 @@
+"""nerfstudio ``transforms.json`` folders (pinhole cameras), validated with clear errors.
+
+Format: top-level intrinsics ``fl_x, fl_y, cx, cy`` (pixels) and image size ``w, h``, optional
+``camera_model`` and distortion ``k1, k2, k3, k4, p1, p2``; ``frames[]`` with ``file_path``
+(relative to the folder, with extension), ``transform_matrix`` (camera-to-world, OpenGL convention,
+as nerfstudio stores it) and optional per-frame overrides of any intrinsic, size, distortion or
+camera-model field. Only undistorted pinhole cameras are loaded: ``camera_model`` absent,
+``"PINHOLE"`` or ``"OPENCV"`` with every distortion coefficient absent or zero.
+
+Split rule (nerfstudio folders have no split files): in the order of ``frames``, ``val`` and
+``test`` are the frames with index ``i % 8 == 0`` and ``train`` all the others.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import UserError
+from .blender import _load_frames, _number, _open_root, _read_json, _result, split_indices
+
+__all__ = ["load_nerfstudio", "CAMERA_MODELS", "DISTORTION_FIELDS"]
+
+CAMERA_MODELS = ("PINHOLE", "OPENCV")
+DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_REQUIRED = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+
+
+def _field(js: dict, frame: dict, i: int, key: str):
+    """(value, name for messages) of ``key``: the frame's override, else the top-level value."""
+    if key in frame:
+        return frame[key], f"frames[{i}].{key}"
+    return js.get(key), key
+
+
+def _frame_camera(js: dict, frame: dict, i: int, path) -> tuple[list[float], tuple[int, int]]:
+    """([fx, fy, cx, cy], (h, w)) of frames[i] after overrides; rejects non-pinhole cameras."""
+    model, name = _field(js, frame, i, "camera_model")
+    if model is not None and (not isinstance(model, str) or model.upper() not in CAMERA_MODELS):
+        raise UserError(
+            f"{path}: field '{name}' = {model!r}: camera model not supported (only PINHOLE, or "
+            "OPENCV without distortion; undistort the images first, e.g. with ns-process-data)"
+        )
+    for key in DISTORTION_FIELDS:
+        v, name = _field(js, frame, i, key)
+        if v is not None and _number(v, name, path, positive=False) != 0.0:
+            raise UserError(
+                f"{path}: field '{name}' = {v!r}: non-zero lens distortion is not supported "
+                "(pinhole cameras only); undistort the images first"
+            )
+    vals = {}
+    for key in _REQUIRED:
+        v, name = _field(js, frame, i, key)
+        if v is None:
+            raise UserError(
+                f"{path}: field '{key}' missing (needed at the top level or in frames[{i}]; "
+                f"nerfstudio format needs {', '.join(_REQUIRED)})"
+            )
+        positive, integer = key not in ("cx", "cy"), key in ("w", "h")
+        vals[key] = _number(v, name, path, positive=positive, integer=integer)
+    k = [vals["fl_x"], vals["fl_y"], vals["cx"], vals["cy"]]
+    return k, (int(vals["h"]), int(vals["w"]))
+
+
+def load_nerfstudio(
+    root,
+    split: str = "train",
+    background=(1.0, 1.0, 1.0),
+    downscale: int = 1,
+    max_images: int | None = None,
+) -> dict:
+    """Loads a nerfstudio folder (``transforms.json``, pinhole cameras; see the module docstring).
+
+    Args:
+        split: "train" (frames ``i % 8 != 0``), "val" or "test" (both: frames ``i % 8 == 0``).
+        background: RGB that RGBA images are composited onto (RGB images are used as they are).
+        downscale: integer area-average factor; sizes not a multiple of it are cropped at the
+            bottom / right; intrinsics are divided by it.
+        max_images: keep the first ``max_images`` frames of the split.
+
+    Returns:
+        dict with images [N, H, W, 3] float32 in [0, 1], c2w [N, 4, 4] float32, intrinsics [N, 4]
+        float32 (fx, fy, cx, cy in pixels of the returned images), width, height, paths,
+        format ("nerfstudio").
+    """
+    root, bg = _open_root(root, split, background, downscale, max_images)
+    path = root / "transforms.json"
+    if not path.is_file():
+        raise UserError(f"{root}: no transforms.json found (nerfstudio format)")
+    js, frames = _read_json(path)
+    # Every frame's camera is checked (JSON only, cheap), whichever split is loaded.
+    cams = [_frame_camera(js, fr, i, path) for i, fr in enumerate(frames)]
+    indices = split_indices(len(frames), split, path)[:max_images]
+    cams = [cams[i] for i in indices]
+    sizes = [hw for _, hw in cams]
+    for i, hw in zip(indices, sizes):
+        if hw != sizes[0]:
+            raise UserError(
+                f"{path}: frames[{i}] has w x h = {hw[1]}x{hw[0]} but frames[{indices[0]}] has "
+                f"{sizes[0][1]}x{sizes[0][0]} (fields 'w', 'h'); all images of a split must "
+                "have one size"
+            )
+    images, c2w, paths, _ = _load_frames(root, path, frames, indices, bg, downscale, sizes)
+    k = np.array([c for c, _ in cams], dtype=np.float64) / downscale
+    return _result(images, c2w, k, paths, "nerfstudio")

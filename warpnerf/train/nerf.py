@@ -1,0 +1,298 @@
+"""NeRF training: random ray batches across all training images, coarse/fine rendering through the
+Warp kernels, Adam with exponential learning-rate decay, periodic validation PSNR, atomic
+checkpoints and an exact ``resume`` (model, optimiser, learning-rate schedule and sampling RNG all
+restored)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import torch
+
+from ..errors import UserError
+from ..fields.nerf import NeRFField
+from ..io import atomic_path, write_json
+from ..ops import generate_rays, random_pixels
+from ..render import render_nerf
+
+__all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
+
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class NeRFConfig:
+    data: str = "builtin"  # a dataset folder, or "builtin" for the small synthetic scene
+    iters: int = 2000
+    batch: int = 1024  # rays per step, uniform across all training images
+    lr: float = 5e-4
+    lr_final: float = 5e-5  # lr decays exponentially, reaching lr_final at lr_decay_steps
+    lr_decay_steps: int = 0  # 0: the run's first `iters` (resolved and saved at the start)
+    n_coarse: int = 64
+    n_fine: int = 0  # > 0 turns on the fine network (coarse/fine hierarchical sampling)
+    view_dependence: bool = True
+    n_layers: int = 8
+    width: int = 256
+    skip: int = 4
+    pos_freqs: int = 10
+    dir_freqs: int = 4
+    density_activation: str = "softplus"
+    near: float = 2.0
+    far: float = 6.0
+    background: float = 1.0  # white, as the NeRF-synthetic evaluation
+    downscale: int = 1
+    max_images: int = 0  # 0 = all
+    builtin_size: int = 48
+    t_threshold: float = 1e-4  # early termination (training and rendering)
+    val_every: int = 500
+    val_images: int = 2
+    ckpt_every: int = 500
+    chunk: int = 8192  # rays per chunk when rendering whole images
+    max_seconds: float = 0.0  # stop (and checkpoint) after this much training time; 0 = no limit
+    tf32: bool = False  # TF32 matrix products for the MLPs on CUDA (kernels stay float32)
+    seed: int = 0
+    device: str = "cpu"
+
+    def to_dict(self):
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
+        return cls(**d)
+
+    def validate(self):
+        for name in (
+            "iters",
+            "batch",
+            "n_coarse",
+            "n_layers",
+            "width",
+            "val_every",
+            "ckpt_every",
+            "chunk",
+            "builtin_size",
+            "downscale",
+        ):
+            value = getattr(self, name)
+            if value < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+        if self.n_fine < 0 or self.pos_freqs < 0 or self.dir_freqs < 0:
+            raise UserError("--n-fine, --pos-freqs and --dir-freqs must be >= 0")
+        if not self.far > self.near >= 0:
+            raise UserError(f"need 0 <= --near < --far, got near={self.near}, far={self.far}")
+        if not (self.lr > 0 and self.lr_final > 0):
+            raise UserError("--lr and --lr-final must be positive")
+        return self
+
+
+def build_fields(cfg: NeRFConfig) -> dict:
+    def make():
+        return NeRFField(
+            cfg.n_layers,
+            cfg.width,
+            cfg.skip,
+            cfg.pos_freqs,
+            cfg.dir_freqs,
+            cfg.view_dependence,
+            cfg.density_activation,
+        )
+
+    torch.manual_seed(cfg.seed)
+    out = {"coarse": make()}
+    out["fine"] = make() if cfg.n_fine > 0 else None
+    return {k: (v.to(cfg.device) if v is not None else None) for k, v in out.items()}
+
+
+def load_data(cfg: NeRFConfig, split: str):
+    """The dataset split as tensors on cfg.device (builtin scene when cfg.data == "builtin")."""
+    if cfg.data == "builtin":
+        from ..data.synthetic import make_synthetic_dataset
+
+        train, val = make_synthetic_dataset(size=cfg.builtin_size, device="cpu")
+        ds = dict(train if split == "train" else val)
+    else:
+        from ..data import load_dataset
+
+        ds = load_dataset(
+            cfg.data,
+            split=split,
+            background=(cfg.background,) * 3,
+            downscale=cfg.downscale,
+            max_images=cfg.max_images or None,
+        )
+    for k in ("images", "c2w", "intrinsics"):
+        ds[k] = ds[k].to(cfg.device)
+    return ds
+
+
+def render_rays_of(fields_, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None):
+    return render_nerf(
+        fields_,
+        o,
+        d,
+        cfg.near,
+        cfg.far,
+        n_coarse=cfg.n_coarse,
+        n_fine=cfg.n_fine,
+        perturb=perturb,
+        seed=seed,
+        background=cfg.background,
+        t_threshold=cfg.t_threshold,
+        chunk=chunk,
+    )
+
+
+@torch.no_grad()
+def render_dataset_image(fields_, cfg, ds, i):
+    """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
+    h, w = ds["height"], ds["width"]
+    o, d = generate_rays(ds["c2w"][i], ds["intrinsics"][i], w, h)
+    out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
+    return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
+
+
+def _psnr(mse: float) -> float:
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
+
+
+def _parameters(fields_):
+    return [p for f in fields_.values() if f is not None for p in f.parameters()]
+
+
+def _save(run: Path, step, fields_, opt, gen, history, cfg):
+    state = {
+        "step": step,
+        "fields": {k: (v.state_dict() if v is not None else None) for k, v in fields_.items()},
+        "optimizer": opt.state_dict(),
+        "generator": gen.get_state(),
+        "history": history,
+        "config": cfg.to_dict(),
+    }
+    with atomic_path(run / CHECKPOINT) as tmp:
+        torch.save(state, tmp)
+
+
+def load_run(run, device: str | None = None):
+    """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one."""
+    run = Path(run)
+    if not (run / "config.json").is_file() or not (run / CHECKPOINT).is_file():
+        raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
+    try:
+        cfg = NeRFConfig.from_dict(json.loads((run / "config.json").read_text()))
+    except (json.JSONDecodeError, TypeError) as e:
+        raise UserError(f"{run / 'config.json'}: unreadable ({e})") from None
+    if device:
+        cfg.device = device
+    fields_ = build_fields(cfg)
+    ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
+    for k, f in fields_.items():
+        if f is not None:
+            f.load_state_dict(ckpt["fields"][k])
+    return cfg, fields_, ckpt
+
+
+def train_nerf(cfg: NeRFConfig, run, resume: bool = False, progress: bool = True, log=print):
+    """Trains (or resumes) a run in folder ``run``; returns the history dict."""
+    cfg.validate()
+    run = Path(run)
+    if resume:
+        saved_cfg, fields_, ckpt = load_run(run, cfg.device)
+        saved_cfg.iters = cfg.iters  # the only setting a resume may change: train longer
+        cfg = saved_cfg
+    else:
+        if (run / CHECKPOINT).exists():
+            raise UserError(
+                f"{run}: already holds a run; pass --resume to continue it or choose another --out"
+            )
+        fields_, ckpt = build_fields(cfg), None
+    if cfg.lr_decay_steps <= 0:
+        cfg.lr_decay_steps = cfg.iters
+    # Data first: a bad dataset stops the run before anything is written.
+    train = load_data(cfg, "train")
+    val = load_data(cfg, "val") if cfg.val_images > 0 else None
+    run.mkdir(parents=True, exist_ok=True)
+    write_json(run / "config.json", cfg.to_dict())
+    n_img, h, w = train["images"].shape[:3]
+    flat = train["images"].reshape(-1, 3)
+    params = _parameters(fields_)
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
+    start = 0
+    if ckpt is not None:
+        opt.load_state_dict(ckpt["optimizer"])
+        gen.set_state(ckpt["generator"])
+        history, start = ckpt["history"], ckpt["step"]
+    if cfg.device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
+    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
+    t0, val_time = time.perf_counter(), 0.0  # training time excludes validation renders
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.iters, initial=start, desc="train nerf", unit="step", disable=None)
+    for step in range(start, cfg.iters):
+        lr = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / cfg.lr_decay_steps)
+        for group in opt.param_groups:
+            group["lr"] = lr
+        cam, px, py, idx = random_pixels(n_img, w, h, cfg.batch, generator=gen, device=cfg.device)
+        o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
+        out = render_rays_of(fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step)
+        target = flat[idx]
+        loss_fine = torch.mean((out["rgb"] - target) ** 2)
+        loss = loss_fine
+        if fields_.get("fine") is not None and cfg.n_fine > 0:
+            loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        done = step + 1
+        if cfg.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        seconds = elapsed0 + time.perf_counter() - t0 - val_time
+        history["step"].append(done)
+        history["loss"].append(loss.item())
+        history["psnr"].append(_psnr(loss_fine.item()))
+        history["seconds"].append(seconds)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{history['psnr'][-1]:.2f}")
+        out_of_time = cfg.max_seconds > 0 and seconds >= cfg.max_seconds
+        if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
+            tv = time.perf_counter()
+            v = validate(fields_, cfg, val)
+            val_time += time.perf_counter() - tv
+            history["val_step"].append(done)
+            history["val_psnr"].append(v)
+            log(
+                f"step {done}: train psnr {history['psnr'][-1]:.2f}, val psnr {v:.2f}, "
+                f"{seconds:.0f} s"
+            )
+        if done % cfg.ckpt_every == 0 or done == cfg.iters or out_of_time:
+            _save(run, done, fields_, opt, gen, history, cfg)
+            write_json(run / "history.json", history)
+        if out_of_time:
+            log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
+            break
+    if bar is not None:
+        bar.close()
+    return history
+
+
+def validate(fields_, cfg, val) -> float:
+    """Mean PSNR over the first cfg.val_images validation images."""
+    n = min(cfg.val_images, val["images"].shape[0])
+    mses = []
+    for i in range(n):
+        rgb, _, _ = render_dataset_image(fields_, cfg, val, i)
+        mses.append(float(((rgb - val["images"][i]) ** 2).mean()))
+    return sum(_psnr(m) for m in mses) / max(n, 1)

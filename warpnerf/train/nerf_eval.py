@@ -1,0 +1,148 @@
+"""Evaluation (PSNR/SSIM per image, side-by-side PNGs) and camera-path videos of a NeRF run."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import torch
+
+from ..data.cameras import look_at
+from ..errors import UserError
+from ..io import depth_to_uint8, to_uint8, write_image, write_json, write_video
+from ..metrics import psnr, ssim
+from ..ops import generate_rays
+from .nerf import load_data, load_run, render_dataset_image, render_rays_of
+
+__all__ = ["evaluate_run", "render_run", "camera_path", "train_and_evaluate"]
+
+SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
+
+
+def _depth_image(depth, opacity, far):
+    """Depth of the visible surface (depth / opacity), normalised by the far plane, as RGB."""
+    surf = torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
+    return torch.from_numpy(depth_to_uint8(surf, far)).unsqueeze(-1).expand(*surf.shape, 3)
+
+
+def evaluate_run(run, split: str = "val", device: str | None = None, max_images: int = 0):
+    """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
+    RUN/eval_{split}/. Returns the metrics dict."""
+    if split not in ("train", "val", "test"):
+        raise UserError(f"--split must be train, val or test, got {split!r}")
+    cfg, fields_, ckpt = load_run(run, device)
+    ds = load_data(cfg, split)
+    out_dir = Path(run) / f"eval_{split}"
+    n = ds["images"].shape[0] if not max_images else min(max_images, ds["images"].shape[0])
+    rows, t0 = [], time.perf_counter()
+    for i in range(n):
+        rgb, depth, opacity = render_dataset_image(fields_, cfg, ds, i)
+        gt = ds["images"][i]
+        rows.append({"image": i, "psnr": psnr(rgb, gt), "ssim": ssim(rgb, gt)})
+        side = [
+            to_uint8(gt.cpu()),
+            to_uint8(rgb.cpu()),
+            _depth_image(depth.cpu(), opacity.cpu(), cfg.far).numpy(),
+        ]
+        write_image(
+            out_dir / f"{split}_{i:03d}.png",
+            torch.cat([torch.as_tensor(x) for x in side], 1).numpy(),
+        )
+    metrics = {
+        "split": split,
+        "step": ckpt["step"],
+        "n_images": n,
+        "psnr": sum(r["psnr"] for r in rows) / max(n, 1),
+        "ssim": sum(r["ssim"] for r in rows) / max(n, 1),
+        "ssim_settings": SSIM_SETTINGS,
+        "seconds_per_image": (time.perf_counter() - t0) / max(n, 1),
+        "per_image": rows,
+    }
+    write_json(out_dir / "metrics.json", metrics)
+    return metrics
+
+
+def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
+    """[frames, 4, 4] cameras around the training cameras' target: centre = the point nearest to
+    all optical axes, radius = their mean distance to it, up = their mean up vector; "orbit" keeps
+    their mean elevation, "spiral" swings it by +-15 degrees."""
+    if kind not in ("spiral", "orbit"):
+        raise UserError(f"--path must be spiral or orbit, got {kind!r}")
+    c2w = c2w.double().cpu()
+    o, fwd = c2w[:, :3, 3], -c2w[:, :3, 2]
+    # Least-squares point closest to all lines o + t * fwd.
+    eye = torch.eye(3, dtype=torch.float64)
+    proj = eye - fwd.unsqueeze(-1) * fwd.unsqueeze(-2)
+    centre = torch.linalg.lstsq(proj.sum(0), (proj @ o.unsqueeze(-1)).sum(0)).solution.squeeze(-1)
+    up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
+    rel = o - centre
+    radius = float(rel.norm(dim=-1).mean())
+    elev = float(torch.asin((torch.nn.functional.normalize(rel, dim=-1) @ up).clamp(-1, 1)).mean())
+    a = torch.nn.functional.normalize(
+        torch.linalg.cross(up, torch.tensor([0.3, 0.2, 0.9], dtype=torch.float64)), dim=0
+    )
+    b = torch.linalg.cross(up, a)
+    mats = []
+    for f in range(frames):
+        s = f / frames
+        el = elev + (math.radians(15) * math.sin(2 * math.pi * s) if kind == "spiral" else 0.0)
+        az = 2 * math.pi * s
+        direction = math.cos(el) * (math.cos(az) * a + math.sin(az) * b) + math.sin(el) * up
+        mats.append(look_at(centre + radius * direction, centre, up, dtype=torch.float64))
+    return torch.stack(mats).float()
+
+
+@torch.no_grad()
+def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=None, fps=20):
+    """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
+    RUN/render_{path}/. ``size`` = (W, H), default the training resolution."""
+    cfg, fields_, _ = load_run(run, device)
+    train = load_data(cfg, "train")
+    w0, h0 = train["width"], train["height"]
+    w, h = size or (w0, h0)
+    k = train["intrinsics"][0].clone()
+    k[[0, 2]] *= w / w0
+    k[[1, 3]] *= h / h0
+    cams = camera_path(train["c2w"], path, frames).to(cfg.device)
+    out_dir = Path(run) / f"render_{path}"
+    rgbs, depths, t0 = [], [], time.perf_counter()
+    for f in range(frames):
+        o, d = generate_rays(cams[f], k, w, h)
+        out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
+        rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
+        dep = _depth_image(
+            out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu(), cfg.far
+        ).numpy()
+        write_image(out_dir / f"rgb_{f:03d}.png", rgb)
+        write_image(out_dir / f"depth_{f:03d}.png", dep)
+        rgbs.append(rgb)
+        depths.append(dep)
+    for name, seq in (("rgb", rgbs), ("depth", depths)):
+        write_video(out_dir / f"{name}.mp4", seq, fps=fps)
+        write_video(out_dir / f"{name}.gif", seq, fps=fps)
+    return {
+        "frames": frames,
+        "size": [w, h],
+        "seconds": time.perf_counter() - t0,
+        "out": str(out_dir),
+    }
+
+
+def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progress=False):
+    """Trains a fresh run, evaluates it on ``split``; returns a summary dict (PSNR, SSIM, time,
+    parameter count) for the demos' tables."""
+    from .nerf import train_nerf
+
+    hist = train_nerf(cfg, run, progress=progress, log=lambda *a: None)
+    m = evaluate_run(run, split, max_images=max_images)
+    _, fields_, _ = load_run(run)
+    n_params = sum(p.numel() for f in fields_.values() if f is not None for p in f.parameters())
+    return {
+        "psnr": m["psnr"],
+        "ssim": m["ssim"],
+        "train_seconds": hist["seconds"][-1],
+        "steps": hist["step"][-1],
+        "parameters": n_params,
+        "run": str(run),
+    }
