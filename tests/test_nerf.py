@@ -130,21 +130,10 @@ def test_camera_path_circles_the_target():
 
 @pytest.mark.slow
 def test_builtin_scene_trains_to_psnr_floor(tmp_path):
-    """CPU convergence on the built-in 24x24 scene: measured 25.4 dB val after 300 steps (28 s
-    of training on a 2-core Xeon, 2026-11-22); the floor leaves 2.4 dB of margin."""
-    cfg = tiny(
-        iters=300,
-        batch=512,
-        n_coarse=32,
-        n_layers=4,
-        width=64,
-        skip=2,
-        pos_freqs=6,
-        dir_freqs=2,
-        builtin_size=24,
-        val_every=300,
-        val_images=4,
-        ckpt_every=300,
-    )
+    """CPU convergence on the built-in 24x24 scene: measured 25.74 / 25.73 dB val after 500
+    steps with seeds 0 / 1 (27-37 s of training on a 2-core Xeon, 2026-11-22); the floor leaves
+    about 1.7 dB of margin."""
+    cfg = tiny(iters=500, batch=512, n_coarse=32, n_layers=4, width=64, skip=2, pos_freqs=6,
+               dir_freqs=2, builtin_size=24, val_every=500, val_images=4, ckpt_every=500)
     hist = train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
-    assert hist["val_psnr"][-1] >= 23.0, hist["val_psnr"]
+    assert hist["val_psnr"][-1] >= 24.0, hist["val_psnr"]

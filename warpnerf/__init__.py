@@ -5,14 +5,20 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 - :func:`generate_rays`, :func:`random_pixels`, :func:`ray_aabb_intersect`
 - :func:`stratified_samples` (dense or packed :class:`Samples`)
 - :func:`render_packed`, :func:`render_dense` (emission-absorption compositing, exact backward)
+- :func:`importance_samples` (coarse-to-fine inverse-CDF sampling, merged with the coarse edges)
 - :class:`SDFVolume` (the analytic box/sphere/torus scene), :func:`render_rays` (rays -> image)
+- :class:`NeRFField`, :class:`PositionalEncoding`, :func:`render_nerf`, :func:`psnr`, :func:`ssim`
 """
 
 from . import data
+from .fields.encoding import PositionalEncoding
+from .fields.nerf import NeRFField
 from .fields.sdf_volume import SDFVolume, laplace_cdf
+from .metrics import psnr, ssim
 from .ops import (
     Samples,
     generate_rays,
+    importance_samples,
     packed_info_from_ray_indices,
     random_pixels,
     ray_aabb_intersect,
@@ -20,7 +26,7 @@ from .ops import (
     render_packed,
     stratified_samples,
 )
-from .render import render_image, render_rays, render_views
+from .render import render_image, render_nerf, render_rays, render_views
 
 __version__ = "0.1.0"
 
@@ -30,6 +36,7 @@ __all__ = [
     "random_pixels",
     "ray_aabb_intersect",
     "stratified_samples",
+    "importance_samples",
     "Samples",
     "render_packed",
     "render_dense",
@@ -39,4 +46,9 @@ __all__ = [
     "render_rays",
     "render_image",
     "render_views",
+    "render_nerf",
+    "PositionalEncoding",
+    "NeRFField",
+    "psnr",
+    "ssim",
 ]

@@ -3,7 +3,7 @@ glossy sphere whose highlight moves with the viewpoint, rendered by warpnerf's o
 
 The field is analytic: density sigma = (1 / beta) * Psi_beta(-sdf) (VolSDF's Laplace-CDF density,
 beta = 0.02), colour from the nearer object; the sphere adds a Phong highlight
-max(0, reflect(d, n) . l)^20 that depends on the view direction d, so a model without view
+max(0, reflect(d, n) . l)^6 that depends on the view direction d, so a model without view
 dependence cannot reproduce it.
 """
 
@@ -46,15 +46,15 @@ class GlossyScene(nn.Module):
         sph_rgb = base * (0.35 + 0.65 * diffuse)
         if self.view_dependent:
             refl = d - 2.0 * (d * n).sum(-1, keepdim=True) * n
-            spec = (refl @ light).clamp_min(0.0) ** 20
-            sph_rgb = sph_rgb + 0.8 * spec.unsqueeze(-1)
+            spec = (refl @ light).clamp_min(0.0) ** 6
+            sph_rgb = sph_rgb + 0.7 * spec.unsqueeze(-1)
         rgb = torch.where((s_box < s_sph).unsqueeze(-1), box_rgb, sph_rgb.clamp(0.0, 1.0))
         return sigma, rgb
 
 
 @functools.lru_cache(maxsize=4)
 def make_synthetic_dataset(
-    n_train: int = 24,
+    n_train: int = 64,
     n_val: int = 4,
     size: int = 48,
     view_dependent: bool = True,

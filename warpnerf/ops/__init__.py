@@ -3,13 +3,14 @@ public function."""
 
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
 from .rays import generate_rays, random_pixels, ray_aabb_intersect
-from .sampling import Samples, stratified_samples
+from .sampling import Samples, importance_samples, stratified_samples
 
 __all__ = [
     "generate_rays",
     "random_pixels",
     "ray_aabb_intersect",
     "stratified_samples",
+    "importance_samples",
     "Samples",
     "render_packed",
     "render_dense",
