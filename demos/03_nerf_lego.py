@@ -25,7 +25,7 @@ from warpnerf.train.nerf_eval import render_run, train_and_evaluate  # noqa: E40
 def main(argv=None) -> int:
     p = _nerf_args.parser(__doc__.splitlines()[0], "out/03_nerf_lego")
     p.add_argument("--coarse-fine", action="store_true")
-    p.add_argument("--fine-samples", type=int, default=64)
+    p.add_argument("--fine-samples", type=_nerf_args.positive, default=64)
     p.add_argument("--frames", type=int, default=40, help="video frames (0: no video)")
     args = p.parse_args(argv)
     cfg = _nerf_args.config(

@@ -9,22 +9,29 @@ import torch
 from warpnerf.train import NeRFConfig
 
 
+def positive(text):
+    v = int(text)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return v
+
+
 def parser(description: str, out: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=description)
     p.add_argument("--data", default="builtin", help="dataset folder (default: built-in scene)")
     p.add_argument("--out", default=out)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--iters", type=int, default=500)
-    p.add_argument("--batch", type=int, default=1024)
-    p.add_argument("--samples", type=int, default=32)
-    p.add_argument("--layers", type=int, default=4)
-    p.add_argument("--width", type=int, default=64)
+    p.add_argument("--iters", type=positive, default=500)
+    p.add_argument("--batch", type=positive, default=1024)
+    p.add_argument("--samples", type=positive, default=32)
+    p.add_argument("--layers", type=positive, default=4)
+    p.add_argument("--width", type=positive, default=64)
     p.add_argument("--lr", type=float, default=5e-3)
     p.add_argument("--lr-final", type=float, default=5e-4)
-    p.add_argument("--downscale", type=int, default=1)
+    p.add_argument("--downscale", type=positive, default=1)
     p.add_argument("--near", type=float, default=None)
     p.add_argument("--far", type=float, default=None)
-    p.add_argument("--builtin-size", type=int, default=32)
+    p.add_argument("--builtin-size", type=positive, default=32)
     p.add_argument("--eval-images", type=int, default=8, help="val images scored (0 = all)")
     return p
 
@@ -32,9 +39,10 @@ def parser(description: str, out: str) -> argparse.ArgumentParser:
 def config(args, **overrides) -> NeRFConfig:
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda: no CUDA device available")
-    builtin = args.data == "builtin"
-    near = args.near if args.near is not None else (1.0 if builtin else 2.0)
-    far = args.far if args.far is not None else (4.0 if builtin else 6.0)
+    if args.data == "builtin" and args.downscale != 1:
+        raise SystemExit("error: --downscale applies to --data folders, not the built-in scene")
+    if args.eval_images < 0:
+        raise SystemExit("error: --eval-images must be >= 0")
     kw = dict(
         data=args.data,
         iters=args.iters,
@@ -46,8 +54,8 @@ def config(args, **overrides) -> NeRFConfig:
         lr=args.lr,
         lr_final=args.lr_final,
         downscale=args.downscale,
-        near=near,
-        far=far,
+        near=args.near,
+        far=args.far,
         builtin_size=args.builtin_size,
         device=args.device,
         val_every=max(args.iters, 1),

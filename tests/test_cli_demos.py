@@ -278,6 +278,8 @@ def test_cli_train_eval_render_nerf(tmp_path):
         (["eval", "nothing"], "not a training run"),
         (["render", "nothing", "--size", "10by3"], "WxH"),
         (["train", "nerf", "--data", "builtin", "--out", "o", "--near", "5", "--far", "1"], "near"),
+        (["train", "nerf", "--out", "o", "--resume", "--iters", "9", "--batch", "7"], "--batch"),
+        (["eval", "nothing", "--max-images", "-1"], "max-images"),
     ],
 )
 def test_cli_nerf_user_errors(tmp_path, args, needle):

@@ -133,7 +133,39 @@ def test_builtin_scene_trains_to_psnr_floor(tmp_path):
     """CPU convergence on the built-in 24x24 scene: measured 25.74 / 25.73 dB val after 500
     steps with seeds 0 / 1 (27-37 s of training on a 2-core Xeon, 2026-11-22); the floor leaves
     about 1.7 dB of margin."""
-    cfg = tiny(iters=500, batch=512, n_coarse=32, n_layers=4, width=64, skip=2, pos_freqs=6,
-               dir_freqs=2, builtin_size=24, val_every=500, val_images=4, ckpt_every=500)
+    cfg = tiny(
+        iters=500,
+        batch=512,
+        n_coarse=32,
+        n_layers=4,
+        width=64,
+        skip=2,
+        pos_freqs=6,
+        dir_freqs=2,
+        builtin_size=24,
+        val_every=500,
+        val_images=4,
+        ckpt_every=500,
+    )
     hist = train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
     assert hist["val_psnr"][-1] >= 24.0, hist["val_psnr"]
+
+
+def test_time_box_then_resume_gets_a_fresh_budget(tmp_path):
+    hist = train_nerf(tiny(max_seconds=1e-9), tmp_path / "r", progress=False, log=lambda *a: 0)
+    assert hist["step"][-1] == 1  # stopped by the time box, checkpoint written
+    hist = train_nerf(tiny(iters=6), tmp_path / "r", resume=True, progress=False, log=lambda *a: 0)
+    assert hist["step"][-1] == 6
+    with pytest.raises(UserError, match="must be larger"):
+        train_nerf(tiny(iters=6), tmp_path / "r", resume=True, progress=False)
+
+
+def test_config_defaults_resolve_per_data():
+    from warpnerf.data.synthetic import FAR, NEAR
+
+    cfg = NeRFConfig().resolve()
+    assert (cfg.near, cfg.far) == (NEAR, FAR)
+    cfg = NeRFConfig(data="some/folder").resolve()
+    assert (cfg.near, cfg.far) == (2.0, 6.0)
+    with pytest.raises(UserError, match="t-threshold"):
+        tiny(t_threshold=1.5).validate()

@@ -32,6 +32,16 @@ def _positive(kind):
     return parse
 
 
+def _nonnegative(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
@@ -89,22 +99,44 @@ def cmd_train_box(args) -> int:
     return 0
 
 
+# Flags a resume may carry; every other train-nerf flag is fixed by the run's config.json.
+_RESUME_FLAGS = {
+    "out",
+    "resume",
+    "iters",
+    "device",
+    "max_seconds",
+    "quiet",
+    "func",
+    "command",
+    "model",
+}
+
+
 def cmd_train_nerf(args) -> int:
     from .train.nerf import NeRFConfig, train_nerf
 
     if args.resume:
-        cfg = NeRFConfig(iters=args.iters or 0, device=_device(args.device))
         if args.iters is None:
             raise UserError("--resume needs --iters (the total number of steps to reach)")
-        hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet)
+        defaults = build_parser().parse_args(["train", "nerf", "--out", "x"])
+        fixed = [
+            k
+            for k, v in vars(args).items()
+            if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
+        ]
+        if fixed:
+            names = ", ".join("--" + k.replace("_", "-") for k in sorted(fixed))
+            raise UserError(
+                f"with --resume the run's saved config is used; drop {names} "
+                "(only --iters, --device and --max-seconds may change)"
+            )
+        cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
+        device = _device(args.device) if args.device else None
+        hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
     else:
         if args.data is None:
             raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
-        builtin = args.data == "builtin"
-        if builtin:
-            from .data.synthetic import FAR, NEAR
-        near = args.near if args.near is not None else (NEAR if builtin else 2.0)
-        far = args.far if args.far is not None else (FAR if builtin else 6.0)
         cfg = NeRFConfig(
             data=args.data,
             iters=args.iters or 20000,
@@ -118,15 +150,15 @@ def cmd_train_nerf(args) -> int:
             width=args.width,
             pos_freqs=args.pos_freqs,
             dir_freqs=args.dir_freqs,
-            near=near,
-            far=far,
+            near=args.near,
+            far=args.far,
             downscale=args.downscale,
             max_images=args.max_images,
             val_every=args.val_every,
             val_images=args.val_images,
             ckpt_every=args.ckpt_every,
             seed=args.seed,
-            device=_device(args.device),
+            device=_device(args.device or "cpu"),
             builtin_size=args.builtin_size,
             max_seconds=args.max_seconds,
             tf32=args.tf32,
@@ -231,7 +263,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tn.add_argument("--out", required=True, help="run folder (config, checkpoint, history)")
     tn.add_argument("--resume", action="store_true", help="continue the run in --out exactly")
-    tn.add_argument("--device", default="cpu")
+    tn.add_argument(
+        "--device",
+        default=None,
+        help="cpu (default for a new run) or cuda; on --resume, default the run's own",
+    )
     tn.add_argument("--iters", type=_positive(int), default=None, help="total steps (20000)")
     tn.add_argument("--batch", type=_positive(int), default=1024, help="rays per step")
     tn.add_argument("--lr", type=_positive(float), default=5e-4)
@@ -242,15 +278,15 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--view-dependence", action=argparse.BooleanOptionalAction, default=True)
     tn.add_argument("--layers", type=_positive(int), default=8)
     tn.add_argument("--width", type=_positive(int), default=256)
-    tn.add_argument("--pos-freqs", type=int, default=10)
-    tn.add_argument("--dir-freqs", type=int, default=4)
+    tn.add_argument("--pos-freqs", type=_nonnegative, default=10)
+    tn.add_argument("--dir-freqs", type=_nonnegative, default=4)
     tn.add_argument("--near", type=float, default=None, help="default 2 (1 for builtin)")
     tn.add_argument("--far", type=float, default=None, help="default 6 (4 for builtin)")
     tn.add_argument("--downscale", type=_positive(int), default=1)
-    tn.add_argument("--max-images", type=int, default=0, help="0 = all training images")
+    tn.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all training images")
     tn.add_argument("--builtin-size", type=_positive(int), default=48)
     tn.add_argument("--val-every", type=_positive(int), default=1000)
-    tn.add_argument("--val-images", type=int, default=2)
+    tn.add_argument("--val-images", type=_nonnegative, default=2)
     tn.add_argument("--ckpt-every", type=_positive(int), default=1000)
     tn.add_argument("--seed", type=int, default=0)
     tn.add_argument(
@@ -273,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("run", help="run folder written by 'warpnerf train nerf'")
     e.add_argument("--split", default="val", choices=["train", "val", "test"])
     e.add_argument("--device", default=None, help="default: the run's device")
-    e.add_argument("--max-images", type=int, default=0, help="0 = all images of the split")
+    e.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all images of the split")
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")

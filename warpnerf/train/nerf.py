@@ -41,8 +41,8 @@ class NeRFConfig:
     pos_freqs: int = 10
     dir_freqs: int = 4
     density_activation: str = "softplus"
-    near: float = 2.0
-    far: float = 6.0
+    near: float | None = None  # None: 2 for datasets (lego), the built-in scene's own for builtin
+    far: float | None = None  # None: 6 for datasets, the built-in scene's own for builtin
     background: float = 1.0  # white, as the NeRF-synthetic evaluation
     downscale: int = 1
     max_images: int = 0  # 0 = all
@@ -52,7 +52,8 @@ class NeRFConfig:
     val_images: int = 2
     ckpt_every: int = 500
     chunk: int = 8192  # rays per chunk when rendering whole images
-    max_seconds: float = 0.0  # stop (and checkpoint) after this much training time; 0 = no limit
+    max_seconds: float = 0.0  # stop (and checkpoint) after this much training time in this
+    # invocation (a resume gets a fresh budget); 0 = no limit
     tf32: bool = False  # TF32 matrix products for the MLPs on CUDA (kernels stay float32)
     seed: int = 0
     device: str = "cpu"
@@ -67,6 +68,17 @@ class NeRFConfig:
         if unknown:
             raise UserError(f"config: unknown field(s) {sorted(unknown)}")
         return cls(**d)
+
+    def resolve(self):
+        """Fills in defaults that depend on the data (near/far); returns self."""
+        if self.near is None or self.far is None:
+            if self.data == "builtin":
+                from ..data.synthetic import FAR, NEAR
+            else:
+                NEAR, FAR = 2.0, 6.0
+            self.near = NEAR if self.near is None else self.near
+            self.far = FAR if self.far is None else self.far
+        return self
 
     def validate(self):
         for name in (
@@ -86,6 +98,15 @@ class NeRFConfig:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
         if self.n_fine < 0 or self.pos_freqs < 0 or self.dir_freqs < 0:
             raise UserError("--n-fine, --pos-freqs and --dir-freqs must be >= 0")
+        self.resolve()
+        if not 0.0 <= self.t_threshold < 1.0:
+            raise UserError(f"--t-threshold must be in [0, 1), got {self.t_threshold}")
+        if self.max_seconds < 0 or self.val_images < 0 or self.max_images < 0:
+            raise UserError("--max-seconds, --val-images and --max-images must be >= 0")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise UserError(
+                f"device {self.device!r}: no CUDA device available here (pass --device cpu)"
+            )
         if not self.far > self.near >= 0:
             raise UserError(f"need 0 <= --near < --far, got near={self.near}, far={self.far}")
         if not (self.lr > 0 and self.lr_final > 0):
@@ -191,6 +212,10 @@ def load_run(run, device: str | None = None):
         raise UserError(f"{run / 'config.json'}: unreadable ({e})") from None
     if device:
         cfg.device = device
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(
+            f"{run}: trained on {cfg.device}, which is not available here; pass --device cpu"
+        )
     fields_ = build_fields(cfg)
     ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
     for k, f in fields_.items():
@@ -199,15 +224,32 @@ def load_run(run, device: str | None = None):
     return cfg, fields_, ckpt
 
 
-def train_nerf(cfg: NeRFConfig, run, resume: bool = False, progress: bool = True, log=print):
-    """Trains (or resumes) a run in folder ``run``; returns the history dict."""
-    cfg.validate()
+def train_nerf(
+    cfg: NeRFConfig,
+    run,
+    resume: bool = False,
+    progress: bool = True,
+    log=print,
+    device: str | None = None,
+):
+    """Trains (or resumes) a run in folder ``run``; returns the history dict.
+
+    On resume only ``cfg.iters`` (the total to reach) and ``cfg.max_seconds`` are taken from
+    ``cfg``; everything else comes from the run's config.json, and ``device`` (if given) moves it.
+    """
     run = Path(run)
     if resume:
-        saved_cfg, fields_, ckpt = load_run(run, cfg.device)
-        saved_cfg.iters = cfg.iters  # the only setting a resume may change: train longer
+        saved_cfg, fields_, ckpt = load_run(run, device)
+        if cfg.iters <= ckpt["step"]:
+            raise UserError(
+                f"{run}: the checkpoint is at step {ckpt['step']}; --iters must be "
+                f"larger to continue, got {cfg.iters}"
+            )
+        saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved_cfg
+        cfg.validate()
     else:
+        cfg.validate()
         if (run / CHECKPOINT).exists():
             raise UserError(
                 f"{run}: already holds a run; pass --resume to continue it or choose another --out"
@@ -229,7 +271,7 @@ def train_nerf(cfg: NeRFConfig, run, resume: bool = False, progress: bool = True
     start = 0
     if ckpt is not None:
         opt.load_state_dict(ckpt["optimizer"])
-        gen.set_state(ckpt["generator"])
+        gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
         history, start = ckpt["history"], ckpt["step"]
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
@@ -266,7 +308,8 @@ def train_nerf(cfg: NeRFConfig, run, resume: bool = False, progress: bool = True
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{history['psnr'][-1]:.2f}")
-        out_of_time = cfg.max_seconds > 0 and seconds >= cfg.max_seconds
+        session = seconds - elapsed0  # this invocation's training time
+        out_of_time = cfg.max_seconds > 0 and session >= cfg.max_seconds
         if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
             tv = time.perf_counter()
             v = validate(fields_, cfg, val)

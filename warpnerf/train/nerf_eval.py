@@ -31,15 +31,22 @@ def evaluate_run(run, split: str = "val", device: str | None = None, max_images:
     RUN/eval_{split}/. Returns the metrics dict."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
+    if max_images < 0:
+        raise UserError(f"--max-images must be >= 0, got {max_images}")
     cfg, fields_, ckpt = load_run(run, device)
     ds = load_data(cfg, split)
     out_dir = Path(run) / f"eval_{split}"
+    for stale in out_dir.glob(f"{split}_*.png"):  # a previous, possibly larger, evaluation
+        stale.unlink()
     n = ds["images"].shape[0] if not max_images else min(max_images, ds["images"].shape[0])
+    with_ssim = min(ds["height"], ds["width"]) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     for i in range(n):
         rgb, depth, opacity = render_dataset_image(fields_, cfg, ds, i)
         gt = ds["images"][i]
-        rows.append({"image": i, "psnr": psnr(rgb, gt), "ssim": ssim(rgb, gt)})
+        rows.append(
+            {"image": i, "psnr": psnr(rgb, gt), "ssim": ssim(rgb, gt) if with_ssim else None}
+        )
         side = [
             to_uint8(gt.cpu()),
             to_uint8(rgb.cpu()),
@@ -54,8 +61,8 @@ def evaluate_run(run, split: str = "val", device: str | None = None, max_images:
         "step": ckpt["step"],
         "n_images": n,
         "psnr": sum(r["psnr"] for r in rows) / max(n, 1),
-        "ssim": sum(r["ssim"] for r in rows) / max(n, 1),
-        "ssim_settings": SSIM_SETTINGS,
+        "ssim": sum(r["ssim"] for r in rows) / max(n, 1) if with_ssim else None,
+        "ssim_settings": SSIM_SETTINGS if with_ssim else "not computed: images under 11x11",
         "seconds_per_image": (time.perf_counter() - t0) / max(n, 1),
         "per_image": rows,
     }
