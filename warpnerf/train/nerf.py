@@ -137,7 +137,7 @@ def load_data(cfg: NeRFConfig, split: str):
     if cfg.data == "builtin":
         from ..data.synthetic import make_synthetic_dataset
 
-        train, val = make_synthetic_dataset(size=cfg.builtin_size, device="cpu")
+        train, val = make_synthetic_dataset(size=cfg.builtin_size, device=cfg.device)
         ds = dict(train if split == "train" else val)
     else:
         from ..data import load_dataset
