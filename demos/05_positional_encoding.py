@@ -4,8 +4,12 @@
     python demos/05_positional_encoding.py --data ../shared/data/lego --downscale 4 --device cuda
 
 An MLP on raw coordinates is biased towards low frequencies (spectral bias) and renders blurry
-images; mapping x to (x, sin(2^k x), cos(2^k x)) lets it fit fine detail. The grid PNG shows the
-ground truth and one val view per setting; one JSON line last holds the PSNRs.
+images; mapping x to (x, sin(2^k x), cos(2^k x)) lets it fit fine detail. More frequencies also
+make the fit harder: with the CPU defaults on the built-in 32x32 scene (500 steps, MLP 4 x 64,
+lr 5e-3) the measured val PSNRs were 21.8 dB (0), 26.4 dB (3) and 23.3 dB (6): 6 frequencies
+were still noisy after 500 steps and need more steps or a lower learning rate than these
+defaults (2026-11-22). The grid PNG shows the ground truth and one val view per setting; one
+JSON line last holds the PSNRs.
 """
 
 from __future__ import annotations
