@@ -53,24 +53,10 @@ def render_rays(
             seed=seed + s,
             packed=True,
         )
-        ri = smp.ray_indices
-        positions = o[ri] + d[ri] * smp.midpoints().unsqueeze(-1)
-        values, rgbs = field_fn(positions, d[ri])
         bg = background
         if isinstance(bg, torch.Tensor) and bg.dim() == 2:
             bg = bg[s : s + chunk]
-        kw = {"alphas": values, "sigmas": None} if mode == "alpha" else {"sigmas": values}
-        rgb, depth, opacity = render_packed(
-            smp.t_starts,
-            smp.t_ends,
-            ri,
-            rgbs=rgbs,
-            n_rays=o.shape[0],
-            background=bg,
-            packed_info=smp.packed_info,
-            t_threshold=t_threshold,
-            **kw,
-        )
+        rgb, depth, opacity = _shade(field_fn, o, d, smp, bg, t_threshold, False, mode)
         outs.append((rgb, depth, opacity))
     rgb, depth, opacity = (torch.cat(x) for x in zip(*outs))
     return {"rgb": rgb, "depth": depth, "opacity": opacity}
@@ -146,19 +132,22 @@ def render_nerf(
     return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
 
 
-def _shade(field, o, d, smp, background, t_threshold, want_weights):
+def _shade(field, o, d, smp, background, t_threshold, want_weights, mode="sigma"):
+    """Evaluates ``field`` at the packed samples' midpoints and composites them (the one place
+    both renderers shade samples). mode: the field returns densities ("sigma") or opacities."""
     ri = smp.ray_indices
     positions = o[ri] + d[ri] * smp.midpoints().unsqueeze(-1)
-    sigmas, rgbs = field(positions, d[ri])
+    values, rgbs = field(positions, d[ri])
+    kw = {"sigmas": None, "alphas": values} if mode == "alpha" else {"sigmas": values}
     return render_packed(
         smp.t_starts,
         smp.t_ends,
         ri,
-        sigmas,
-        rgbs,
-        o.shape[0],
-        background,
+        rgbs=rgbs,
+        n_rays=o.shape[0],
+        background=background,
         packed_info=smp.packed_info,
         t_threshold=t_threshold,
         return_weights=want_weights,
+        **kw,
     )
