@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# NeRF figures on the lent GPU (see docs/PERFORMANCE.md). Usage: gpu_nerf.sh materials|lego_seed|lego_full
+# NeRF figures on the lent GPU (see docs/PERFORMANCE.md).
+# Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash
 # Expects Warp importable and the package installed; data under .devdata/ (carried); writes $OUT.
 set -u
 OUT=${OUT:-/tmp/out}
@@ -19,8 +20,12 @@ materials)
   cp /tmp/mat_view-dependence/eval_val/val_003.png "$OUT/materials_vd_val_003.png"
   cp /tmp/mat_no-view-dependence/eval_val/val_003.png "$OUT/materials_novd_val_003.png"
   ;;
-lego_seed|lego_full)
+lego_seed|lego_full|lego_hash)
   if [ "$1" = lego_seed ]; then extra="--downscale 3 --samples 128"; else extra="--samples 64 --coarse-fine --fine-samples 128"; fi
+  if [ "$1" = lego_hash ]; then
+    common="--device cuda --tf32 --field hash --batch ${BATCH:-4096} --quiet"
+    extra="--samples ${COARSE:-64} --coarse-fine --fine-samples ${FINE:-128}"
+  fi
   python3 -m warpnerf.cli train nerf --data .devdata/lego --out /tmp/$1 $common $extra \
     --iters 30000 --max-seconds ${SECS:-420} --val-every 1000 --val-images 2 2>&1 | tail -6 | tee -a "$OUT/log.txt"
   python3 -m warpnerf.cli eval /tmp/$1 --split val --max-images ${EVAL_IMAGES:-25} 2>&1 | tail -1 | tee -a "$OUT/log.txt"

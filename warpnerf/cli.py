@@ -141,8 +141,14 @@ def cmd_train_nerf(args) -> int:
             data=args.data,
             iters=args.iters or 20000,
             batch=args.batch,
+            field=args.field,
             lr=args.lr,
             lr_final=args.lr_final,
+            hash_levels=args.hash_levels,
+            hash_log2_size=args.hash_log2_size,
+            hash_max_res=args.hash_max_res,
+            hidden=args.hidden,
+            aabb=args.aabb or 0.0,
             n_coarse=args.samples,
             n_fine=args.fine_samples if args.coarse_fine else 0,
             view_dependence=args.view_dependence,
@@ -270,8 +276,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tn.add_argument("--iters", type=_positive(int), default=None, help="total steps (20000)")
     tn.add_argument("--batch", type=_positive(int), default=1024, help="rays per step")
-    tn.add_argument("--lr", type=_positive(float), default=5e-4)
-    tn.add_argument("--lr-final", type=_positive(float), default=5e-5)
+    tn.add_argument(
+        "--field",
+        default="mlp",
+        choices=["mlp", "hash"],
+        help="mlp: NeRF's MLP (default); hash: hash-grid encoding + small MLPs (trains in minutes)",
+    )
+    tn.add_argument("--lr", type=_positive(float), default=None, help="5e-4 (mlp), 1e-2 (hash)")
+    tn.add_argument("--lr-final", type=_positive(float), default=None, help="lr/10 (mlp), lr/20")
     tn.add_argument("--samples", type=_positive(int), default=64, help="coarse samples per ray")
     tn.add_argument("--coarse-fine", action="store_true", help="add the fine network")
     tn.add_argument("--fine-samples", type=_positive(int), default=64)
@@ -280,6 +292,16 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--width", type=_positive(int), default=256)
     tn.add_argument("--pos-freqs", type=_nonnegative, default=10)
     tn.add_argument("--dir-freqs", type=_nonnegative, default=4)
+    tn.add_argument("--hash-levels", type=_positive(int), default=16)
+    tn.add_argument("--hash-log2-size", type=_positive(int), default=19, help="rows per level")
+    tn.add_argument("--hash-max-res", type=_positive(int), default=2048)
+    tn.add_argument("--hidden", type=_positive(int), default=64, help="hash field MLP width")
+    tn.add_argument(
+        "--aabb",
+        type=_positive(float),
+        default=None,
+        help="hash field: half-size of the scene cube (default 1.5; the built-in scene's own)",
+    )
     tn.add_argument("--near", type=float, default=None, help="default 2 (1 for builtin)")
     tn.add_argument("--far", type=float, default=None, help="default 6 (4 for builtin)")
     tn.add_argument("--downscale", type=_positive(int), default=1)

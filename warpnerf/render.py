@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from .ops import generate_rays, render_packed, stratified_samples
+from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 
 __all__ = ["render_rays", "render_image", "render_views", "render_nerf"]
 
@@ -100,12 +100,15 @@ def render_nerf(
     background=1.0,
     t_threshold: float = 1e-4,
     chunk: int | None = None,
+    aabb=None,
 ):
     """NeRF's hierarchical volume rendering through the Warp kernels.
 
     ``fields["coarse"]`` is evaluated at ``n_coarse`` stratified samples per ray; with
     ``fields["fine"]`` and ``n_fine > 0``, ``n_fine`` more positions are drawn from the coarse
     weights (inverse CDF) and the fine field is evaluated on the union of coarse and fine intervals.
+    When both are the same network, the coarse pass runs without gradients (it only places the
+    fine samples). ``aabb`` [6] restricts samples to the box (rays that miss it get none).
     Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
     """
     n_rays = origins.shape[0]
@@ -117,8 +120,14 @@ def render_nerf(
         m = o.shape[0]
         nr = torch.full((m,), float(near), device=dev, dtype=dt)
         fr = torch.full((m,), float(far), device=dev, dtype=dt)
+        if aabb is not None:
+            t0, t1, hit = ray_aabb_intersect(o, d, aabb)
+            nr = torch.maximum(nr, t0)
+            fr = torch.where(hit, torch.minimum(fr, t1), nr)
         smp = stratified_samples(nr, fr, n_coarse, perturb=perturb, seed=seed + s, packed=True)
-        res = _shade(fields["coarse"], o, d, smp, background, t_threshold, want_weights=True)
+        shared = fields.get("fine") is fields["coarse"] and n_fine > 0
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not shared):
+            res = _shade(fields["coarse"], o, d, smp, background, t_threshold, want_weights=True)
         out = {"rgb_coarse": res[0]}
         if fields.get("fine") is not None and n_fine > 0:
             from .ops.sampling import importance_samples

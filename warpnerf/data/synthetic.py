@@ -21,6 +21,7 @@ from .cameras import intrinsics_from_fov, orbit_views
 __all__ = ["GlossyScene", "make_synthetic_dataset"]
 
 NEAR, FAR, RADIUS, FOV_X = 1.0, 4.0, 2.5, 0.7
+BOUND = 1.0  # the scene lies inside [-BOUND, BOUND]^3
 
 
 class GlossyScene(nn.Module):

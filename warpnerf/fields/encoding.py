@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["PositionalEncoding"]
+__all__ = ["PositionalEncoding", "HashEncoding", "SphericalHarmonics"]
 
 
 class PositionalEncoding(nn.Module):
@@ -34,3 +34,64 @@ class PositionalEncoding(nn.Module):
             xf = x.unsqueeze(-1) * self.freqs.to(x.dtype)  # [n, in_dim, L]
             parts += [torch.sin(xf).flatten(1), torch.cos(xf).flatten(1)]
         return torch.cat(parts, -1)
+
+
+class HashEncoding(nn.Module):
+    """Learnable multiresolution hash-grid encoding (Warp kernels, hand-written backward) of
+    points in [0, 1]^3: ``forward(x [n, 3]) -> [n, n_levels * n_features]``.
+
+    The table is initialised uniformly in [-1e-4, 1e-4] (instant-ngp's choice: near-zero features,
+    so the first layers see almost only their biases and the grid fills in where data needs it).
+    """
+
+    def __init__(self, grid=None):
+        super().__init__()
+        from ..ops.encoding import HashGrid
+
+        self.grid = grid or HashGrid()
+        self.table = nn.Parameter(
+            torch.empty(self.grid.n_rows, self.grid.n_features).uniform_(-1e-4, 1e-4)
+        )
+        self.out_dim = self.grid.out_dim
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        from ..ops.encoding import hash_encode
+
+        return hash_encode(x, self.table.to(x.dtype), self.grid)
+
+
+class SphericalHarmonics(nn.Module):
+    """Real spherical harmonics of unit directions up to ``degree`` (1..4): ``degree^2`` values
+    (the usual orthonormal basis, constants as in instant-ngp / tiny-cuda-nn)."""
+
+    def __init__(self, degree: int = 4):
+        super().__init__()
+        if not 1 <= degree <= 4:
+            raise ValueError(f"degree must be 1..4, got {degree}")
+        self.degree, self.out_dim = degree, degree * degree
+
+    def forward(self, d: torch.Tensor) -> torch.Tensor:  # [n, 3] -> [n, degree^2]
+        x, y, z = d.unbind(-1)
+        out = [torch.full_like(x, 0.28209479177387814)]
+        if self.degree > 1:
+            out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+        if self.degree > 2:
+            x2, y2, z2 = x * x, y * y, z * z
+            out += [
+                1.0925484305920792 * x * y,
+                -1.0925484305920792 * y * z,
+                0.94617469575755997 * z2 - 0.31539156525251999,
+                -1.0925484305920792 * x * z,
+                0.54627421529603959 * (x2 - y2),
+            ]
+        if self.degree > 3:
+            out += [
+                0.59004358992664352 * y * (3 * x2 - y2),
+                2.8906114426405538 * x * y * z,
+                0.45704579946446572 * y * (1 - 5 * z2),
+                0.3731763325901154 * z * (5 * z2 - 3),
+                0.45704579946446572 * x * (1 - 5 * z2),
+                1.4453057213202769 * z * (x2 - y2),
+                0.59004358992664352 * x * (x2 - 3 * y2),
+            ]
+        return torch.stack(out, -1)

@@ -29,8 +29,10 @@ class NeRFConfig:
     data: str = "builtin"  # a dataset folder, or "builtin" for the small synthetic scene
     iters: int = 2000
     batch: int = 1024  # rays per step, uniform across all training images
-    lr: float = 5e-4
-    lr_final: float = 5e-5  # lr decays exponentially, reaching lr_final at lr_decay_steps
+    field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast)
+    lr: float | None = None  # None: 5e-4 (mlp) or 1e-2 (hash)
+    lr_final: float | None = None  # lr decays exponentially to this at lr_decay_steps;
+    # None: lr / 10 (mlp) or lr / 20 (hash)
     lr_decay_steps: int = 0  # 0: the run's first `iters` (resolved and saved at the start)
     n_coarse: int = 64
     n_fine: int = 0  # > 0 turns on the fine network (coarse/fine hierarchical sampling)
@@ -41,6 +43,13 @@ class NeRFConfig:
     pos_freqs: int = 10
     dir_freqs: int = 4
     density_activation: str = "softplus"
+    hash_levels: int = 16  # hash field: grid levels, table rows per level (log2), resolutions
+    hash_log2_size: int = 19
+    hash_base_res: int = 16
+    hash_max_res: int = 2048
+    hidden: int = 64  # hash field: width of its MLPs
+    aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
+    # restricted to it); 0: 1.5 for datasets (lego), the built-in scene's own for builtin
     near: float | None = None  # None: 2 for datasets (lego), the built-in scene's own for builtin
     far: float | None = None  # None: 6 for datasets, the built-in scene's own for builtin
     background: float = 1.0  # white, as the NeRF-synthetic evaluation
@@ -70,7 +79,18 @@ class NeRFConfig:
         return cls(**d)
 
     def resolve(self):
-        """Fills in defaults that depend on the data (near/far); returns self."""
+        """Fills in defaults that depend on the data and the field (near/far, lr, aabb)."""
+        if self.lr is None:
+            self.lr = 1e-2 if self.field == "hash" else 5e-4
+        if self.lr_final is None:
+            self.lr_final = self.lr / (20.0 if self.field == "hash" else 10.0)
+        if self.aabb <= 0 and self.field == "hash":
+            if self.data == "builtin":
+                from ..data.synthetic import BOUND
+
+                self.aabb = BOUND
+            else:
+                self.aabb = 1.5
         if self.near is None or self.far is None:
             if self.data == "builtin":
                 from ..data.synthetic import FAR, NEAR
@@ -98,6 +118,17 @@ class NeRFConfig:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
         if self.n_fine < 0 or self.pos_freqs < 0 or self.dir_freqs < 0:
             raise UserError("--n-fine, --pos-freqs and --dir-freqs must be >= 0")
+        if self.field not in ("mlp", "hash"):
+            raise UserError(f"--field must be mlp or hash, got {self.field!r}")
+        if self.field == "hash":
+            from ..ops.encoding import HashGrid
+
+            try:
+                HashGrid(**self._grid_kwargs())
+            except ValueError as e:
+                raise UserError(f"hash grid: {e}") from None
+            if self.hidden < 1:
+                raise UserError(f"--hidden must be >= 1, got {self.hidden}")
         self.resolve()
         if not 0.0 <= self.t_threshold < 1.0:
             raise UserError(f"--t-threshold must be in [0, 1), got {self.t_threshold}")
@@ -114,7 +145,35 @@ class NeRFConfig:
         return self
 
 
+    def _grid_kwargs(self) -> dict:
+        return dict(
+            n_levels=self.hash_levels,
+            log2_size=self.hash_log2_size,
+            base_res=self.hash_base_res,
+            max_res=self.hash_max_res,
+        )
+
+    def aabb_box(self):
+        """The hash field's scene box [6], or None for the MLP field (samples span near..far)."""
+        if self.field != "hash":
+            return None
+        a = float(self.aabb)
+        return [-a, -a, -a, a, a, a]
+
+
 def build_fields(cfg: NeRFConfig) -> dict:
+    """{"coarse": field, "fine": field or None}. The hash field is one network used for both
+    passes (the coarse pass only places the fine samples, without gradients)."""
+    if cfg.field == "hash":
+        from ..fields.hash_nerf import HashNeRFField
+        from ..ops.encoding import HashGrid
+
+        torch.manual_seed(cfg.seed)
+        f = HashNeRFField(
+            cfg.resolve().aabb_box(), HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence
+        ).to(cfg.device)
+        return {"coarse": f, "fine": f if cfg.n_fine > 0 else None}
+
     def make():
         return NeRFField(
             cfg.n_layers,
@@ -168,6 +227,7 @@ def render_rays_of(fields_, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=
         background=cfg.background,
         t_threshold=cfg.t_threshold,
         chunk=chunk,
+        aabb=cfg.aabb_box(),
     )
 
 
@@ -184,14 +244,29 @@ def _psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
+def _unique(fields_) -> dict:
+    """The fields with a shared network listed once (the hash field serves both passes)."""
+    out, seen = {}, set()
+    for k, f in fields_.items():
+        out[k] = f if f is not None and id(f) not in seen else None
+        seen.add(id(f))
+    return out
+
+
 def _parameters(fields_):
-    return [p for f in fields_.values() if f is not None for p in f.parameters()]
+    return [p for f in _unique(fields_).values() if f is not None for p in f.parameters()]
+
+
+def _optimizer(cfg, params):
+    if cfg.field == "hash":  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
+        return torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    return torch.optim.Adam(params, lr=cfg.lr)
 
 
 def _save(run: Path, step, fields_, opt, gen, history, cfg):
     state = {
         "step": step,
-        "fields": {k: (v.state_dict() if v is not None else None) for k, v in fields_.items()},
+        "fields": {k: (v.state_dict() if v is not None else None) for k, v in _unique(fields_).items()},
         "optimizer": opt.state_dict(),
         "generator": gen.get_state(),
         "history": history,
@@ -218,7 +293,7 @@ def load_run(run, device: str | None = None):
         )
     fields_ = build_fields(cfg)
     ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
-    for k, f in fields_.items():
+    for k, f in _unique(fields_).items():
         if f is not None:
             f.load_state_dict(ckpt["fields"][k])
     return cfg, fields_, ckpt
@@ -265,7 +340,7 @@ def train_nerf(
     n_img, h, w = train["images"].shape[:3]
     flat = train["images"].reshape(-1, 3)
     params = _parameters(fields_)
-    opt = torch.optim.Adam(params, lr=cfg.lr)
+    opt = _optimizer(cfg, params)
     gen = torch.Generator().manual_seed(cfg.seed)
     history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
     start = 0
@@ -292,7 +367,7 @@ def train_nerf(
         target = flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         loss = loss_fine
-        if fields_.get("fine") is not None and cfg.n_fine > 0:
+        if out["rgb_coarse"].requires_grad and fields_.get("fine") is not None:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
         opt.zero_grad(set_to_none=True)
         loss.backward()

@@ -1,0 +1,143 @@
+"""Multiresolution hash-grid encoding (instant-ngp's, Mueller et al. 2022), forward and backward.
+
+Level ``l`` is a grid of ``res[l]`` cells per side over the unit cube, i.e. ``(res + 1)^3``
+vertices, each holding ``F`` features in rows ``offsets[l] .. offsets[l] + sizes[l]`` of one
+table ``[total_rows, F]``. A vertex (i, j, k) maps to its row densely, ``i + (res+1)(j +
+(res+1) k)``, when the level fits (``(res+1)^3 <= sizes[l]``), otherwise by the spatial hash
+``(i * 1 ^ j * 2654435761 ^ k * 805459861) mod sizes[l]`` in uint32 arithmetic (hashed levels
+have power-of-two sizes, so the modulo is a mask).
+
+Forward, for a point x in [0, 1]^3 (clamped) and level l: ``p = x * res``, corner ``c = floor(p)``
+(clamped to ``res - 1`` so x = 1 uses the last cell), fraction ``f = p - c``;
+``out[n, l*F + q] = sum_{corner v} w_v(f) table[row(v), q]`` with trilinear weights
+``w_v = prod_axis (f if v_axis else 1 - f)``.
+
+Backward (hand-written; the table is the only input with a gradient): the forward is linear in
+the table, so ``v_table[row(v), q] += w_v * v_out[n, l*F + q]`` for every point and corner,
+scattered with atomic adds (on CUDA the summation order, hence the last bits, vary run to run).
+Positions get no gradient here (NeRF samples' positions carry none).
+
+One thread per (point, level); threads of one point are adjacent, so its output row is written
+by neighbouring threads.
+"""
+
+from typing import Any
+
+import warp as wp
+
+PRIME_Y = wp.constant(wp.uint32(2654435761))
+PRIME_Z = wp.constant(wp.uint32(805459861))
+
+
+@wp.func
+def vertex_row(ix: int, iy: int, iz: int, res: int, size: int, dense: int):
+    if dense != 0:
+        return ix + (res + 1) * (iy + (res + 1) * iz)
+    h = wp.uint32(ix) ^ (wp.uint32(iy) * PRIME_Y) ^ (wp.uint32(iz) * PRIME_Z)
+    return int(h & wp.uint32(size - 1))
+
+
+@wp.func
+def finite3(x: wp.array2d(dtype=Any), i: int):
+    return wp.isfinite(x[i, 0]) and wp.isfinite(x[i, 1]) and wp.isfinite(x[i, 2])
+
+
+@wp.func
+def cell_coord(x: Any, res: int):
+    """Clamped corner index and fraction of coordinate x in [0, 1] on a grid of res cells."""
+    xc = wp.clamp(x, x.dtype(0.0), x.dtype(1.0))
+    p = xc * x.dtype(res)
+    c = wp.min(int(wp.floor(p)), res - 1)
+    return c, p - x.dtype(c)
+
+
+@wp.kernel(enable_backward=False)
+def hash_encode_fwd(
+    x: wp.array2d(dtype=Any),  # [n, 3] in [0, 1]
+    table: wp.array2d(dtype=Any),  # [total_rows, F]
+    res: wp.array(dtype=wp.int32),  # [L] cells per side
+    offsets: wp.array(dtype=wp.int32),  # [L] first row of each level
+    sizes: wp.array(dtype=wp.int32),  # [L] rows of each level
+    dense_levels: wp.array(dtype=wp.int32),  # [L] 1: (res + 1)^3 <= rows, indexed densely
+    n_levels: int,
+    out: wp.array2d(dtype=Any),  # [n, L * F]
+):
+    tid = wp.tid()
+    i = tid // n_levels
+    lvl = tid - i * n_levels
+    r = int(res[lvl])
+    size = int(sizes[lvl])
+    off = int(offsets[lvl])
+    dense = int(dense_levels[lvl])  # decided on the host: (res + 1)^3 overflows int32
+    n_feat = table.shape[1]
+    if not finite3(x, i):
+        # NaN/Inf positions give NaN features (never a plausible value, never an index)
+        for q in range(n_feat):
+            out[i, lvl * n_feat + q] = x.dtype(wp.nan)
+        return
+    cx, fx = cell_coord(x[i, 0], r)
+    cy, fy = cell_coord(x[i, 1], r)
+    cz, fz = cell_coord(x[i, 2], r)
+    one = x.dtype(1.0)
+    for q in range(n_feat):
+        out[i, lvl * n_feat + q] = x.dtype(0.0)
+    for v in range(8):
+        bx = v & 1
+        by = (v >> 1) & 1
+        bz = (v >> 2) & 1
+        w = wp.where(bx == 1, fx, one - fx)
+        w = w * wp.where(by == 1, fy, one - fy)
+        w = w * wp.where(bz == 1, fz, one - fz)
+        row = off + vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
+        for q in range(n_feat):
+            out[i, lvl * n_feat + q] = out[i, lvl * n_feat + q] + w * table[row, q]
+
+
+@wp.kernel(enable_backward=False)
+def hash_encode_bwd(
+    x: wp.array2d(dtype=Any),  # [n, 3]
+    v_out: wp.array2d(dtype=Any),  # [n, L * F]
+    res: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    sizes: wp.array(dtype=wp.int32),
+    dense_levels: wp.array(dtype=wp.int32),
+    n_levels: int,
+    v_table: wp.array2d(dtype=Any),  # [total_rows, F] accumulated (zeroed by the caller)
+):
+    tid = wp.tid()
+    i = tid // n_levels
+    lvl = tid - i * n_levels
+    r = int(res[lvl])
+    size = int(sizes[lvl])
+    off = int(offsets[lvl])
+    dense = int(dense_levels[lvl])  # decided on the host: (res + 1)^3 overflows int32
+    if not finite3(x, i):
+        return
+    cx, fx = cell_coord(x[i, 0], r)
+    cy, fy = cell_coord(x[i, 1], r)
+    cz, fz = cell_coord(x[i, 2], r)
+    n_feat = v_table.shape[1]
+    one = x.dtype(1.0)
+    for v in range(8):
+        bx = v & 1
+        by = (v >> 1) & 1
+        bz = (v >> 2) & 1
+        w = wp.where(bx == 1, fx, one - fx)
+        w = w * wp.where(by == 1, fy, one - fy)
+        w = w * wp.where(bz == 1, fz, one - fz)
+        row = off + vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
+        for q in range(n_feat):
+            g = v_out[i, lvl * n_feat + q]
+            if g != x.dtype(0.0):
+                wp.atomic_add(v_table, row, q, w * g)
+
+
+def _overloads(dtype):
+    a2 = wp.array2d(dtype=dtype)
+    ai = wp.array(dtype=wp.int32)
+    wp.overload(hash_encode_fwd, [a2, a2, ai, ai, ai, ai, int, a2])
+    wp.overload(hash_encode_bwd, [a2, a2, ai, ai, ai, ai, int, a2])
+
+
+for _dt in (wp.float32, wp.float64):
+    _overloads(_dt)

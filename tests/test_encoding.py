@@ -1,0 +1,155 @@
+"""Hash-grid encoding (kernels/encoding.py via warpnerf.ops.encoding) against its float64 PyTorch
+twin: forward values, table gradients with random upstream gradients, gradcheck, the level layout
+(dense and hashed levels, power-of-two hashed sizes), hard cases (cube faces and corners, points
+outside the cube, NaN/Inf positions, heavy hash collisions, many points), input validation; and
+the hash NeRF field built on it (spherical harmonics, zero density outside its box)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from warpnerf.fields.encoding import SphericalHarmonics
+from warpnerf.fields.hash_nerf import HashNeRFField
+from warpnerf.ops.encoding import HashGrid, hash_encode
+from warpnerf.reference.encoding import hash_encode as ref_hash_encode
+
+F32, F64 = torch.float32, torch.float64
+GRIDS = {
+    "dense+hashed": HashGrid(n_levels=4, n_features=2, log2_size=10, base_res=3, max_res=40),
+    "one_level": HashGrid(n_levels=1, n_features=1, log2_size=8, base_res=5, max_res=5),
+    "collisions": HashGrid(n_levels=3, n_features=4, log2_size=4, base_res=2, max_res=30),
+}
+
+
+def _points(n, dtype, device, hard=True):
+    x = torch.rand(n, 3, dtype=F64)
+    if hard:
+        x[:8] = torch.tensor([[(v >> k) & 1 for k in range(3)] for v in range(8)], dtype=F64)
+        x[8] = torch.tensor([0.5, 0.25, 1.0 / 3.0])  # on vertices / faces of several levels
+        x[9] = torch.tensor([1.5, -0.25, 0.5])  # outside: clamped to the cube
+        x[10] = torch.tensor([1e9, -1e9, 0.0])
+    return x.to(device, dtype)
+
+
+def _table(grid, dtype, device):
+    return torch.randn(grid.n_rows, grid.n_features, dtype=F64).to(device, dtype)
+
+
+@pytest.mark.parametrize("name", list(GRIDS))
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_forward_and_table_gradient_match_twin(device, name, dtype):
+    grid = GRIDS[name]
+    x = _points(600, dtype, device)
+    table = _table(grid, dtype, device).requires_grad_(True)
+    out = hash_encode(x, table, grid)
+    ref = ref_hash_encode(x.double(), table.detach().double().requires_grad_(True), grid)
+    tol = 1e-12 if dtype == F64 else 2e-5  # float32: x * res and the fraction round (res <= 40)
+    assert out.shape == (600, grid.out_dim)
+    torch.testing.assert_close(out.double(), ref, rtol=tol, atol=tol)
+    v_out = torch.randn(out.shape, dtype=F64).to(device)
+    (g,) = torch.autograd.grad(out, table, v_out.to(dtype))
+    t64 = table.detach().double().requires_grad_(True)
+    (g_ref,) = torch.autograd.grad(ref_hash_encode(x.double(), t64, grid), t64, v_out)
+    torch.testing.assert_close(g.double(), g_ref, rtol=tol * 10, atol=tol * 10)
+
+
+def test_gradcheck_float64(device):
+    grid = GRIDS["collisions"]
+    x = _points(12, F64, device)
+    table = _table(grid, F64, device).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: hash_encode(x, t, grid), (table,), eps=1e-6)
+
+
+def test_partition_of_unity_and_exact_vertices(device):
+    """A table of ones gives 1 per level (weights sum to one); at a vertex of a dense level the
+    feature is that vertex's row exactly."""
+    grid = HashGrid(n_levels=2, n_features=1, log2_size=12, base_res=4, max_res=8)
+    x = _points(300, F64, device)
+    ones = torch.ones(grid.n_rows, 1, dtype=F64, device=device)
+    torch.testing.assert_close(hash_encode(x, ones, grid), torch.ones(300, 2, dtype=F64, device=device))
+    table = torch.arange(grid.n_rows, dtype=F64, device=device).unsqueeze(-1)
+    v = torch.tensor([[1 / 4, 2 / 4, 3 / 4]], dtype=F64, device=device)  # vertex (1, 2, 3) of res 4
+    assert hash_encode(v, table, grid)[0, 0].item() == 1 + 5 * (2 + 5 * 3)
+
+
+def test_level_layout():
+    grid = HashGrid(n_levels=16, log2_size=19, base_res=16, max_res=2048)
+    res = [r for r, _, _ in grid.levels]
+    assert res[0] == 16 and res[-1] == 2048 and res == sorted(res)
+    offset = 0
+    for r, first, rows in grid.levels:
+        assert first == offset and rows % 8 == 0
+        dense = (r + 1) ** 3 <= rows
+        assert dense or rows == 2**19  # hashed levels: power of two (the kernel masks)
+        offset += rows
+    assert grid.n_rows == offset and grid.out_dim == 32
+
+
+def test_nonfinite_positions_give_nan_rows_and_no_gradient(device):
+    grid = GRIDS["dense+hashed"]
+    x = _points(50, F32, device)
+    x[3, 0], x[4, 1], x[5, 2] = float("nan"), float("inf"), -float("inf")
+    table = _table(grid, F32, device).requires_grad_(True)
+    out = hash_encode(x, table, grid)
+    bad = torch.zeros(50, dtype=torch.bool, device=device)
+    bad[3:6] = True
+    assert torch.isnan(out[bad]).all() and torch.isfinite(out[~bad]).all()
+    v_out = torch.ones_like(out)
+    v_out[bad] = 0.0
+    (g,) = torch.autograd.grad(out, table, v_out)
+    assert torch.isfinite(g).all()
+
+
+def test_many_points_accumulate_like_float64(device):
+    """50k points on a tiny table: heavy atomic accumulation, float32 vs float64 twin."""
+    grid = HashGrid(n_levels=2, n_features=2, log2_size=6, base_res=2, max_res=16)
+    x = _points(50_000, F64, device, hard=False)
+    table = _table(grid, F32, device).requires_grad_(True)
+    out = hash_encode(x.float(), table, grid)
+    (g,) = torch.autograd.grad(out, table, torch.ones_like(out))
+    t64 = table.detach().double().requires_grad_(True)
+    (g64,) = torch.autograd.grad(ref_hash_encode(x, t64, grid).sum(), t64)
+    assert ((g.double() - g64).abs() / g64.abs().clamp_min(1.0)).max() < 1e-4
+
+
+def test_validation(device):
+    grid = GRIDS["one_level"]
+    x = _points(5, F32, device, hard=False)
+    with pytest.raises(ValueError, match="table must have shape"):
+        hash_encode(x, torch.zeros(3, 1, device=device), grid)
+    with pytest.raises(ValueError, match="dtype"):
+        hash_encode(x, _table(grid, F64, device), grid)
+    with pytest.raises(ValueError, match="x must have shape"):
+        hash_encode(x[:, :2], _table(grid, F32, device), grid)
+    with pytest.raises(ValueError, match="requires_grad"):
+        hash_encode(x.requires_grad_(True), _table(grid, F32, device), grid)
+    with pytest.raises(TypeError):
+        hash_encode(x, _table(grid, F32, device), (1, 2))
+    with pytest.raises(ValueError):
+        HashGrid(base_res=64, max_res=32)
+
+
+def test_spherical_harmonics_orthonormal_and_known_values():
+    d = torch.nn.functional.normalize(torch.randn(400_000, 3, dtype=F64), dim=-1)
+    y = SphericalHarmonics(4)(d)
+    gram = y.T @ y / d.shape[0] * 4 * math.pi
+    assert (gram - torch.eye(16, dtype=F64)).abs().max() < 0.03
+    z = SphericalHarmonics(2)(torch.tensor([[0.0, 0.0, 1.0]], dtype=F64))[0]
+    torch.testing.assert_close(z, torch.tensor([0.28209479177387814, 0, 0.4886025119029199, 0], dtype=F64))
+
+
+def test_hash_field_zero_outside_box_and_finite_gradients(device):
+    grid = HashGrid(n_levels=4, log2_size=10, base_res=4, max_res=32)
+    field = HashNeRFField([-1, -1, -1, 1, 1, 1], grid, hidden=16).to(device)
+    p = torch.randn(500, 3, device=device) * 1.2
+    d = torch.nn.functional.normalize(torch.randn(500, 3, device=device), dim=-1)
+    sigma, rgb = field(p, d)
+    outside = (p.abs() > 1).any(-1)
+    assert outside.any() and (sigma[outside] == 0).all() and (sigma[~outside] > 0).all()
+    assert ((rgb > 0) & (rgb < 1)).all()
+    (sigma.sum() + rgb.sum()).backward()
+    assert all(torch.isfinite(q.grad).all() for q in field.parameters())
+    assert field.encoding.table.grad.abs().sum() > 0

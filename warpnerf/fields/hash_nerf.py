@@ -1,0 +1,85 @@
+"""A fast NeRF field: hash-grid encoding (Warp kernels) + small torch MLPs (instant-ngp's design).
+
+density: positions in the scene box -> hash features [L * F] -> MLP (one hidden layer) -> 16
+values; sigma = exp(first value) (truncated: the exponent is clamped at 15 in the forward pass,
+its gradient is not cut), zero outside the box. colour: those 16 values + spherical harmonics of
+the direction (degree 4; left out without view dependence) -> MLP (two hidden layers) -> sigmoid.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..ops.encoding import HashGrid
+from .encoding import HashEncoding, SphericalHarmonics
+
+__all__ = ["HashNeRFField"]
+
+GEO_FEATURES = 16  # density MLP outputs: raw density + 15 features for the colour MLP
+
+
+class _TruncExp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x.clamp(max=15.0))
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(-15.0, 15.0))
+
+
+class HashNeRFField(nn.Module):
+    """``forward(positions [n, 3], directions [n, 3]) -> (sigmas [n], rgbs [n, 3])``.
+
+    Args:
+        aabb: scene box [xmin, ymin, zmin, xmax, ymax, zmax]; the grid covers it, density is zero
+            outside it.
+        grid: a :class:`warpnerf.ops.HashGrid` (levels, table size, resolutions).
+        hidden: width of the MLPs' hidden layers.
+        view_dependence: feed SH-encoded directions to the colour MLP.
+    """
+
+    def __init__(self, aabb, grid: HashGrid | None = None, hidden=64, view_dependence=True):
+        super().__init__()
+        box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1)
+        if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
+            raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min < max")
+        self.register_buffer("aabb", box)
+        self.encoding = HashEncoding(grid)
+        self.view_dependence = view_dependence
+        self.sh = SphericalHarmonics(4) if view_dependence else None
+        self.density_mlp = nn.Sequential(
+            nn.Linear(self.encoding.out_dim, hidden), nn.ReLU(), nn.Linear(hidden, GEO_FEATURES)
+        )
+        d_col = GEO_FEATURES + (self.sh.out_dim if view_dependence else 0)
+        self.color_mlp = nn.Sequential(
+            nn.Linear(d_col, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, 3),
+        )
+
+    def density(self, positions: torch.Tensor):
+        """sigmas [n] and the density MLP's outputs [n, 16]."""
+        lo, hi = self.aabb[:3].to(positions.dtype), self.aabb[3:].to(positions.dtype)
+        x = (positions.detach() - lo) / (hi - lo)
+        inside = ((x >= 0) & (x <= 1)).all(-1)
+        h = self.density_mlp(self.encoding(x))
+        sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
+        return sigma, h
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
+        sigma, h = self.density(positions)
+        feat = h
+        if self.view_dependence:
+            if directions is None:
+                raise ValueError("a view-dependent field needs directions")
+            feat = torch.cat([h, self.sh(directions.to(h.dtype))], -1)
+        return sigma, torch.sigmoid(self.color_mlp(feat))
+
+    def n_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters())

@@ -1,0 +1,134 @@
+"""Torch bridge for the multiresolution hash-grid encoding (kernels/encoding.py).
+
+``hash_encode(x, table, grid)`` maps points x [n, 3] in [0, 1]^3 to features [n, L * F],
+differentiable with respect to ``table`` (the learnable parameters); positions get no gradient.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import torch
+
+from . import _bridge
+
+__all__ = ["HashGrid", "hash_encode"]
+
+
+@dataclass(frozen=True)
+class HashGrid:
+    """Layout of a multiresolution hash grid: ``n_levels`` grids from ``base_res`` to ``max_res``
+    cells per side (geometric progression, ``res_l = floor(base_res * b^l)``), each with at most
+    ``2^log2_size`` rows of ``n_features`` features (dense indexing when a level fits)."""
+
+    n_levels: int = 16
+    n_features: int = 2
+    log2_size: int = 19
+    base_res: int = 16
+    max_res: int = 2048
+
+    def __post_init__(self):
+        if self.n_levels < 1 or self.n_features < 1:
+            raise ValueError("n_levels and n_features must be >= 1")
+        if not 4 <= self.log2_size <= 26:
+            raise ValueError(f"log2_size must be in [4, 26], got {self.log2_size}")
+        if not 1 <= self.base_res <= self.max_res <= 2**20:
+            raise ValueError(
+                f"need 1 <= base_res <= max_res <= 2^20, got {self.base_res}, {self.max_res}"
+            )
+
+    @cached_property
+    def levels(self) -> tuple:
+        """((res, first_row, rows), ...) per level."""
+        growth = (
+            math.exp((math.log(self.max_res) - math.log(self.base_res)) / (self.n_levels - 1))
+            if self.n_levels > 1
+            else 1.0
+        )
+        out, offset = [], 0
+        for lvl in range(self.n_levels):
+            res = max(1, int(math.floor(self.base_res * growth**lvl + 1e-9)))
+            # dense when the level fits (rows rounded up to 8), else hashed into 2^log2_size rows
+            # (a power of two: the kernel's modulo is a mask)
+            rows = min(2**self.log2_size, ((res + 1) ** 3 + 7) // 8 * 8)
+            out.append((res, offset, rows))
+            offset += rows
+        return tuple(out)
+
+    @property
+    def n_rows(self) -> int:
+        res, offset, rows = self.levels[-1]
+        return offset + rows
+
+    @property
+    def out_dim(self) -> int:
+        return self.n_levels * self.n_features
+
+    def level_tensors(self, device) -> tuple:
+        """(res, offsets, sizes, dense) as int32 tensors on device (cached per device)."""
+        key = str(device)
+        cache = self.__dict__.setdefault("_tensors", {})
+        if key not in cache:
+            cols = list(zip(*self.levels))
+            cols.append([int((r + 1) ** 3 <= rows) for r, _, rows in self.levels])
+            cache[key] = tuple(torch.tensor(c, dtype=torch.int32, device=device) for c in cols)
+        return cache[key]
+
+
+class _HashEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, table, grid):
+        from warpnerf.kernels import encoding as K
+
+        lv = [_bridge.arr(t) for t in grid.level_tensors(x.device)]
+        out = torch.empty(x.shape[0], grid.out_dim, device=x.device, dtype=x.dtype)
+        a = _bridge.arr
+        _bridge.launch(
+            K.hash_encode_fwd,
+            x.shape[0] * grid.n_levels,
+            [a(x), a(table), *lv, grid.n_levels, a(out)],
+            x.device,
+        )
+        ctx.save_for_backward(x)
+        ctx.grid, ctx.table_shape = grid, table.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, v_out):
+        from warpnerf.kernels import encoding as K
+
+        (x,) = ctx.saved_tensors
+        grid = ctx.grid
+        lv = [_bridge.arr(t) for t in grid.level_tensors(x.device)]
+        v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
+        a = _bridge.arr
+        _bridge.launch(
+            K.hash_encode_bwd,
+            x.shape[0] * grid.n_levels,
+            [a(x), a(v_out.contiguous()), *lv, grid.n_levels, a(v_table)],
+            x.device,
+        )
+        return None, v_table, None
+
+
+def hash_encode(
+    x: torch.Tensor,  # [n, 3] points in [0, 1]^3 (clamped); NaN/Inf rows give NaN features
+    table: torch.Tensor,  # [grid.n_rows, grid.n_features] learnable features
+    grid: HashGrid,
+) -> torch.Tensor:  # [n, grid.n_levels * grid.n_features]
+    """Multiresolution hash-grid features of points (trilinear per level, levels concatenated).
+
+    Differentiable in ``table`` (hand-written scatter backward); ``x`` gets no gradient, and a
+    positions tensor that requires one is refused rather than silently cut.
+    """
+    if not isinstance(grid, HashGrid):
+        raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
+    _bridge.check_float("x", x, (None, 3))
+    _bridge.check_float(
+        "table", table, (grid.n_rows, grid.n_features), dtype=x.dtype, device=x.device
+    )
+    if x.requires_grad:
+        raise ValueError("hash_encode: positions with requires_grad are not supported (no dx)")
+    return _HashEncode.apply(x.contiguous(), table.contiguous(), grid)
