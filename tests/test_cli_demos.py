@@ -103,6 +103,13 @@ def test_cli_bench_quick(tmp_path):
     assert rows and rows[0]["max_err_rgb"] < 1e-4 and rows[0]["max_err_v_sigmas"] < 1e-4
 
 
+def test_cli_bench_encoding_quick(tmp_path):
+    p = run(["-m", "warpnerf.cli", "bench", "encoding", "--quick", "--json", "b.json"], tmp_path)
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["kernel"] for r in rows] == ["hash_encode"] and "| hash_encode |" in p.stdout
+    assert rows[0]["max_err_out"] < 1e-4 and rows[0]["max_err_v_table"] < 1e-3
+
+
 def test_demo_01_render_volume(tmp_path):
     p = run(
         [

@@ -69,7 +69,9 @@ def test_partition_of_unity_and_exact_vertices(device):
     grid = HashGrid(n_levels=2, n_features=1, log2_size=12, base_res=4, max_res=8)
     x = _points(300, F64, device)
     ones = torch.ones(grid.n_rows, 1, dtype=F64, device=device)
-    torch.testing.assert_close(hash_encode(x, ones, grid), torch.ones(300, 2, dtype=F64, device=device))
+    torch.testing.assert_close(
+        hash_encode(x, ones, grid), torch.ones(300, 2, dtype=F64, device=device)
+    )
     table = torch.arange(grid.n_rows, dtype=F64, device=device).unsqueeze(-1)
     v = torch.tensor([[1 / 4, 2 / 4, 3 / 4]], dtype=F64, device=device)  # vertex (1, 2, 3) of res 4
     assert hash_encode(v, table, grid)[0, 0].item() == 1 + 5 * (2 + 5 * 3)
@@ -138,7 +140,9 @@ def test_spherical_harmonics_orthonormal_and_known_values():
     gram = y.T @ y / d.shape[0] * 4 * math.pi
     assert (gram - torch.eye(16, dtype=F64)).abs().max() < 0.03
     z = SphericalHarmonics(2)(torch.tensor([[0.0, 0.0, 1.0]], dtype=F64))[0]
-    torch.testing.assert_close(z, torch.tensor([0.28209479177387814, 0, 0.4886025119029199, 0], dtype=F64))
+    torch.testing.assert_close(
+        z, torch.tensor([0.28209479177387814, 0, 0.4886025119029199, 0], dtype=F64)
+    )
 
 
 def test_hash_field_zero_outside_box_and_finite_gradients(device):

@@ -128,6 +128,69 @@ def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, check_error:
     return row
 
 
+def encoding_bytes(n: int, grid, backward: bool) -> int:
+    """Fewest bytes of the float32 hash encoding: forward reads positions (12 B/point) and the
+    table once, writes L * F features (4 B each); backward reads positions and v_out, zeroes
+    and writes v_table. The 8 corner gathers per level are random accesses on top of this (so the
+    kernels are latency/gather bound, and this % of bandwidth is a lower bound on traffic)."""
+    feat = 4 * grid.out_dim * n
+    table = 4 * grid.n_rows * grid.n_features
+    fwd = 12 * n + table + feat
+    bwd = 12 * n + feat + 2 * table
+    return fwd + (bwd if backward else 0)
+
+
+def _encoding_case(n: int, grid, dev, repeats: int):
+    from .ops.encoding import hash_encode
+    from .reference.encoding import hash_encode as ref_encode
+
+    g = torch.Generator(device="cpu").manual_seed(0)
+    x = torch.rand(n, 3, generator=g).to(dev)
+    table = (torch.rand(grid.n_rows, grid.n_features, generator=g) * 2 - 1).to(dev)
+    table.requires_grad_()
+    v_out = torch.randn(n, grid.out_dim, generator=g).to(dev)
+
+    def run(fn, backward):
+        def go():
+            out = fn(x, table, grid)
+            if backward:
+                out.backward(v_out)
+                table.grad = None
+
+        return go
+
+    row = {"kernel": "hash_encode", "n_points": n, "levels": grid.n_levels, "rows": grid.n_rows}
+    for name, fn in (("warp", hash_encode), ("torch", ref_encode)):
+        row[f"{name}_fwd_ms"] = 1e3 * _time(run(fn, False), dev, repeats)
+        row[f"{name}_fwdbwd_ms"] = 1e3 * _time(run(fn, True), dev, repeats)
+    row["speedup_fwd"] = row["torch_fwd_ms"] / row["warp_fwd_ms"]
+    row["speedup_fwdbwd"] = row["torch_fwdbwd_ms"] / row["warp_fwdbwd_ms"]
+    row["points_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
+    row["bytes_fwd"] = encoding_bytes(n, grid, False)
+    row["bytes_fwdbwd"] = encoding_bytes(n, grid, True)
+    out = hash_encode(x, table, grid)
+    (gt,) = torch.autograd.grad(out, table, v_out)
+    t64 = table.detach().double().requires_grad_()
+    o64 = ref_encode(x.double(), t64, grid)
+    (gt64,) = torch.autograd.grad(o64, t64, v_out.double())
+    row["max_err_out"] = float((out.detach().double() - o64.detach()).abs().max())
+    row["max_err_v_table"] = float((gt.double() - gt64).abs().max())
+    return row
+
+
+def _encoding_grids(dev, quick: bool):
+    from .ops.encoding import HashGrid
+
+    if dev.type == "cuda":
+        cases = [(1 << 18, HashGrid()), (1 << 20, HashGrid()), (1 << 20, HashGrid(log2_size=21))]
+    else:
+        cases = [
+            (1 << 12, HashGrid(log2_size=14, max_res=256)),
+            (1 << 14, HashGrid(log2_size=14, max_res=256)),
+        ]
+    return cases[:1] if quick else cases
+
+
 def _sizes(dev, quick: bool):
     if dev.type == "cuda":
         sizes = [(1 << 14, 128), (1 << 17, 128), (1 << 20, 128)]
@@ -174,6 +237,12 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
                     rows.append(row)
         finally:
             C._IMPL.update(saved)
+    if kernel in ("encoding", "all"):
+        for n, grid in _encoding_grids(dev, quick):
+            row = _encoding_case(n, grid, dev, repeats)
+            row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
+            row["bw_pct_fwdbwd"] = 100 * row["bytes_fwdbwd"] / (row["warp_fwdbwd_ms"] / 1e3) / bw
+            rows.append(row)
     result = {
         "device": str(dev),
         "device_name": name,
@@ -196,8 +265,11 @@ def markdown_table(result) -> str:
         "torch fwd+bwd ms | speedup fwd / fwd+bwd | Gsamples/s fwd+bwd | % copy BW fwd+bwd | "
         "max err rgb / v_sigmas (vs f64) |\n|---|---|---|---|---|---|---|---|---|---|"
     )
-    lines = [head]
+    enc = [r for r in result["rows"] if r["kernel"] == "hash_encode"]
+    lines = [head] if len(enc) < len(result["rows"]) else [head.split("\n\n")[0]]
     for r in result["rows"]:
+        if r["kernel"] == "hash_encode":
+            continue
         lines.append(
             f"| {r['kernel']} | {r['n_rays']} x {r['samples_per_ray']} | {r['warp_fwd_ms']:.3f} | "
             f"{r['torch_fwd_ms']:.3f} | {r['warp_fwdbwd_ms']:.3f} | {r['torch_fwdbwd_ms']:.3f} | "
@@ -205,6 +277,21 @@ def markdown_table(result) -> str:
             f"{r['samples_per_s_fwdbwd'] / 1e9:.3f} | {r['bw_pct_fwdbwd']:.1f} | "
             f"{r['max_err_rgb']:.1e} / {r['max_err_v_sigmas']:.1e} |"
         )
+    if enc:
+        lines.append(
+            "\n| kernel | points | levels x rows | warp fwd ms | torch fwd ms | warp fwd+bwd ms | "
+            "torch fwd+bwd ms | speedup fwd / fwd+bwd | Mpoints/s fwd+bwd | % copy BW fwd+bwd "
+            "(lower bound) | max err out / v_table (vs f64) |\n|---|---|---|---|---|---|---|---|"
+            "---|---|---|"
+        )
+        for r in enc:
+            lines.append(
+                f"| hash_encode | {r['n_points']} | {r['levels']} x {r['rows']} | "
+                f"{r['warp_fwd_ms']:.3f} | {r['torch_fwd_ms']:.3f} | {r['warp_fwdbwd_ms']:.3f} | "
+                f"{r['torch_fwdbwd_ms']:.3f} | {r['speedup_fwd']:.1f}x / "
+                f"{r['speedup_fwdbwd']:.1f}x | {r['points_per_s_fwdbwd'] / 1e6:.1f} | "
+                f"{r['bw_pct_fwdbwd']:.1f} | {r['max_err_out']:.1e} / {r['max_err_v_table']:.1e} |"
+            )
     return "\n".join(lines)
 
 

@@ -343,7 +343,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
-    b.add_argument("kernel", nargs="?", default="composite", choices=["composite", "all"])
+    b.add_argument(
+        "kernel", nargs="?", default="composite", choices=["composite", "encoding", "all"]
+    )
     b.add_argument("--device", default="cpu")
     b.add_argument("--json", default=None, help="write the results as JSON here")
     b.add_argument("--quick", action="store_true", help="smallest sizes only")

@@ -144,7 +144,6 @@ class NeRFConfig:
             raise UserError("--lr and --lr-final must be positive")
         return self
 
-
     def _grid_kwargs(self) -> dict:
         return dict(
             n_levels=self.hash_levels,
@@ -170,7 +169,10 @@ def build_fields(cfg: NeRFConfig) -> dict:
 
         torch.manual_seed(cfg.seed)
         f = HashNeRFField(
-            cfg.resolve().aabb_box(), HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence
+            cfg.resolve().aabb_box(),
+            HashGrid(**cfg._grid_kwargs()),
+            cfg.hidden,
+            cfg.view_dependence,
         ).to(cfg.device)
         return {"coarse": f, "fine": f if cfg.n_fine > 0 else None}
 
@@ -266,7 +268,9 @@ def _optimizer(cfg, params):
 def _save(run: Path, step, fields_, opt, gen, history, cfg):
     state = {
         "step": step,
-        "fields": {k: (v.state_dict() if v is not None else None) for k, v in _unique(fields_).items()},
+        "fields": {
+            k: (v.state_dict() if v is not None else None) for k, v in _unique(fields_).items()
+        },
         "optimizer": opt.state_dict(),
         "generator": gen.get_state(),
         "history": history,
