@@ -27,7 +27,7 @@ lego_seed|lego_full|lego_hash)
     extra="--samples ${COARSE:-64} --coarse-fine --fine-samples ${FINE:-128}"
   fi
   python3 -m warpnerf.cli train nerf --data .devdata/lego --out /tmp/$1 $common $extra \
-    --iters 30000 --max-seconds ${SECS:-420} --val-every 1000 --val-images 2 2>&1 | tail -6 | tee -a "$OUT/log.txt"
+    --iters ${ITERS:-30000} --max-seconds ${SECS:-420} --val-every 1000 --val-images 2 2>&1 | tail -6 | tee -a "$OUT/log.txt"
   python3 -m warpnerf.cli eval /tmp/$1 --split val --max-images ${EVAL_IMAGES:-25} 2>&1 | tail -1 | tee -a "$OUT/log.txt"
   cp /tmp/$1/history.json "$OUT/$1_history.json"
   cp /tmp/$1/eval_val/metrics.json "$OUT/$1_metrics.json"
