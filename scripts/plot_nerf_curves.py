@@ -1,6 +1,6 @@
 """Val PSNR against training time from NeRF runs' history.json files: a PNG and a Markdown table.
 
-    python scripts/plot_nerf_curves.py docs/data/lego_seed_history.json:"seed-like" ... --out x.png
+python scripts/plot_nerf_curves.py docs/data/lego_seed_history.json:"seed-like" ... --out x.png
 """
 
 from __future__ import annotations

@@ -287,6 +287,11 @@ def test_cli_train_eval_render_nerf(tmp_path):
         (["train", "nerf", "--data", "builtin", "--out", "o", "--near", "5", "--far", "1"], "near"),
         (["train", "nerf", "--out", "o", "--resume", "--iters", "9", "--batch", "7"], "--batch"),
         (["eval", "nothing", "--max-images", "-1"], "max-images"),
+        (
+            ["train", "nerf", "--data", "builtin", "--out", "o", "--field", "hash"]
+            + ["--hash-max-res", "8"],
+            "max_res",
+        ),
     ],
 )
 def test_cli_nerf_user_errors(tmp_path, args, needle):
@@ -294,6 +299,18 @@ def test_cli_nerf_user_errors(tmp_path, args, needle):
     assert p.returncode == 2, p.stderr
     assert needle in p.stderr and "Traceback" not in p.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_cli_train_hash_field_then_eval(tmp_path):
+    args = ["train", "nerf", "--data", "builtin", "--out", "r", "--field", "hash", "--iters", "3"]
+    args += ["--builtin-size", "8", "--samples", "8", "--coarse-fine", "--fine-samples", "8"]
+    args += ["--hash-levels", "2", "--hash-log2-size", "8", "--hash-max-res", "16", "--quiet"]
+    p = run(["-m", "warpnerf.cli", *args, "--val-every", "3", "--batch", "64"], tmp_path)
+    assert last_json(p.stdout)["step"] == 3
+    cfg = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert cfg["field"] == "hash" and cfg["lr"] == 1e-2 and cfg["aabb"] > 0
+    p = run(["-m", "warpnerf.cli", "eval", "r", "--max-images", "1"], tmp_path)
+    assert last_json(p.stdout)["psnr"] > 5
 
 
 @pytest.mark.parametrize(

@@ -66,10 +66,18 @@ def test_field_view_dependence(view_dependence):
     assert f.n_parameters() == sum(p.numel() for p in f.parameters())
 
 
-@pytest.mark.parametrize("n_fine", [0, 8])
-def test_resume_continues_exactly(tmp_path, n_fine):
-    straight = train_nerf(tiny(n_fine=n_fine), tmp_path / "a", progress=False, log=lambda *a: 0)
-    cfg = tiny(n_fine=n_fine, iters=3, lr_decay_steps=6)  # the straight run's schedule
+HASH = dict(
+    field="hash", hash_levels=3, hash_log2_size=8, hash_base_res=4, hash_max_res=16, hidden=8
+)
+
+
+@pytest.mark.parametrize("n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash")])
+def test_resume_continues_exactly(tmp_path, n_fine, field):
+    kw = HASH if field == "hash" else {}
+    straight = train_nerf(
+        tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
+    )
+    cfg = tiny(n_fine=n_fine, iters=3, lr_decay_steps=6, **kw)  # the straight run's schedule
     train_nerf(cfg, tmp_path / "b", progress=False, log=lambda *a: 0)
     resumed = train_nerf(
         tiny(iters=6), tmp_path / "b", resume=True, progress=False, log=lambda *a: 0
@@ -149,6 +157,32 @@ def test_builtin_scene_trains_to_psnr_floor(tmp_path):
     )
     hist = train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
     assert hist["val_psnr"][-1] >= 24.0, hist["val_psnr"]
+
+
+@pytest.mark.slow
+def test_hash_field_trains_to_psnr_floor(tmp_path):
+    """The hash field on the built-in 24x24 scene, CPU: measured 27.08 / 28.46 / 27.73 dB val
+    after 600 steps with seeds 0 / 1 / 2 (22-23 s of training on a 2-core Xeon, 2026-11-22; it
+    sits near 22.5 dB for the first ~200 steps); the floor leaves ~2 dB of margin."""
+    cfg = tiny(
+        field="hash",
+        hash_levels=4,
+        hash_log2_size=12,
+        hash_base_res=4,
+        hash_max_res=32,
+        hidden=32,
+        lr=1e-2,
+        lr_final=1e-3,
+        iters=600,
+        batch=512,
+        n_coarse=32,
+        builtin_size=24,
+        val_every=600,
+        val_images=4,
+        ckpt_every=600,
+    )
+    hist = train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
+    assert hist["val_psnr"][-1] >= 25.0, hist["val_psnr"]
 
 
 def test_time_box_then_resume_gets_a_fresh_budget(tmp_path):

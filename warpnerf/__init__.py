@@ -8,16 +8,21 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 - :func:`importance_samples` (coarse-to-fine inverse-CDF sampling, merged with the coarse edges)
 - :class:`SDFVolume` (the analytic box/sphere/torus scene), :func:`render_rays` (rays -> image)
 - :class:`NeRFField`, :class:`PositionalEncoding`, :func:`render_nerf`, :func:`psnr`, :func:`ssim`
+- :class:`HashGrid`, :func:`hash_encode` (hash-grid encoding), :class:`HashEncoding`,
+  :class:`SphericalHarmonics`, :class:`HashNeRFField` (the fast NeRF field)
 """
 
 from . import data
-from .fields.encoding import PositionalEncoding
+from .fields.encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
+from .fields.hash_nerf import HashNeRFField
 from .fields.nerf import NeRFField
 from .fields.sdf_volume import SDFVolume, laplace_cdf
 from .metrics import psnr, ssim
 from .ops import (
+    HashGrid,
     Samples,
     generate_rays,
+    hash_encode,
     importance_samples,
     packed_info_from_ray_indices,
     random_pixels,
@@ -49,6 +54,11 @@ __all__ = [
     "render_nerf",
     "PositionalEncoding",
     "NeRFField",
+    "HashGrid",
+    "hash_encode",
+    "HashEncoding",
+    "SphericalHarmonics",
+    "HashNeRFField",
     "psnr",
     "ssim",
 ]

@@ -1,5 +1,19 @@
-"""Fields (torch nn.Modules): analytic SDF volumes now; NeRF MLPs and neural SDFs later."""
+"""Fields (torch nn.Modules): the analytic SDF volume, encodings, NeRF's MLP and the hash field."""
 
+from .encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
+from .hash_nerf import HashNeRFField
+from .nerf import NeRFField
 from .sdf_volume import SDFVolume, laplace_cdf, sdf_box, sdf_sphere, sdf_torus
 
-__all__ = ["SDFVolume", "laplace_cdf", "sdf_box", "sdf_sphere", "sdf_torus"]
+__all__ = [
+    "SDFVolume",
+    "laplace_cdf",
+    "sdf_box",
+    "sdf_sphere",
+    "sdf_torus",
+    "PositionalEncoding",
+    "HashEncoding",
+    "SphericalHarmonics",
+    "NeRFField",
+    "HashNeRFField",
+]

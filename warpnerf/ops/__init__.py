@@ -2,6 +2,7 @@
 public function."""
 
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
+from .encoding import HashGrid, hash_encode
 from .rays import generate_rays, random_pixels, ray_aabb_intersect
 from .sampling import Samples, importance_samples, stratified_samples
 
@@ -15,4 +16,6 @@ __all__ = [
     "render_packed",
     "render_dense",
     "packed_info_from_ray_indices",
+    "HashGrid",
+    "hash_encode",
 ]

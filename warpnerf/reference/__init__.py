@@ -1,6 +1,7 @@
 """Pure-PyTorch twins of every Warp op, same names and signatures (for tests and benchmarks)."""
 
 from .composite import render_dense, render_packed
+from .encoding import hash_encode
 from .rays import generate_rays, ray_aabb_intersect
 from .sampling import stratified_samples
 
@@ -10,4 +11,5 @@ __all__ = [
     "stratified_samples",
     "render_dense",
     "render_packed",
+    "hash_encode",
 ]
