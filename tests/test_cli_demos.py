@@ -323,3 +323,45 @@ def test_nerf_demos_tiny(tmp_path, demo):
     assert res and all(v == v for v in res.values() if isinstance(v, float))  # no NaN
     if demo.startswith("05"):
         assert (tmp_path / "o" / "grid.png").exists() and set(res) == {"psnr_0", "psnr_3", "psnr_6"}
+
+
+@pytest.mark.parametrize("demo", ["06_sphere_trace_torus.py", "07_sphere_trace_scene.py"])
+def test_sphere_trace_demos_tiny(tmp_path, demo):
+    p = run([str(ROOT / "demos" / demo), "--out", "o", "--frames", "2", "--size", "24"], tmp_path)
+    res = last_json(p.stdout)
+    out = tmp_path / "o"
+    assert (out / "frame_000.png").exists() and (out / "metrics.json").exists()
+    if demo.startswith("06"):
+        assert (out / "spiral.gif").exists() and (out / "spiral.mp4").exists()
+        assert res["rays_per_s"] > 0 and 1 <= res["mean_iters_per_ray"] <= 256
+    else:
+        assert res["primitives"] > 20 and (out / "orbit.gif").exists()
+        assert res["omega_1"]["mean_iters_per_ray"] >= 1 and 0 <= res["disagreement"] <= 1
+
+
+def test_cli_mesh_sdf_scene(tmp_path):
+    from warpnerf.mesh import read_ply
+
+    p = run(["-m", "warpnerf.cli", "mesh", "--sdf", "torus", "--resolution", "32", "--out",
+             "m/t.ply"], tmp_path)  # fmt: skip
+    res = last_json(p.stdout)
+    v, f = read_ply(tmp_path / "m" / "t.ply")
+    assert res["faces"] == len(f) > 100 and res["vertices"] == len(v)
+    assert (tmp_path / "m" / "t.png").stat().st_size > 1000
+    assert max(abs(x) for x in res["bounds_max"] + res["bounds_min"]) < 1.0
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["mesh", "--out", "x.ply"], "run folder or --sdf"),
+        (["mesh", "--sdf", "none.json", "--out", "x.ply"], "no such scene"),
+        (["mesh", "--sdf", "torus", "--out", "x.obj"], ".ply"),
+        (["mesh", "--sdf", "torus", "--out", "x.ply", "--resolution", "2"], "--resolution"),
+        (["mesh", "norun", "--out", "x.ply"], "not a training run"),
+    ],
+)
+def test_cli_mesh_user_errors(tmp_path, args, needle):
+    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
+    assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
+    assert not list(tmp_path.glob("x.*"))

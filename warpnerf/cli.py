@@ -218,6 +218,77 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _mesh_source(args):
+    """(field_fn, lower, upper, marching-cubes level, user level, what) for `warpnerf mesh`."""
+    from pathlib import Path
+
+    dev = _device(args.device or "cpu")
+    if (args.run is None) == (args.sdf is None):
+        raise UserError("give a run folder or --sdf SCENE (one of them)")
+    if args.sdf is not None:
+        from .fields.sdf_scene import SDFScene, many_primitives_scene, torus_scene
+
+        builtin = {"torus": torus_scene, "scene": many_primitives_scene}
+        scene = builtin[args.sdf]() if args.sdf in builtin else SDFScene.load(args.sdf)
+        b = args.bounds or 2.0
+        level = args.level or 0.0
+        return (lambda p: scene.sdf(p)), [-b] * 3, [b] * 3, level, level, f"sdf {args.sdf}"
+    from .train.nerf import load_run
+
+    run = Path(args.run)
+    cfg, fields_, _ = load_run(run, dev if args.device else None)
+    field = fields_["fine"] or fields_["coarse"]
+    b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
+    level = 10.0 if args.level is None else args.level
+
+    def density(p):
+        return field.density(p)[0]
+
+    # marching cubes of -density at -level: inside (dense) is negative like an SDF
+    fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
+    return fn, [-b] * 3, [b] * 3, -level, level, f"nerf {run}"
+
+
+def cmd_mesh(args) -> int:
+    import time
+
+    from .mesh import extract_mesh, screenshot, write_ply
+
+    if args.resolution < 8 or args.resolution > 1024:
+        raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
+    if not args.out.endswith(".ply"):
+        raise UserError(f"--out must be a .ply file, got {args.out}")
+    from pathlib import Path
+
+    if Path(args.out).is_dir():
+        raise UserError(f"--out {args.out} is a folder")
+    fn, lo, hi, level, shown_level, what = _mesh_source(args)
+    t0 = time.perf_counter()
+    dev = _device(args.device or "cpu")
+    v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
+    secs = time.perf_counter() - t0
+    if len(f) == 0:
+        raise UserError(f"{what}: no surface at level {level} inside [{lo[0]}, {hi[0]}]^3")
+    write_ply(args.out, v, f)
+    png = str(Path(args.out).with_suffix(".png"))
+    if not args.no_screenshot:
+        screenshot(png, v, f)
+    res = {
+        "source": what,
+        "out": args.out,
+        "screenshot": None if args.no_screenshot else png,
+        "vertices": len(v),
+        "faces": len(f),
+        "bounds_min": v.min(0).tolist(),
+        "bounds_max": v.max(0).tolist(),
+        "resolution": args.resolution,
+        "level": shown_level,
+        "seconds": secs,
+    }
+    print(json.dumps(res))
+    return 0
+
+
 def cmd_bench(args) -> int:
     from .bench import run_bench
 
@@ -341,6 +412,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
     r.add_argument("--device", default=None)
     r.set_defaults(func=cmd_render)
+
+    m = sub.add_parser("mesh", help="marching cubes of an SDF scene or a trained run -> PLY + PNG")
+    m.add_argument("run", nargs="?", help="a NeRF run folder (density level set)")
+    m.add_argument("--sdf", help="SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
+    m.add_argument("--resolution", type=int, default=256, help="grid nodes per axis")
+    m.add_argument("--level", type=float, default=None, help="0 for SDFs; density for runs (10)")
+    m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
+    m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
+    m.add_argument("--device", default=None)
+    m.add_argument("--no-screenshot", action="store_true")
+    m.set_defaults(func=cmd_mesh)
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
     b.add_argument(
