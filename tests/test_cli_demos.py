@@ -365,3 +365,44 @@ def test_cli_mesh_user_errors(tmp_path, args, needle):
     p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
     assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
     assert not list(tmp_path.glob("x.*"))
+
+
+def test_cli_train_sdf_resume_and_mesh(tmp_path):
+    import numpy as np
+
+    g = np.random.default_rng(0).normal(size=(400, 3))
+    np.savez(tmp_path / "pts.npz", verts=(g / np.linalg.norm(g, axis=1, keepdims=True)) * 2 + 5)
+    args = ["train", "sdf", "--points", "pts.npz", "--out", "r", "--iters", "3", "--batch", "64"]
+    args += ["--layers", "2", "--width", "16", "--pos-freqs", "2", "--resolution", "16", "--quiet"]
+    p = run(["-m", "warpnerf.cli", *args], tmp_path)
+    assert last_json(p.stdout)["step"] == 3 and (tmp_path / "r" / "mesh.ply").exists()
+    p = run(["-m", "warpnerf.cli", "train", "sdf", "--out", "r", "--resume", "--iters", "5",
+             "--quiet"], tmp_path)  # fmt: skip
+    assert last_json(p.stdout)["step"] == 5
+    p = run(["-m", "warpnerf.cli", "mesh", "r", "--resolution", "16", "--out", "m.ply",
+             "--no-screenshot"], tmp_path)  # fmt: skip
+    res = last_json(p.stdout)
+    assert res["faces"] > 0 and min(res["bounds_min"]) > 2  # back in the points' units (centre 5)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["train", "sdf", "--out", "o"], "--points"),
+        (["train", "sdf", "--points", "none.npz", "--out", "o"], "no such point-cloud"),
+        (["train", "sdf", "--out", "o", "--resume", "--iters", "4"], "not a training run"),
+    ],
+)
+def test_cli_sdf_user_errors(tmp_path, args, needle):
+    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
+    assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_demo_08_neural_sdf_tiny(tmp_path):
+    p = run([str(ROOT / "demos" / "08_neural_sdf.py"), "--out", "o", "--iters", "5", "--batch",
+             "128", "--width", "48", "--resolution", "24", "--frames", "2", "--size", "16"],
+            tmp_path)  # fmt: skip
+    res = last_json(p.stdout)
+    assert (tmp_path / "o" / "turntable.gif").exists() and res["trace_mean_iters"] >= 1
+    assert res["chamfer"] > 0 and (tmp_path / "o" / "run" / "mesh.ply").exists()

@@ -181,6 +181,43 @@ def cmd_train_nerf(args) -> int:
     return 0
 
 
+def cmd_train_sdf(args) -> int:
+    from .train.sdf import SDFConfig, train_sdf
+
+    if args.resume:
+        if args.iters is None:
+            raise UserError("--resume needs --iters (the total number of steps to reach)")
+        cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
+        dev = _device(args.device) if args.device else None
+        m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev)
+    else:
+        if args.points is None:
+            raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
+        cfg = SDFConfig(
+            points=args.points,
+            iters=args.iters or 2000,
+            batch=args.batch,
+            n_random=args.batch,
+            lr=args.lr,
+            eikonal_weight=args.eikonal_weight,
+            normal_weight=args.normal_weight,
+            n_layers=args.layers,
+            width=args.width,
+            skip=max(1, args.layers // 2),
+            pos_freqs=args.pos_freqs,
+            resolution=args.resolution,
+            max_seconds=args.max_seconds,
+            seed=args.seed,
+            device=_device(args.device or "cpu"),
+        )
+        m = train_sdf(cfg, args.out, progress=not args.quiet)
+    keys = ("step", "seconds", "chamfer", "vertices", "faces")
+    out = {k: m[k] for k in keys}
+    out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
+    print(json.dumps(out))
+    return 0
+
+
 def cmd_eval(args) -> int:
     from .train.nerf_eval import evaluate_run
 
@@ -219,7 +256,8 @@ def cmd_render(args) -> int:
 
 
 def _mesh_source(args):
-    """(field_fn, lower, upper, marching-cubes level, user level, what) for `warpnerf mesh`."""
+    """(field_fn, lower, upper, marching-cubes level, user level, what, normalisation or None)
+    for `warpnerf mesh`."""
     from pathlib import Path
 
     dev = _device(args.device or "cpu")
@@ -232,10 +270,21 @@ def _mesh_source(args):
         scene = builtin[args.sdf]() if args.sdf in builtin else SDFScene.load(args.sdf)
         b = args.bounds or 2.0
         level = args.level or 0.0
-        return (lambda p: scene.sdf(p)), [-b] * 3, [b] * 3, level, level, f"sdf {args.sdf}"
+        return (lambda p: scene.sdf(p)), [-b] * 3, [b] * 3, level, level, f"sdf {args.sdf}", None
     from .train.nerf import load_run
+    from .train.sdf import MODEL, load_sdf_run
 
     run = Path(args.run)
+    try:
+        kind = json.loads((run / "config.json").read_text()).get("model")
+    except (OSError, ValueError):
+        kind = None
+    if kind == MODEL:
+        cfg, model, ckpt = load_sdf_run(run, dev if args.device else None)
+        c, s = ckpt["normalisation"]["center"], ckpt["normalisation"]["scale"]
+        b = args.bounds or 1.0  # in the normalised frame; vertices are mapped back below
+        fn = lambda p: model(p.to(cfg.device))  # noqa: E731
+        return fn, [-b] * 3, [b] * 3, args.level or 0.0, args.level or 0.0, f"sdf run {run}", (c, s)
     cfg, fields_, _ = load_run(run, dev if args.device else None)
     field = fields_["fine"] or fields_["coarse"]
     b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
@@ -246,7 +295,7 @@ def _mesh_source(args):
 
     # marching cubes of -density at -level: inside (dense) is negative like an SDF
     fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return fn, [-b] * 3, [b] * 3, -level, level, f"nerf {run}"
+    return fn, [-b] * 3, [b] * 3, -level, level, f"nerf {run}", None
 
 
 def cmd_mesh(args) -> int:
@@ -262,13 +311,17 @@ def cmd_mesh(args) -> int:
 
     if Path(args.out).is_dir():
         raise UserError(f"--out {args.out} is a folder")
-    fn, lo, hi, level, shown_level, what = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, norm = _mesh_source(args)
     t0 = time.perf_counter()
     dev = _device(args.device or "cpu")
     v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
     secs = time.perf_counter() - t0
     if len(f) == 0:
         raise UserError(f"{what}: no surface at level {level} inside [{lo[0]}, {hi[0]}]^3")
+    if norm is not None:  # neural-SDF runs: back to the point cloud's units
+        import numpy as np
+
+        v = (v / norm[1] + np.asarray(norm[0])).astype(np.float32)
     write_ply(args.out, v, f)
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:
@@ -397,6 +450,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tn.add_argument("--quiet", action="store_true")
     tn.set_defaults(func=cmd_train_nerf)
+
+    ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
+    ts.add_argument("--points", help="FILE.npz (verts|points [, normals]) or FILE.ply, or builtin")
+    ts.add_argument("--out", required=True, help="run folder")
+    ts.add_argument("--resume", action="store_true")
+    ts.add_argument("--device", default=None)
+    ts.add_argument("--iters", type=_positive(int), default=None, help="total steps (2000)")
+    ts.add_argument("--batch", type=_positive(int), default=4096, help="points per step")
+    ts.add_argument("--lr", type=_positive(float), default=1e-3)
+    ts.add_argument("--eikonal-weight", type=float, default=0.1)
+    ts.add_argument("--normal-weight", type=float, default=1.0, help="when normals are given")
+    ts.add_argument("--layers", type=_positive(int), default=6)
+    ts.add_argument("--width", type=_positive(int), default=128)
+    ts.add_argument("--pos-freqs", type=_nonnegative, default=6)
+    ts.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
+    ts.add_argument("--max-seconds", type=float, default=0.0)
+    ts.add_argument("--seed", type=int, default=0)
+    ts.add_argument("--quiet", action="store_true")
+    ts.set_defaults(func=cmd_train_sdf)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
     e.add_argument("run", help="run folder written by 'warpnerf train nerf'")

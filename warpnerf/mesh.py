@@ -112,3 +112,40 @@ def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a") -> None:
             plotter.screenshot(str(tmp))
     finally:
         plotter.close()
+
+
+def read_ply_points(path):
+    """(points [N, 3], normals [N, 3] or None) of a PLY file's vertices (ascii or binary LE)."""
+    data = open(path, "rb").read()
+    end = data.index(b"end_header") + len(b"end_header")
+    end = data.index(b"\n", end) + 1
+    head = data[:end].decode("ascii", "replace").splitlines()
+    fmt = next((x.split()[1] for x in head if x.startswith("format")), "")
+    props, n, in_vertex = [], 0, False
+    for line in head:
+        w = line.split()
+        if w[:2] == ["element", "vertex"]:
+            n, in_vertex = int(w[2]), True
+        elif w and w[0] == "element":
+            in_vertex = False
+        elif in_vertex and w[0] == "property" and w[1] != "list":
+            props.append((w[2], w[1]))
+    names = [p for p, _ in props]
+    if not {"x", "y", "z"} <= set(names):
+        raise ValueError("the vertex element has no x, y, z properties")
+    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
+             "uint8": "u1", "int": "<i4", "int32": "<i4", "uint": "<u4", "short": "<i2",
+             "ushort": "<u2", "char": "i1"}  # fmt: skip
+    if fmt == "ascii":
+        rows = data[end:].decode().split("\n")[:n]
+        arr = np.array([[float(x) for x in r.split()[: len(names)]] for r in rows])
+        col = {k: arr[:, i] for i, k in enumerate(names)}
+    elif fmt == "binary_little_endian":
+        dt = np.dtype([(k, types[t]) for k, t in props])
+        rec = np.frombuffer(data, dt, n, end)
+        col = {k: rec[k].astype(np.float64) for k in names}
+    else:
+        raise ValueError(f"unsupported PLY format {fmt!r}")
+    pts = np.stack([col["x"], col["y"], col["z"]], 1)
+    nrm = np.stack([col["nx"], col["ny"], col["nz"]], 1) if "nx" in col else None
+    return pts, nrm

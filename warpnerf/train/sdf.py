@@ -1,0 +1,311 @@
+"""Neural SDF from a point cloud: |f| on the points + eikonal (|grad f| - 1)^2 on random points
+(+ an optional normal term), Adam with exponential decay, atomic checkpoints, exact resume; at
+the end a marching-cubes mesh in the input's units, Chamfer distance to the points and eikonal
+statistics.
+
+Points are normalised once (centre of their bounding box to the origin, largest half extent to
+0.8), so the eikonal samples cover [-1, 1]^3; the transform is saved in the run and meshes come
+back in the original units.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from ..fields.neural_sdf import NeuralSDF
+from ..io import atomic_path, write_json
+
+__all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
+
+MODEL = "neural_sdf"
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclass
+class SDFConfig:
+    points: str = "builtin"  # .npz (verts|points [, normals]) or .ply, or "builtin" (a torus)
+    iters: int = 2000
+    batch: int = 4096  # surface points per step
+    n_random: int = 4096  # eikonal points per step (half uniform in the box, half near points)
+    lr: float = 1e-3
+    lr_final: float = 1e-4  # reached at lr_decay_steps (0: the first invocation's iters, saved)
+    lr_decay_steps: int = 0
+    eikonal_weight: float = 0.1
+    normal_weight: float = 1.0  # used when the point cloud has normals
+    n_layers: int = 6
+    width: int = 128
+    skip: int = 3
+    pos_freqs: int = 6
+    resolution: int = 128  # marching-cubes grid at the end
+    ckpt_every: int = 500
+    max_seconds: float = 0.0
+    seed: int = 0
+    device: str = "cpu"
+    model: str = MODEL
+
+    def to_dict(self):
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d):
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
+        return cls(**d)
+
+    def validate(self):
+        for name in ("iters", "batch", "n_random", "n_layers", "width", "ckpt_every"):
+            if getattr(self, name) < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+        d_in = 3 * (1 + 2 * self.pos_freqs)
+        if self.skip < self.n_layers and self.width <= d_in:
+            raise UserError(f"--width must exceed the encoded input ({d_in} for --pos-freqs "
+                            f"{self.pos_freqs}) because of the skip connection")  # fmt: skip
+        if self.pos_freqs < 0:
+            raise UserError("--pos-freqs must be >= 0")
+        if not 8 <= self.resolution <= 1024:
+            raise UserError(f"--resolution must be in [8, 1024], got {self.resolution}")
+        if not (self.lr > 0 and self.lr_final > 0) or self.eikonal_weight < 0:
+            raise UserError("--lr, --lr-final must be positive and --eikonal-weight >= 0")
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise UserError(f"device {self.device!r}: no CUDA device available here")
+        return self
+
+
+def load_points(path) -> tuple:
+    """(points [N, 3] float32, normals [N, 3] or None) from .npz / .ply, or the built-in torus."""
+    if str(path) == "builtin":
+        from ..fields.sdf_scene import torus_scene
+        from ..mesh import extract_mesh, sample_surface
+
+        scene = torus_scene()
+        v, f = extract_mesh(scene.sdf, [-1.2] * 3, [1.2] * 3, 96)
+        return sample_surface(v, f, 5000, seed=1).astype(np.float32), None
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such point-cloud file")
+    normals = None
+    try:
+        if path.suffix == ".npz":
+            d = np.load(path)
+            key = next((k for k in ("points", "verts", "vertices") if k in d), None)
+            if key is None:
+                raise UserError(f"{path}: needs an array 'points' or 'verts' (has {list(d)})")
+            pts = d[key]
+            normals = d["normals"] if "normals" in d else None
+        elif path.suffix == ".ply":
+            from ..mesh import read_ply_points
+
+            pts, normals = read_ply_points(path)
+        else:
+            raise UserError(f"{path}: expected a .npz or .ply file")
+    except (OSError, ValueError, KeyError) as e:
+        raise UserError(f"{path}: unreadable point cloud ({e})") from None
+    pts = np.asarray(pts, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 16:
+        raise UserError(f"{path}: points must be [N >= 16, 3], got {list(pts.shape)}")
+    if not np.isfinite(pts).all():
+        raise UserError(f"{path}: points contain NaN/Inf")
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float32)
+        if normals.shape != pts.shape or not np.isfinite(normals).all():
+            raise UserError(f"{path}: normals must be finite and shaped like the points")
+        normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    return pts, normals
+
+
+def normalisation(points: np.ndarray) -> tuple:
+    """(center [3], scale): normalised = (p - center) * scale fits in [-0.8, 0.8]^3."""
+    lo, hi = points.min(0), points.max(0)
+    center = (lo + hi) / 2
+    half = float((hi - lo).max() / 2)
+    return center.astype(np.float64), 0.8 / max(half, 1e-12)
+
+
+def _build(cfg):
+    torch.manual_seed(cfg.seed)
+    return NeuralSDF(cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs).to(cfg.device)
+
+
+def load_sdf_run(run, device=None):
+    """(cfg, model, checkpoint) of a neural-SDF run folder."""
+    run = Path(run)
+    try:
+        d = json.loads((run / "config.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
+    if d.get("model") != MODEL or not (run / CHECKPOINT).is_file():
+        raise UserError(f"{run}: not a neural-SDF run (config model {d.get('model')!r})")
+    cfg = SDFConfig.from_dict(d)
+    if device:
+        cfg.device = device
+    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"{run}: trained on {cfg.device}, not available here; pass --device cpu")
+    model = _build(cfg)
+    ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
+    model.load_state_dict(ckpt["model"])
+    return cfg, model, ckpt
+
+
+def sdf_loss(model, surf, normals, rand, cfg):
+    """(loss, parts): mean |f| on the points, eikonal on random points, optional normals."""
+    pts = torch.cat([surf, rand])
+    f, g = model.gradient(pts)
+    n = surf.shape[0]
+    l_surf = f[:n].abs().mean()
+    l_eik = ((g.norm(dim=-1) - 1.0) ** 2).mean()
+    loss = l_surf + cfg.eikonal_weight * l_eik
+    parts = {"surface": l_surf.item(), "eikonal": l_eik.item()}
+    if normals is not None and cfg.normal_weight > 0:
+        l_n = (1 - torch.nn.functional.cosine_similarity(g[:n], normals, dim=-1)).mean()
+        loss = loss + cfg.normal_weight * l_n
+        parts["normal"] = l_n.item()
+    return loss, parts
+
+
+def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None):
+    """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict."""
+    run = Path(run)
+    ckpt = None
+    if resume:
+        saved, model, ckpt = load_sdf_run(run, device)
+        if cfg.iters <= ckpt["step"]:
+            raise UserError(f"{run}: checkpoint at step {ckpt['step']}; --iters must be larger")
+        saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
+        cfg = saved.validate()
+    else:
+        cfg.validate()
+        if (run / CHECKPOINT).exists():
+            raise UserError(f"{run}: already holds a run; pass --resume or choose another --out")
+        model = None
+    if cfg.lr_decay_steps <= 0:
+        cfg.lr_decay_steps = cfg.iters
+    pts_np, nrm_np = load_points(cfg.points)
+    center, scale = normalisation(pts_np)
+    if model is None:
+        model = _build(cfg)
+    run.mkdir(parents=True, exist_ok=True)
+    write_json(run / "config.json", cfg.to_dict())
+    dev = cfg.device
+    pts = torch.as_tensor((pts_np - center) * scale, dtype=torch.float32, device=dev)
+    nrm = torch.as_tensor(nrm_np, device=dev) if nrm_np is not None else None
+    # local scale of the near-surface samples: distance to the 8th nearest point (on a subset)
+    sub = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:2000].to(dev)]
+    sigma = float(torch.cdist(sub, pts).topk(9, largest=False).values[:, -1].median())
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    history = {"step": [], "loss": [], "surface": [], "eikonal": [], "seconds": []}
+    start = 0
+    if ckpt is not None:
+        opt.load_state_dict(ckpt["optimizer"])
+        gen.set_state(ckpt["generator"].cpu())
+        history, start = ckpt["history"], ckpt["step"]
+    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
+    t0 = time.perf_counter()
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.iters, initial=start, desc="train sdf", unit="step", disable=None)
+    for step in range(start, cfg.iters):
+        for gr in opt.param_groups:
+            gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / cfg.lr_decay_steps)
+        idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
+        half = cfg.n_random // 2
+        near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
+        noise = torch.randn(cfg.n_random - half, 3, generator=gen).to(dev) * sigma
+        uni = (torch.rand(half, 3, generator=gen) * 2 - 1).to(dev)
+        rand = torch.cat([uni, pts[near_idx] + noise])
+        loss, parts = sdf_loss(model, pts[idx], nrm[idx] if nrm is not None else None, rand, cfg)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        done = step + 1
+        seconds = elapsed0 + time.perf_counter() - t0
+        history["step"].append(done)
+        history["loss"].append(loss.item())
+        history["surface"].append(parts["surface"])
+        history["eikonal"].append(parts["eikonal"])
+        history["seconds"].append(seconds)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(surface=f"{parts['surface']:.4f}", eikonal=f"{parts['eikonal']:.4f}")
+        out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
+        if done % cfg.ckpt_every == 0 or done == cfg.iters or out_of_time:
+            state = {
+                "step": done,
+                "model": model.state_dict(),
+                "optimizer": opt.state_dict(),
+                "generator": gen.get_state(),
+                "history": history,
+                "normalisation": {"center": center.tolist(), "scale": scale},
+            }
+            with atomic_path(run / CHECKPOINT) as tmp:
+                torch.save(state, tmp)
+            write_json(run / "history.json", history)
+        if out_of_time:
+            log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
+            break
+    if bar is not None:
+        bar.close()
+    metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
+    metrics.update(step=history["step"][-1] if history["step"] else 0,
+                   seconds=history["seconds"][-1] if history["seconds"] else 0.0)  # fmt: skip
+    write_json(run / "metrics.json", metrics)
+    return metrics
+
+
+@torch.no_grad()
+def chamfer(a: torch.Tensor, b: torch.Tensor, chunk: int = 4096) -> tuple:
+    """(mean over a of the distance to b, mean over b of the distance to a)."""
+
+    def one_way(x, y):
+        return torch.cat([torch.cdist(x[s : s + chunk], y).min(1).values
+                          for s in range(0, len(x), chunk)]).mean().item()  # fmt: skip
+
+    return one_way(a, b), one_way(b, a)
+
+
+def eikonal_stats(model, points: torch.Tensor) -> dict:
+    _, g = model.gradient(points, create_graph=False)
+    r = (g.norm(dim=-1) - 1).abs()
+    return {"mean": r.mean().item(), "p95": r.quantile(0.95).item(), "max": r.max().item()}
+
+
+def finish_sdf_run(run, model, cfg, pts_np, center, scale):
+    """Mesh (input units) + screenshot + Chamfer (in bbox diagonals) + eikonal statistics."""
+    from ..mesh import extract_mesh, sample_surface, screenshot, write_ply
+
+    model.eval()
+    dev = cfg.device
+    v, f = extract_mesh(lambda p: model(p), [-1] * 3, [1] * 3, cfg.resolution, 0.0, device=dev)
+    m = {"vertices": len(v), "faces": len(f)}
+    diag = float(np.linalg.norm(pts_np.max(0) - pts_np.min(0)))
+    if len(f):
+        v_world = v / scale + center
+        write_ply(run / "mesh.ply", v_world, f)
+        screenshot(run / "mesh.png", v_world, f)
+        surf = torch.as_tensor(sample_surface(v_world, f, 30_000), dtype=torch.float32)
+        a_to_b, b_to_a = chamfer(surf, torch.as_tensor(pts_np))
+        m["chamfer"] = 0.5 * (a_to_b + b_to_a) / diag
+        m["chamfer_mesh_to_points"] = a_to_b / diag
+        m["chamfer_points_to_mesh"] = b_to_a / diag
+    else:
+        m["chamfer"] = math.inf
+    g = torch.Generator().manual_seed(123)
+    box = (torch.rand(20_000, 3, generator=g) * 2 - 1).to(dev)
+    pts = torch.as_tensor((pts_np - center) * scale, dtype=torch.float32, device=dev)
+    m["eikonal_residual_box"] = eikonal_stats(model, box)
+    m["eikonal_residual_surface"] = eikonal_stats(model, pts)
+    with torch.no_grad():
+        m["surface_abs_sdf_mean"] = float(model(pts).abs().mean()) / scale / diag
+    m["units"] = "chamfer and surface |sdf| in units of the point cloud's bounding-box diagonal"
+    return m
