@@ -119,7 +119,8 @@ def cmd_train_nerf(args) -> int:
     if args.resume:
         if args.iters is None:
             raise UserError("--resume needs --iters (the total number of steps to reach)")
-        defaults = build_parser().parse_args(["train", "nerf", "--out", "x"])
+        kind = "volsdf" if args.field == "volsdf" else "nerf"
+        defaults = build_parser().parse_args(["train", kind, "--out", "x"])
         fixed = [
             k
             for k, v in vars(args).items()
@@ -149,6 +150,10 @@ def cmd_train_nerf(args) -> int:
             hash_max_res=args.hash_max_res,
             hidden=args.hidden,
             aabb=args.aabb or 0.0,
+            beta=getattr(args, "beta", 0.1),
+            beta_min=getattr(args, "beta_min", 1e-4),
+            learn_beta=not getattr(args, "fixed_beta", False),
+            eikonal_weight=getattr(args, "eikonal_weight", 0.1),
             n_coarse=args.samples,
             n_fine=args.fine_samples if args.coarse_fine else 0,
             view_dependence=args.view_dependence,
@@ -288,6 +293,10 @@ def _mesh_source(args):
     cfg, fields_, _ = load_run(run, dev if args.device else None)
     field = fields_["fine"] or fields_["coarse"]
     b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
+    if cfg.field == "volsdf":  # the SDF's zero level set
+        level = args.level or 0.0
+        return (lambda p: field.sdf(p.to(cfg.device))), [-b] * 3, [b] * 3, level, level, \
+            f"volsdf {run}", None  # fmt: skip
     level = 10.0 if args.level is None else args.level
 
     def density(p):
@@ -349,45 +358,8 @@ def cmd_bench(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="warpnerf",
-        description="Differentiable volume rendering with NVIDIA Warp kernels and PyTorch.",
-    )
-    sub = p.add_subparsers(dest="command", metavar="COMMAND")
-
-    d = sub.add_parser(
-        "demo",
-        help="main job: fit an analytic box to rendered views, write a "
-        "spiral video, images and metrics.json (built-in scene, no data needed)",
-    )
-    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.add_argument("--device", default="cpu", help="cpu or cuda")
-    d.add_argument("--iters", type=_positive(int), default=300)
-    d.add_argument("--size", type=_positive(int), default=64, help="training image size")
-    d.add_argument("--frames", type=_positive(int), default=40, help="spiral video frames")
-    d.add_argument("--video-size", type=_positive(int), default=128)
-    d.add_argument("--quiet", action="store_true", help="no progress bar")
-    d.set_defaults(func=cmd_demo)
-
-    t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
-    tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
-    tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
-    tb.add_argument("--data", required=True, help="folder with transforms*.json and PNG images")
-    tb.add_argument("--out", required=True, help="output folder")
-    tb.add_argument("--device", default="cpu")
-    tb.add_argument("--iters", type=_positive(int), default=400)
-    tb.add_argument("--batch", type=_positive(int), default=4096)
-    tb.add_argument("--samples", type=_positive(int), default=64)
-    tb.add_argument("--near", type=float, default=0.0)
-    tb.add_argument("--far", type=float, default=5.0)
-    tb.add_argument("--lr", type=_positive(float), default=0.02)
-    tb.add_argument("--seed", type=int, default=0)
-    tb.add_argument("--frames", type=int, default=40, help="spiral video frames (0: none)")
-    tb.add_argument("--quiet", action="store_true")
-    tb.set_defaults(func=cmd_train_box)
-
-    tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
+def _nerf_flags(tn) -> None:
+    """The flags `train nerf` and `train volsdf` share."""
     tn.add_argument(
         "--data", help="Blender or nerfstudio folder, or 'builtin' for the small built-in scene"
     )
@@ -403,8 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument(
         "--field",
         default="mlp",
-        choices=["mlp", "hash"],
-        help="mlp: NeRF's MLP (default); hash: hash-grid encoding + small MLPs (trains in minutes)",
+        choices=["mlp", "hash", "volsdf"],
+        help="mlp: NeRF's MLP (default); hash: hash-grid encoding + small MLPs (trains in "
+        "minutes); volsdf: neural SDF with VolSDF's density (see `train volsdf`)",
     )
     tn.add_argument("--lr", type=_positive(float), default=None, help="5e-4 (mlp), 1e-2 (hash)")
     tn.add_argument("--lr-final", type=_positive(float), default=None, help="lr/10 (mlp), lr/20")
@@ -449,7 +422,60 @@ def build_parser() -> argparse.ArgumentParser:
         help="early ray termination below this transmittance (0: off)",
     )
     tn.add_argument("--quiet", action="store_true")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="warpnerf",
+        description="Differentiable volume rendering with NVIDIA Warp kernels and PyTorch.",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    d = sub.add_parser(
+        "demo",
+        help="main job: fit an analytic box to rendered views, write a "
+        "spiral video, images and metrics.json (built-in scene, no data needed)",
+    )
+    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    d.add_argument("--device", default="cpu", help="cpu or cuda")
+    d.add_argument("--iters", type=_positive(int), default=300)
+    d.add_argument("--size", type=_positive(int), default=64, help="training image size")
+    d.add_argument("--frames", type=_positive(int), default=40, help="spiral video frames")
+    d.add_argument("--video-size", type=_positive(int), default=128)
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=cmd_demo)
+
+    t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
+    tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
+    tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
+    tb.add_argument("--data", required=True, help="folder with transforms*.json and PNG images")
+    tb.add_argument("--out", required=True, help="output folder")
+    tb.add_argument("--device", default="cpu")
+    tb.add_argument("--iters", type=_positive(int), default=400)
+    tb.add_argument("--batch", type=_positive(int), default=4096)
+    tb.add_argument("--samples", type=_positive(int), default=64)
+    tb.add_argument("--near", type=float, default=0.0)
+    tb.add_argument("--far", type=float, default=5.0)
+    tb.add_argument("--lr", type=_positive(float), default=0.02)
+    tb.add_argument("--seed", type=int, default=0)
+    tb.add_argument("--frames", type=int, default=40, help="spiral video frames (0: none)")
+    tb.add_argument("--quiet", action="store_true")
+    tb.set_defaults(func=cmd_train_box)
+
+    tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
+    _nerf_flags(tn)
     tn.set_defaults(func=cmd_train_nerf)
+
+    tv = tsub.add_parser(
+        "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
+        "--field volsdf with VolSDF's defaults"
+    )  # fmt: skip
+    _nerf_flags(tv)
+    tv.add_argument("--beta", type=_positive(float), default=0.1, help="initial Laplace scale")
+    tv.add_argument("--beta-min", type=_positive(float), default=1e-4)
+    tv.add_argument("--fixed-beta", action="store_true", help="keep beta at --beta")
+    tv.add_argument("--eikonal-weight", type=float, default=0.1)
+    tv.set_defaults(func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True)
 
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
     ts.add_argument("--points", help="FILE.npz (verts|points [, normals]) or FILE.ply, or builtin")

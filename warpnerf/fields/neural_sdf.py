@@ -20,9 +20,11 @@ __all__ = ["NeuralSDF"]
 
 
 class NeuralSDF(nn.Module):
-    """``forward(points [n, 3]) -> sdf [n]``; ``gradient(points)`` -> (sdf [n], grad [n, 3])."""
+    """``forward(points [n, 3]) -> sdf [n]``; ``gradient(points)`` -> (sdf [n], grad [n, 3]);
+    ``with_features(points)`` -> (sdf [n], features [n, n_features]) for VolSDF's colour net."""
 
-    def __init__(self, n_layers=6, width=128, skip=3, pos_freqs=6, radius=0.5, softplus_beta=100):
+    def __init__(self, n_layers=6, width=128, skip=3, pos_freqs=6, radius=0.5, softplus_beta=100,
+                 n_features=0):  # fmt: skip
         super().__init__()
         self.enc = PositionalEncoding(pos_freqs)
         self.skip, self.beta = skip, softplus_beta
@@ -41,18 +43,23 @@ class NeuralSDF(nn.Module):
             if i == skip and pos_freqs > 0:
                 nn.init.zeros_(layer.weight[:, -(d_in - 3) :])
             self.layers.append(layer)
-        self.out = nn.Linear(width, 1)
-        nn.init.normal_(self.out.weight, math.sqrt(math.pi) / math.sqrt(width), 1e-4)
-        nn.init.constant_(self.out.bias, -radius)
+        self.out = nn.Linear(width, 1 + n_features)
+        nn.init.normal_(self.out.weight[:1], math.sqrt(math.pi) / math.sqrt(width), 1e-4)
+        nn.init.constant_(self.out.bias[:1], -radius)
+        self.n_features = n_features
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return self.with_features(points)[0]
+
+    def with_features(self, points: torch.Tensor):
         x = self.enc(points)
         h = x
         for i, layer in enumerate(self.layers):
             if i == self.skip and i > 0:
                 h = torch.cat([h, x], -1) / math.sqrt(2.0)
             h = F.softplus(layer(h), beta=self.beta)
-        return self.out(h).squeeze(-1)
+        out = self.out(h)
+        return out[:, 0], out[:, 1:]
 
     def gradient(self, points: torch.Tensor, create_graph: bool = True):
         """(sdf [n], d sdf / d points [n, 3]); create_graph for losses on the gradient."""

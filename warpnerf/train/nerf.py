@@ -29,7 +29,8 @@ class NeRFConfig:
     data: str = "builtin"  # a dataset folder, or "builtin" for the small synthetic scene
     iters: int = 2000
     batch: int = 1024  # rays per step, uniform across all training images
-    field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast)
+    field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast);
+    # "volsdf": a neural SDF rendered through VolSDF's Laplace density
     lr: float | None = None  # None: 5e-4 (mlp) or 1e-2 (hash)
     lr_final: float | None = None  # lr decays exponentially to this at lr_decay_steps;
     # None: lr / 10 (mlp) or lr / 20 (hash)
@@ -48,6 +49,10 @@ class NeRFConfig:
     hash_base_res: int = 16
     hash_max_res: int = 2048
     hidden: int = 64  # hash field: width of its MLPs
+    beta: float = 0.1  # volsdf: initial Laplace scale (world units), its floor, learned or fixed
+    beta_min: float = 1e-4
+    learn_beta: bool = True
+    eikonal_weight: float = 0.1  # volsdf: weight of (|grad d| - 1)^2 (samples + random points)
     aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
     # restricted to it); 0: 1.5 for datasets (lego), the built-in scene's own for builtin
     near: float | None = None  # None: 2 for datasets (lego), the built-in scene's own for builtin
@@ -84,7 +89,7 @@ class NeRFConfig:
             self.lr = 1e-2 if self.field == "hash" else 5e-4
         if self.lr_final is None:
             self.lr_final = self.lr / (20.0 if self.field == "hash" else 10.0)
-        if self.aabb <= 0 and self.field == "hash":
+        if self.aabb <= 0 and self.field in ("hash", "volsdf"):
             if self.data == "builtin":
                 from ..data.synthetic import BOUND
 
@@ -118,8 +123,14 @@ class NeRFConfig:
                 raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
         if self.n_fine < 0 or self.pos_freqs < 0 or self.dir_freqs < 0:
             raise UserError("--n-fine, --pos-freqs and --dir-freqs must be >= 0")
-        if self.field not in ("mlp", "hash"):
-            raise UserError(f"--field must be mlp or hash, got {self.field!r}")
+        if self.field not in ("mlp", "hash", "volsdf"):
+            raise UserError(f"--field must be mlp, hash or volsdf, got {self.field!r}")
+        if self.field == "volsdf":
+            if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
+                raise UserError(f"need 0 < --beta-min <= --beta, got {self.beta_min}, {self.beta}")
+            if self.width <= 3 * (1 + 2 * self.pos_freqs) or self.eikonal_weight < 0:
+                raise UserError("volsdf: --width must exceed the encoded position size and "
+                                "--eikonal-weight must be >= 0")  # fmt: skip
         if self.field == "hash":
             from ..ops.encoding import HashGrid
 
@@ -153,8 +164,8 @@ class NeRFConfig:
         )
 
     def aabb_box(self):
-        """The hash field's scene box [6], or None for the MLP field (samples span near..far)."""
-        if self.field != "hash":
+        """The hash/VolSDF field's scene box [6], or None for the MLP field (near..far)."""
+        if self.field not in ("hash", "volsdf"):
             return None
         a = float(self.aabb)
         return [-a, -a, -a, a, a, a]
@@ -163,6 +174,26 @@ class NeRFConfig:
 def build_fields(cfg: NeRFConfig) -> dict:
     """{"coarse": field, "fine": field or None}. The hash field is one network used for both
     passes (the coarse pass only places the fine samples, without gradients)."""
+    if cfg.field == "volsdf":
+        from ..fields.volsdf import VolSDFField
+
+        torch.manual_seed(cfg.seed)
+        cfg.resolve()
+        f = VolSDFField(
+            cfg.aabb,
+            cfg.n_layers,
+            cfg.width,
+            cfg.skip,
+            cfg.pos_freqs,
+            cfg.dir_freqs,
+            n_features=cfg.width,
+            color_width=cfg.width,
+            view_dependence=cfg.view_dependence,
+            beta=cfg.beta,
+            beta_min=cfg.beta_min,
+            learn_beta=cfg.learn_beta,
+        ).to(cfg.device)
+        return {"coarse": f, "fine": f if cfg.n_fine > 0 else None}
     if cfg.field == "hash":
         from ..fields.hash_nerf import HashNeRFField
         from ..ops.encoding import HashGrid
@@ -373,6 +404,12 @@ def train_nerf(
         loss = loss_fine
         if out["rgb_coarse"].requires_grad and fields_.get("fine") is not None:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
+        if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
+            f = fields_["coarse"]
+            box = (torch.rand(cfg.batch, 3, generator=gen) * 2 - 1).to(cfg.device) * cfg.aabb
+            eik = 0.5 * (f.last_eikonal + f.eikonal(box))
+            loss = loss + cfg.eikonal_weight * eik
+            history.setdefault("beta", []).append(float(f.beta.detach()))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -113,7 +113,7 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     k[[1, 3]] *= h / h0
     cams = camera_path(train["c2w"], path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
-    rgbs, depths, t0 = [], [], time.perf_counter()
+    rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
     for f in range(frames):
         o, d = generate_rays(cams[f], k, w, h)
         out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
@@ -125,7 +125,12 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
         write_image(out_dir / f"depth_{f:03d}.png", dep)
         rgbs.append(rgb)
         depths.append(dep)
-    for name, seq in (("rgb", rgbs), ("depth", depths)):
+        if cfg.field == "volsdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
+            geo.append(to_uint8(_geometry_image(fields_["coarse"], cfg, o, d).reshape(h, w, 3)))
+            write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
+    for name, seq in (("rgb", rgbs), ("depth", depths), ("geometry", geo)):
+        if not seq:
+            continue
         write_video(out_dir / f"{name}.mp4", seq, fps=fps)
         write_video(out_dir / f"{name}.gif", seq, fps=fps)
     return {
@@ -134,6 +139,24 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
         "seconds": time.perf_counter() - t0,
         "out": str(out_dir),
     }
+
+
+@torch.no_grad()
+def _geometry_image(field, cfg, o, d):
+    """Shaded normals of the SDF's zero level set (grey albedo, white background) [n, 3]."""
+    from ..ops import ray_aabb_intersect
+    from ..trace import shade, sphere_trace_fn
+
+    t0, t1, hit = ray_aabb_intersect(o, d, cfg.aabb_box())
+    t1 = torch.where(hit, t1, t0)
+    out = []
+    for s in range(0, o.shape[0], cfg.chunk):
+        sl = slice(s, s + cfg.chunk)
+        tr = sphere_trace_fn(field.sdf, o[sl], d[sl], t0[sl], t1[sl], eps=1e-3 * cfg.aabb,
+                             max_iters=128)  # fmt: skip
+        grey = torch.tensor([[0.8, 0.8, 0.8]], device=o.device)
+        out.append(shade(tr, d[sl], grey).cpu())
+    return torch.cat(out)
 
 
 def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progress=False):
