@@ -334,11 +334,15 @@ def cmd_mesh(args) -> int:
     write_ply(args.out, v, f)
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:
-        screenshot(png, v, f)
+        try:
+            screenshot(png, v, f)
+        except ImportError as e:  # pyvista is a dependency; tolerate machines without it
+            print(f"warning: no screenshot ({e})", file=sys.stderr)
+            png = None
     res = {
         "source": what,
         "out": args.out,
-        "screenshot": None if args.no_screenshot else png,
+        "screenshot": None if args.no_screenshot else png,  # None also when pyvista is missing
         "vertices": len(v),
         "faces": len(f),
         "bounds_min": v.min(0).tolist(),

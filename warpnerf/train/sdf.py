@@ -292,7 +292,10 @@ def finish_sdf_run(run, model, cfg, pts_np, center, scale):
     if len(f):
         v_world = v / scale + center
         write_ply(run / "mesh.ply", v_world, f)
-        screenshot(run / "mesh.png", v_world, f)
+        try:
+            screenshot(run / "mesh.png", v_world, f)
+        except ImportError as e:  # pyvista is a dependency; tolerate machines without it
+            print(f"warning: no mesh screenshot ({e})")
         surf = torch.as_tensor(sample_surface(v_world, f, 30_000), dtype=torch.float32)
         a_to_b, b_to_a = chamfer(surf, torch.as_tensor(pts_np))
         m["chamfer"] = 0.5 * (a_to_b + b_to_a) / diag
