@@ -128,12 +128,18 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
         if cfg.field == "volsdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
             geo.append(to_uint8(_geometry_image(fields_["coarse"], cfg, o, d).reshape(h, w, 3)))
             write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
+    mp4 = True
     for name, seq in (("rgb", rgbs), ("depth", depths), ("geometry", geo)):
         if not seq:
             continue
-        write_video(out_dir / f"{name}.mp4", seq, fps=fps)
         write_video(out_dir / f"{name}.gif", seq, fps=fps)
+        try:
+            write_video(out_dir / f"{name}.mp4", seq, fps=fps)
+        except ImportError as e:  # imageio-ffmpeg is a dependency; tolerate machines without it
+            mp4 = False
+            print(f"warning: no {name}.mp4 ({e})")
     return {
+        "mp4": mp4,
         "frames": frames,
         "size": [w, h],
         "seconds": time.perf_counter() - t0,
