@@ -131,17 +131,20 @@ def shade(
     ambient: float = 0.25,
 ) -> torch.Tensor:
     """Lambert + ambient shading of hits (albedo from ``colors[ids]``, or the normal map
-    (n + 1) / 2 when ``colors`` is None), background elsewhere. Returns rgb [n, 3] in [0, 1]."""
+    (n + 1) / 2 when ``colors`` is None), background elsewhere; ``light`` a direction towards the
+    light, or None for a headlight. Returns rgb [n, 3] in [0, 1]."""
     n = trace.normals
-    light = torch.nn.functional.normalize(
-        torch.tensor(light, dtype=n.dtype, device=n.device), dim=0
-    )
+    if light is None:  # headlight: lit from the camera, every visible surface is shaded
+        light_dirs = -directions.to(n.dtype)
+    else:
+        lv = torch.tensor(light, dtype=n.dtype, device=n.device)
+        light_dirs = torch.nn.functional.normalize(lv, dim=0).expand_as(n)
     if colors is None:
         albedo = (n + 1) * 0.5
     else:
         albedo = colors.to(n.device, n.dtype)[trace.ids.clamp_min(0).long()]
     facing = torch.where((n * directions).sum(-1, keepdim=True) > 0, -n, n)
-    lam = (facing @ light).clamp_min(0).unsqueeze(-1)
+    lam = (facing * light_dirs).sum(-1).clamp_min(0).unsqueeze(-1)
     rgb = albedo * (ambient + (1 - ambient) * lam)
     bg = torch.tensor(background, dtype=n.dtype, device=n.device).expand_as(rgb)
     return torch.where(trace.hit.unsqueeze(-1), rgb.clamp(0, 1), bg)

@@ -161,7 +161,7 @@ def _geometry_image(field, cfg, o, d):
         tr = sphere_trace_fn(field.sdf, o[sl], d[sl], t0[sl], t1[sl], eps=1e-3 * cfg.aabb,
                              max_iters=128)  # fmt: skip
         grey = torch.tensor([[0.8, 0.8, 0.8]], device=o.device)
-        out.append(shade(tr, d[sl], grey).cpu())
+        out.append(shade(tr, d[sl], grey, light=None).cpu())
     return torch.cat(out)
 
 
