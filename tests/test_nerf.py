@@ -71,9 +71,12 @@ HASH = dict(
 )
 
 
-@pytest.mark.parametrize("n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash")])
+VOLSDF = dict(field="volsdf", n_layers=2, width=24, skip=1, pos_freqs=2, dir_freqs=1)
+
+
+@pytest.mark.parametrize("n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash"), (8, "volsdf")])
 def test_resume_continues_exactly(tmp_path, n_fine, field):
-    kw = HASH if field == "hash" else {}
+    kw = {"hash": HASH, "volsdf": VOLSDF}.get(field, {})
     straight = train_nerf(
         tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
     )
