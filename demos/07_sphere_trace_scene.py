@@ -32,13 +32,13 @@ demo06 = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(demo06)
 
 
-def disagreement(scene, cams, size, device, omegas=(1.0, 1.6)) -> float:
+def disagreement(scene, cams, size, device, omegas=(1.0, 1.6), max_iters=256) -> float:
     """Fraction of rays whose status or depth (> 1e-3) differs between the two omegas."""
     K = intrinsics_from_fov(size, size, 0.7).to(device)
     bad = total = 0
     for c2w in cams.to(device):
         o, d = generate_rays(c2w, K, size, size)
-        a, b = (sphere_trace(o, d, scene, 0.0, 12.0, omega=w) for w in omegas)
+        a, b = (sphere_trace(o, d, scene, 0.0, 12.0, omega=w, max_iters=max_iters) for w in omegas)
         differ = (a.status != b.status) | (a.hit & ((a.t - b.t).abs() > 1e-3))
         bad += int(differ.sum())
         total += o.shape[0]
@@ -54,8 +54,8 @@ def main(argv=None) -> int:
     p.add_argument("--iters", type=int, default=256, help="sphere-tracing iteration cap")
     p.add_argument("--omega", type=float, default=1.6, help="over-relaxation factor to compare")
     args = p.parse_args(argv)
-    if args.frames < 1 or args.size < 2 or args.iters < 1 or not 1.0 <= args.omega < 2.0:
-        p.error("--frames >= 1, --size >= 2, --iters >= 1 and 1 <= --omega < 2 are required")
+    if args.frames < 1 or args.size < 2 or args.iters < 1 or not 1.0 < args.omega < 2.0:
+        p.error("--frames >= 1, --size >= 2, --iters >= 1 and 1 < --omega < 2 are required")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device available")
     out = Path(args.out)
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
             "hit_fraction": st["hits"] / st["rays"],
         }
     res["disagreement"] = disagreement(scene, cams[:: max(1, args.frames // 4)], args.size,
-                                       args.device, (1.0, args.omega))  # fmt: skip
+                                       args.device, (1.0, args.omega), args.iters)  # fmt: skip
     res["device"] = args.device
     out.mkdir(parents=True, exist_ok=True)
     write_video(out / "orbit.gif", frames)

@@ -216,6 +216,12 @@ def sphere_trace_fwd(
     pid = int(-1)
     while n_eval < max_iters:
         if t > t_far:
+            if omega > 1.0 and step > d_prev and t_prev + d_prev <= t_far:
+                # a relaxed step jumped past far: only t_prev + d_prev is certified empty
+                t = t_prev + d_prev
+                omega = 1.0
+                step = d_prev
+                continue
             st = MISS
             t = t_far
             break
@@ -237,7 +243,7 @@ def sphere_trace_fwd(
         d_prev = dist
         step = omega * dist
         t = t + step
-    if st == CAP and t > t_far:  # the last step left [near, far]: a miss, not a cap
+    if st == CAP and t >= t_far and omega <= 1.0:  # an unrelaxed last step left [near, far]
         st = MISS
         t = t_far
     t_out[tid] = t

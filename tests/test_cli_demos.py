@@ -359,9 +359,12 @@ def test_cli_mesh_sdf_scene(tmp_path):
         (["mesh", "--sdf", "torus", "--out", "x.obj"], ".ply"),
         (["mesh", "--sdf", "torus", "--out", "x.ply", "--resolution", "2"], "--resolution"),
         (["mesh", "norun", "--out", "x.ply"], "not a training run"),
+        (["mesh", "--sdf", "torus", "--bounds", "inf", "--out", "x.ply"], "--bounds"),
+        (["mesh", "--sdf", "torus", "--out", "afile/x.ply"], "is a file"),
     ],
 )
 def test_cli_mesh_user_errors(tmp_path, args, needle):
+    (tmp_path / "afile").write_text("not a folder")
     p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
     assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
     assert not list(tmp_path.glob("x.*"))
@@ -385,9 +388,28 @@ def test_cli_train_sdf_resume_and_mesh(tmp_path):
     assert res["faces"] > 0 and min(res["bounds_min"]) > 2  # back in the points' units (centre 5)
 
 
+def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path):
+    args = ["train", "sdf", "--points", "builtin", "--out", "s", "--iters", "2", "--batch", "32"]
+    args += ["--layers", "2", "--width", "32", "--pos-freqs", "2", "--resolution", "8", "--quiet"]
+    run(["-m", "warpnerf.cli", *args], tmp_path)
+    p = run(["-m", "warpnerf.cli", "train", "sdf", "--out", "s", "--resume", "--iters", "4",
+             "--lr", "0.5"], tmp_path, check=False)  # fmt: skip
+    assert p.returncode == 2 and "drop --lr" in p.stderr
+    for cmd in (["eval", "s"], ["render", "s"]):
+        p = run(["-m", "warpnerf.cli", *cmd], tmp_path, check=False)
+        assert p.returncode == 2 and "neural-SDF run" in p.stderr and "Traceback" not in p.stderr
+    p = run(["-m", "warpnerf.cli", "train", "volsdf", "--data", "builtin", "--out", "v",
+             "--field", "mlp"], tmp_path, check=False)  # fmt: skip
+    assert p.returncode == 2 and "volsdf" in p.stderr
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [
+        (
+            ["train", "volsdf", "--data", "builtin", "--out", "o", "--eikonal-weight", "nan"],
+            "eikonal",
+        ),  # fmt: skip
         (["train", "sdf", "--out", "o"], "--points"),
         (["train", "sdf", "--points", "none.npz", "--out", "o"], "no such point-cloud"),
         (["train", "sdf", "--out", "o", "--resume", "--iters", "4"], "not a training run"),

@@ -114,3 +114,22 @@ def test_sphere_trace_of_torch_sdf_matches_closed_form():
     assert tr.status.tolist() == [HIT, HIT, 0]
     assert abs(tr.t[0].item() - t0) < 1e-4 and abs(tr.t[1].item() - 1.5) < 1e-4
     assert (tr.normals[1] - torch.tensor([0.0, 1.0, 0.0])).abs().max() < 1e-3
+
+
+def test_review_fixes_skip_extent_files_and_weights(tmp_path):
+    for layers in (1, 2, 3):  # skip == n_layers: no concatenation, shapes must still fit
+        m = NeuralSDF(n_layers=layers, width=32, skip=layers, pos_freqs=2)
+        assert m(torch.rand(5, 3)).shape == (5,)
+    np.savez(tmp_path / "same.npz", points=np.ones((20, 3)))
+    with pytest.raises(UserError, match="zero extent"):
+        load_points(tmp_path / "same.npz")
+    (tmp_path / "trunc.npz").write_bytes(b"PK\x03\x04garbage")
+    with pytest.raises(UserError, match="unreadable"):
+        load_points(tmp_path / "trunc.npz")
+    np.savez(tmp_path / "str.npz", points=np.array([["a", "b", "c"]] * 20))
+    with pytest.raises(UserError, match="unreadable"):
+        load_points(tmp_path / "str.npz")
+    for bad in (dict(eikonal_weight=float("nan")), dict(normal_weight=-1.0),
+                dict(max_seconds=float("nan"))):  # fmt: skip
+        with pytest.raises(UserError):
+            SDFConfig(**bad).validate()

@@ -108,7 +108,8 @@ def test_hard_cases(device):
     assert st["inside"] == INSIDE and tr.t[3].item() == 0.0
     assert st["on_surface"] == HIT and tr.iters[4].item() == 1 and tr.t[4].item() == 0.0
     assert st["nan"] == INVALID and math.isnan(tr.t[5].item())
-    assert torch.isfinite(tr.normals[:5]).all()
+    hits = tr.status == HIT
+    assert torch.allclose(tr.normals[hits].norm(dim=-1), torch.ones(int(hits.sum()), device=device))
 
 
 def test_iteration_cap_is_not_a_hit(device):
@@ -143,10 +144,47 @@ def test_thin_shell_with_and_without_relaxation(device, omega):
     assert (tr.status == HIT).all() and (tr.points[:, 1] - 5e-4).abs().max() < 1e-4
 
 
-def test_kernel_matches_torch_tracer(device):
+@pytest.mark.parametrize("omega", [1.0, 1.6])
+def test_surface_just_before_far_is_found_when_relaxed(device, omega):
+    """A relaxed step may jump past far; only t_prev + d_prev is certified empty, so the march
+    returns there and finds a surface between it and far (review finding)."""
+    scene = SDFScene().sphere(1.0)
+    o = torch.tensor([[0.0, 0.0, 5.0]], device=device)
+    d = torch.tensor([[0.0, 0.0, -1.0]], device=device)
+    kw = dict(eps=1e-6, omega=omega)
+    for tr in (
+        sphere_trace(o, d, scene, 0.0, 4.5, **kw),
+        ref_sphere_trace(o.cpu(), d.cpu(), scene, 0.0, 4.5, **kw),
+    ):
+        assert tr.status.tolist() == [HIT] and abs(tr.t.item() - 4.0) < 1e-5
+    far_miss = sphere_trace(o, d, scene, 0.0, 3.9, eps=1e-6, omega=omega)
+    assert far_miss.status.tolist() == [MISS] and far_miss.t.item() == pytest.approx(3.9)
+
+
+def test_rotation_convention_matches_closed_form(device):
+    """Rotations are local-to-world R = Rz Ry Rx: a torus rotated 90 degrees about x has its
+    ring in the world xy plane, a capsule rotated (90, 90, 0) lies along world x."""
+    torus = SDFScene().torus(1.0, 0.1, rotation_deg=(90, 0, 0))
+    p = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], device=device)
+    dist = scene_sdf(p, torus)[0].cpu()
+    assert torch.allclose(dist, torch.tensor([-0.1, -0.1, 2**0.5 - 0.1]), atol=1e-6)
+    cap = SDFScene().capsule(2.0, 0.1, rotation_deg=(90, 90, 0))
+    q = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], device=device)
+    assert torch.allclose(scene_sdf(q, cap)[0].cpu(), torch.tensor([-0.1, 0.9, 0.9]), atol=1e-6)
+
+
+def test_directions_must_be_unit_length(device):
+    scene = SDFScene().sphere(1.0)
+    o = torch.tensor([[0.0, 0.0, 5.0]], device=device)
+    with pytest.raises(ValueError, match="unit length"):
+        sphere_trace(o, torch.tensor([[0.0, 0.0, -3.0]], device=device), scene)
+
+
+@pytest.mark.parametrize("omega", [1.0, 1.6])
+def test_kernel_matches_torch_tracer(device, omega):
     scene = many_primitives_scene()
     o, d = _rays_at(torch.tensor([0.0, 0.0, -0.2], dtype=F64), 3000, dist=5.0, spread=1.8)
-    kw = dict(eps=1e-4, max_iters=300)
+    kw = dict(eps=1e-4, max_iters=300, omega=omega)
     tr = sphere_trace(o.float().to(device), d.float().to(device), scene, 0.0, 12.0, **kw)
     ref = ref_sphere_trace(o.float(), d.float(), scene, 0.0, 12.0, **kw)
     st, st_ref = tr.status.cpu(), ref.status
@@ -172,6 +210,14 @@ def test_scene_json_round_trip_and_validation(tmp_path):
         {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "center": [0, "a", 0]}]},
         {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "colour": [1, 1, 1]}]},
         {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "op": "smooth_union"}]},
+        {"primitives": [{"kind": "sphere", "params": 1}]},
+        {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "center": None}]},
+        {"primitives": [{"kind": {}, "params": [1, 0, 0, 0]}]},
+        {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "op": [[1]]}]},
+        {"primitives": [{"kind": "sphere", "params": [1, 0, 0, 0], "color": [1, 1]}]},
+        {"primitives": [{"kind": "sphere", "params": [1e300, 0, 0, 0]}]},
+        {"primitives": [{"kind": "sphere", "params": [True, 0, 0, 0]}]},
+        [1, 2],
     ]
     for d in bad:
         with pytest.raises(UserError):

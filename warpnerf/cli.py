@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from .errors import UserError
@@ -25,8 +26,8 @@ def _positive(kind):
             v = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not v > 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        if not (v > 0 and math.isfinite(v)):
+            raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
         return v
 
     return parse
@@ -113,25 +114,30 @@ _RESUME_FLAGS = {
 }
 
 
+def _refuse_changed_flags(args) -> None:
+    """With --resume only --iters, --device and --max-seconds may differ from the defaults of the
+    subcommand that was used (the run's saved config holds everything else)."""
+    defaults = build_parser().parse_args(["train", args.model, "--out", "x"])
+    fixed = [
+        k for k, v in vars(args).items() if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
+    ]
+    if fixed:
+        names = ", ".join("--" + k.replace("_", "-") for k in sorted(fixed))
+        raise UserError(
+            f"with --resume the run's saved config is used; drop {names} "
+            "(only --iters, --device and --max-seconds may change)"
+        )
+
+
 def cmd_train_nerf(args) -> int:
     from .train.nerf import NeRFConfig, train_nerf
 
+    if args.model == "volsdf" and args.field != "volsdf":
+        raise UserError("train volsdf trains the volsdf field; use train nerf for --field mlp|hash")
     if args.resume:
         if args.iters is None:
             raise UserError("--resume needs --iters (the total number of steps to reach)")
-        kind = "volsdf" if args.field == "volsdf" else "nerf"
-        defaults = build_parser().parse_args(["train", kind, "--out", "x"])
-        fixed = [
-            k
-            for k, v in vars(args).items()
-            if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
-        ]
-        if fixed:
-            names = ", ".join("--" + k.replace("_", "-") for k in sorted(fixed))
-            raise UserError(
-                f"with --resume the run's saved config is used; drop {names} "
-                "(only --iters, --device and --max-seconds may change)"
-            )
+        _refuse_changed_flags(args)
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
         device = _device(args.device) if args.device else None
         hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
@@ -192,6 +198,7 @@ def cmd_train_sdf(args) -> int:
     if args.resume:
         if args.iters is None:
             raise UserError("--resume needs --iters (the total number of steps to reach)")
+        _refuse_changed_flags(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
         dev = _device(args.device) if args.device else None
         m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev)
@@ -281,7 +288,8 @@ def _mesh_source(args):
 
     run = Path(args.run)
     try:
-        kind = json.loads((run / "config.json").read_text()).get("model")
+        saved = json.loads((run / "config.json").read_text())
+        kind = saved.get("model") if isinstance(saved, dict) else None
     except (OSError, ValueError):
         kind = None
     if kind == MODEL:
@@ -320,20 +328,28 @@ def cmd_mesh(args) -> int:
 
     if Path(args.out).is_dir():
         raise UserError(f"--out {args.out} is a folder")
+    parent = Path(args.out).parent
+    if parent.exists() and not parent.is_dir():
+        raise UserError(f"--out {args.out}: {parent} is a file, not a folder")
     fn, lo, hi, level, shown_level, what, norm = _mesh_source(args)
     t0 = time.perf_counter()
     dev = _device(args.device or "cpu")
-    v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
+    try:
+        v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
+    except ValueError as e:
+        raise UserError(f"{what}: {e}") from None
     secs = time.perf_counter() - t0
     if len(f) == 0:
-        raise UserError(f"{what}: no surface at level {level} inside [{lo[0]}, {hi[0]}]^3")
+        raise UserError(f"{what}: no surface at level {shown_level} inside [{lo[0]}, {hi[0]}]^3")
     if norm is not None:  # neural-SDF runs: back to the point cloud's units
         import numpy as np
 
         v = (v / norm[1] + np.asarray(norm[0])).astype(np.float32)
     write_ply(args.out, v, f)
     png = str(Path(args.out).with_suffix(".png"))
-    if not args.no_screenshot:
+    if args.no_screenshot:
+        Path(png).unlink(missing_ok=True)  # never leave a screenshot of an older mesh beside it
+    else:
         try:
             screenshot(png, v, f)
         except ImportError as e:  # pyvista is a dependency; tolerate machines without it

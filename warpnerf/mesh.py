@@ -34,9 +34,17 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
         raise ValueError("upper must exceed lower on every axis")
     dev = torch.device(device)
     axes = [torch.linspace(float(lo[i]), float(hi[i]), resolution, device=dev) for i in range(3)]
-    gx, gy, gz = torch.meshgrid(*axes, indexing="ij")
-    pts = torch.stack([gx, gy, gz], -1).reshape(-1, 3)
-    vals = torch.cat([field_fn(pts[s : s + chunk]).float() for s in range(0, len(pts), chunk)])
+    n = resolution**3
+    vals = torch.empty(n, device=dev)
+    for s in range(0, n, chunk):  # grid points made per chunk: memory ~ chunk, not resolution^3
+        idx = torch.arange(s, min(s + chunk, n), device=dev)
+        ix, iy, iz = (
+            idx // (resolution * resolution),
+            (idx // resolution) % resolution,
+            idx % resolution,
+        )
+        pts = torch.stack([axes[0][ix], axes[1][iy], axes[2][iz]], -1)
+        vals[s : s + len(idx)] = field_fn(pts).float().reshape(-1)
     if not bool(torch.isfinite(vals).all()):
         raise ValueError("the field has NaN/Inf values on the grid")
     field = vals.reshape(resolution, resolution, resolution).contiguous()
@@ -124,6 +132,8 @@ def read_ply_points(path):
     props, n, in_vertex = [], 0, False
     for line in head:
         w = line.split()
+        if not w:
+            continue
         if w[:2] == ["element", "vertex"]:
             n, in_vertex = int(w[2]), True
         elif w and w[0] == "element":

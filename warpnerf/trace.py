@@ -65,6 +65,8 @@ def sphere_trace_fn(
     statuses, the over-relaxation fallback and the failure modes); only the rays still marching
     are evaluated at each step, so the callable sees shrinking batches.
     """
+    if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0 and max_iters >= 1):
+        raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2 and max_iters >= 1")
     n, dev, dt = origins.shape[0], origins.device, origins.dtype
     t = torch.as_tensor(near, device=dev, dtype=dt).expand(n).clone()
     t_far = torch.as_tensor(far, device=dev, dtype=dt).expand(n).clone()
@@ -84,7 +86,10 @@ def sphere_trace_fn(
     active = finite.clone()
     while True:
         active &= iters < max_iters
-        left = active & (t > t_far)
+        past = active & (t > t_far)
+        back = past & (om > 1) & (step > d_prev) & (t_prev + d_prev <= t_far)
+        t[back], step[back], om[back] = t_prev[back] + d_prev[back], d_prev[back], 1.0
+        left = past & ~back
         status[left], t[left] = MISS, t_far[left]
         active &= ~left
         idx = active.nonzero().squeeze(-1)
@@ -111,7 +116,7 @@ def sphere_trace_fn(
         t_prev[g], d_prev[g] = t[g], dist[go]
         step[g] = om[g] * dist[go]
         t[g] = t[g] + step[g]
-    left = (status == CAP) & (t > t_far)
+    left = (status == CAP) & (t >= t_far) & (om <= 1)
     status[left], t[left] = MISS, t_far[left]
     points = origins + t.unsqueeze(-1) * directions
     normals = torch.zeros_like(points)

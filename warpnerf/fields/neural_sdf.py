@@ -34,7 +34,7 @@ class NeuralSDF(nn.Module):
         self.layers = nn.ModuleList()
         for i in range(n_layers):
             fan_in = d_in if i == 0 else width
-            fan_out = width - d_in if (i + 1 == skip) else width
+            fan_out = width - d_in if (i + 1 == skip and skip < n_layers) else width
             layer = nn.Linear(fan_in, fan_out)
             nn.init.normal_(layer.weight, 0.0, math.sqrt(2.0) / math.sqrt(fan_out))
             nn.init.zeros_(layer.bias)

@@ -47,15 +47,29 @@ class Primitive:
     color: tuple = (0.8, 0.8, 0.8)
 
     def validate(self, where: str = "primitive"):
-        if self.kind not in KINDS:
+        """Raises UserError naming the field unless every value has the right type and range."""
+
+        def numbers(name, v, n):
+            ok = isinstance(v, (list, tuple)) and len(v) == n
+            ok = ok and all(
+                isinstance(x, (int, float))
+                and not isinstance(x, bool)
+                and math.isfinite(x)
+                and abs(x) < 1e30
+                for x in v
+            )
+            if not ok:
+                raise UserError(f"{where}: {name} must be {n} finite numbers, got {v!r}")
+
+        if not isinstance(self.kind, str) or self.kind not in KINDS:
             raise UserError(f"{where}: kind must be one of {sorted(KINDS)}, got {self.kind!r}")
-        if self.op not in OPS:
+        if not isinstance(self.op, str) or self.op not in OPS:
             raise UserError(f"{where}: op must be one of {sorted(OPS)}, got {self.op!r}")
-        values = [*self.params, *self.center, *self.rotation_deg, self.k, *self.color]
-        if len(self.params) != 4 or len(self.center) != 3 or len(self.rotation_deg) != 3:
-            raise UserError(f"{where}: params (4), center (3) and rotation_deg (3) numbers")
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-            raise UserError(f"{where}: every number must be finite")
+        numbers("params", self.params, 4)
+        numbers("center", self.center, 3)
+        numbers("rotation_deg", self.rotation_deg, 3)
+        numbers("color", self.color, 3)
+        numbers("k", (self.k,), 1)
         needs = {"sphere": 1, "box": 3, "torus": 2, "capsule": 2, "plane": 0}[self.kind]
         if any(p <= 0 for p in self.params[:needs]) or self.params[3] < 0:
             raise UserError(f"{where}: {self.kind} sizes must be positive, got {self.params}")

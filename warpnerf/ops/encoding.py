@@ -96,6 +96,7 @@ class _HashEncode(torch.autograd.Function):
         return out
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, v_out):
         from warpnerf.kernels import encoding as K
 

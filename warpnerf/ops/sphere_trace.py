@@ -72,6 +72,11 @@ def sphere_trace(
     _bridge.check_float("directions", directions, (n, 3), torch.float32, dev)
     if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0 and max_iters >= 1):
         raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2 and max_iters >= 1")
+    if n:
+        norms = directions.norm(dim=-1)
+        bad = torch.isfinite(norms) & ((norms - 1).abs() > 1e-3)
+        if bool(bad.any()):  # a step of d(t) along a longer vector would tunnel through surfaces
+            raise ValueError("directions must have unit length (sphere tracing steps by distance)")
     near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n).contiguous()
     far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n).contiguous()
     f32 = dict(device=dev, dtype=torch.float32)

@@ -128,7 +128,8 @@ class NeRFConfig:
         if self.field == "volsdf":
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise UserError(f"need 0 < --beta-min <= --beta, got {self.beta_min}, {self.beta}")
-            if self.width <= 3 * (1 + 2 * self.pos_freqs) or self.eikonal_weight < 0:
+            ew = self.eikonal_weight
+            if self.width <= 3 * (1 + 2 * self.pos_freqs) or not (math.isfinite(ew) and ew >= 0):
                 raise UserError("volsdf: --width must exceed the encoded position size and "
                                 "--eikonal-weight must be >= 0")  # fmt: skip
         if self.field == "hash":
@@ -317,7 +318,12 @@ def load_run(run, device: str | None = None):
     if not (run / "config.json").is_file() or not (run / CHECKPOINT).is_file():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     try:
-        cfg = NeRFConfig.from_dict(json.loads((run / "config.json").read_text()))
+        saved = json.loads((run / "config.json").read_text())
+        if isinstance(saved, dict) and saved.get("model") == "neural_sdf":
+            raise UserError(
+                f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
+            )
+        cfg = NeRFConfig.from_dict(saved)
     except (json.JSONDecodeError, TypeError) as e:
         raise UserError(f"{run / 'config.json'}: unreadable ({e})") from None
     if device:
@@ -393,7 +399,7 @@ def train_nerf(
 
         bar = tqdm(total=cfg.iters, initial=start, desc="train nerf", unit="step", disable=None)
     for step in range(start, cfg.iters):
-        lr = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / cfg.lr_decay_steps)
+        lr = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
         for group in opt.param_groups:
             group["lr"] = lr
         cam, px, py, idx = random_pixels(n_img, w, h, cfg.batch, generator=gen, device=cfg.device)

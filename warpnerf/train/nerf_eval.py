@@ -173,7 +173,10 @@ def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progre
     hist = train_nerf(cfg, run, progress=progress, log=lambda *a: None)
     m = evaluate_run(run, split, max_images=max_images)
     _, fields_, _ = load_run(run)
-    n_params = sum(p.numel() for f in fields_.values() if f is not None for p in f.parameters())
+    from .nerf import _unique
+
+    uniq = _unique(fields_).values()  # a network shared by both passes counts once
+    n_params = sum(p.numel() for f in uniq if f is not None for p in f.parameters())
     return {
         "psnr": m["psnr"],
         "ssim": m["ssim"],

@@ -1,7 +1,7 @@
 """Neural SDF from a point cloud: |f| on the points + eikonal (|grad f| - 1)^2 on random points
-(+ an optional normal term), Adam with exponential decay, atomic checkpoints, exact resume; at
-the end a marching-cubes mesh in the input's units, Chamfer distance to the points and eikonal
-statistics.
+and the surface points (+ an optional normal term), Adam with exponential decay, atomic
+checkpoints, exact resume; at the end a marching-cubes mesh in the input's units, Chamfer
+distance to the points and eikonal statistics.
 
 Points are normalised once (centre of their bounding box to the origin, largest half extent to
 0.8), so the eikonal samples cover [-1, 1]^3; the transform is saved in the run and meshes come
@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import zipfile
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -73,8 +74,12 @@ class SDFConfig:
             raise UserError("--pos-freqs must be >= 0")
         if not 8 <= self.resolution <= 1024:
             raise UserError(f"--resolution must be in [8, 1024], got {self.resolution}")
-        if not (self.lr > 0 and self.lr_final > 0) or self.eikonal_weight < 0:
-            raise UserError("--lr, --lr-final must be positive and --eikonal-weight >= 0")
+        if not all(math.isfinite(v) and v > 0 for v in (self.lr, self.lr_final)):
+            raise UserError("--lr and --lr-final must be positive and finite")
+        for name in ("eikonal_weight", "normal_weight", "max_seconds"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise UserError(f"--{name.replace('_', '-')} must be finite and >= 0, got {v}")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise UserError(f"device {self.device!r}: no CUDA device available here")
         return self
@@ -107,15 +112,26 @@ def load_points(path) -> tuple:
             pts, normals = read_ply_points(path)
         else:
             raise UserError(f"{path}: expected a .npz or .ply file")
-    except (OSError, ValueError, KeyError) as e:
-        raise UserError(f"{path}: unreadable point cloud ({e})") from None
-    pts = np.asarray(pts, dtype=np.float32)
+        pts = np.asarray(pts, dtype=np.float32)
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float32)
+    except (
+        OSError,
+        ValueError,
+        KeyError,
+        IndexError,
+        TypeError,
+        EOFError,
+        zipfile.BadZipFile,
+    ) as e:
+        raise UserError(f"{path}: unreadable point cloud ({type(e).__name__}: {e})") from None
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 16:
         raise UserError(f"{path}: points must be [N >= 16, 3], got {list(pts.shape)}")
     if not np.isfinite(pts).all():
         raise UserError(f"{path}: points contain NaN/Inf")
+    if float((pts.max(0) - pts.min(0)).max()) <= 1e-12:
+        raise UserError(f"{path}: all points coincide (zero extent)")
     if normals is not None:
-        normals = np.asarray(normals, dtype=np.float32)
         if normals.shape != pts.shape or not np.isfinite(normals).all():
             raise UserError(f"{path}: normals must be finite and shaped like the points")
         normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
@@ -142,8 +158,11 @@ def load_sdf_run(run, device=None):
         d = json.loads((run / "config.json").read_text())
     except (OSError, json.JSONDecodeError):
         raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
-    if d.get("model") != MODEL or not (run / CHECKPOINT).is_file():
-        raise UserError(f"{run}: not a neural-SDF run (config model {d.get('model')!r})")
+    if not isinstance(d, dict) or d.get("model") != MODEL:
+        model = d.get("model") if isinstance(d, dict) else None
+        raise UserError(f"{run}: not a neural-SDF run (config model {model!r})")
+    if not (run / CHECKPOINT).is_file():
+        raise UserError(f"{run}: no {CHECKPOINT} yet (the run never reached a checkpoint)")
     cfg = SDFConfig.from_dict(d)
     if device:
         cfg.device = device
@@ -156,7 +175,8 @@ def load_sdf_run(run, device=None):
 
 
 def sdf_loss(model, surf, normals, rand, cfg):
-    """(loss, parts): mean |f| on the points, eikonal on random points, optional normals."""
+    """(loss, parts): mean |f| on the points, eikonal on the random and the surface points,
+    optional normals."""
     pts = torch.cat([surf, rand])
     f, g = model.gradient(pts)
     n = surf.shape[0]
@@ -217,7 +237,7 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
         bar = tqdm(total=cfg.iters, initial=start, desc="train sdf", unit="step", disable=None)
     for step in range(start, cfg.iters):
         for gr in opt.param_groups:
-            gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** (step / cfg.lr_decay_steps)
+            gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
         idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
         half = cfg.n_random // 2
         near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
