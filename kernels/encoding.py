@@ -51,6 +51,21 @@ def cell_coord(x: Any, res: int):
     return c, p - x.dtype(c)
 
 
+@wp.func
+def corner(
+    v: int, cx: int, cy: int, cz: int, fx: Any, fy: Any, fz: Any, r: int, size: int, dense: int
+):
+    """Table row (within the level) and trilinear weight of cell corner v (bits: x, y, z)."""
+    bx = v & 1
+    by = (v >> 1) & 1
+    bz = (v >> 2) & 1
+    one = fx.dtype(1.0)
+    w = wp.where(bx == 1, fx, one - fx)
+    w = w * wp.where(by == 1, fy, one - fy)
+    w = w * wp.where(bz == 1, fz, one - fz)
+    return vertex_row(cx + bx, cy + by, cz + bz, r, size, dense), w
+
+
 @wp.kernel(enable_backward=False)
 def hash_encode_fwd(
     x: wp.array2d(dtype=Any),  # [n, 3] in [0, 1]
@@ -78,19 +93,12 @@ def hash_encode_fwd(
     cx, fx = cell_coord(x[i, 0], r)
     cy, fy = cell_coord(x[i, 1], r)
     cz, fz = cell_coord(x[i, 2], r)
-    one = x.dtype(1.0)
-    for q in range(n_feat):
-        out[i, lvl * n_feat + q] = x.dtype(0.0)
-    for v in range(8):
-        bx = v & 1
-        by = (v >> 1) & 1
-        bz = (v >> 2) & 1
-        w = wp.where(bx == 1, fx, one - fx)
-        w = w * wp.where(by == 1, fy, one - fy)
-        w = w * wp.where(bz == 1, fz, one - fz)
-        row = off + vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
-        for q in range(n_feat):
-            out[i, lvl * n_feat + q] = out[i, lvl * n_feat + q] + w * table[row, q]
+    for q in range(n_feat):  # accumulate in a register, write each feature once
+        acc = x.dtype(0.0)
+        for v in range(8):
+            row, w = corner(v, cx, cy, cz, fx, fy, fz, r, size, dense)
+            acc = acc + w * table[off + row, q]
+        out[i, lvl * n_feat + q] = acc
 
 
 @wp.kernel(enable_backward=False)
@@ -108,28 +116,18 @@ def hash_encode_bwd(
     i = tid // n_levels
     lvl = tid - i * n_levels
     r = int(res[lvl])
-    size = int(sizes[lvl])
-    off = int(offsets[lvl])
-    dense = int(dense_levels[lvl])  # decided on the host: (res + 1)^3 overflows int32
     if not finite3(x, i):
         return
     cx, fx = cell_coord(x[i, 0], r)
     cy, fy = cell_coord(x[i, 1], r)
     cz, fz = cell_coord(x[i, 2], r)
     n_feat = v_table.shape[1]
-    one = x.dtype(1.0)
     for v in range(8):
-        bx = v & 1
-        by = (v >> 1) & 1
-        bz = (v >> 2) & 1
-        w = wp.where(bx == 1, fx, one - fx)
-        w = w * wp.where(by == 1, fy, one - fy)
-        w = w * wp.where(bz == 1, fz, one - fz)
-        row = off + vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
+        row, w = corner(v, cx, cy, cz, fx, fy, fz, r, int(sizes[lvl]), int(dense_levels[lvl]))
         for q in range(n_feat):
             g = v_out[i, lvl * n_feat + q]
             if g != x.dtype(0.0):
-                wp.atomic_add(v_table, row, q, w * g)
+                wp.atomic_add(v_table, int(offsets[lvl]) + row, q, w * g)
 
 
 def _overloads(dtype):

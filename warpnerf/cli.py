@@ -114,9 +114,13 @@ _RESUME_FLAGS = {
 }
 
 
-def _refuse_changed_flags(args) -> None:
-    """With --resume only --iters, --device and --max-seconds may differ from the defaults of the
-    subcommand that was used (the run's saved config holds everything else)."""
+def _resume_device(args):
+    """Checks a --resume command line; returns the --device override (None: the run's own).
+
+    Only --iters, --device and --max-seconds may differ from the defaults of the subcommand that
+    was used (the run's saved config holds everything else)."""
+    if args.iters is None:
+        raise UserError("--resume needs --iters (the total number of steps to reach)")
     defaults = build_parser().parse_args(["train", args.model, "--out", "x"])
     fixed = [
         k for k, v in vars(args).items() if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
@@ -127,6 +131,7 @@ def _refuse_changed_flags(args) -> None:
             f"with --resume the run's saved config is used; drop {names} "
             "(only --iters, --device and --max-seconds may change)"
         )
+    return _device(args.device) if args.device else None
 
 
 def cmd_train_nerf(args) -> int:
@@ -135,11 +140,8 @@ def cmd_train_nerf(args) -> int:
     if args.model == "volsdf" and args.field != "volsdf":
         raise UserError("train volsdf trains the volsdf field; use train nerf for --field mlp|hash")
     if args.resume:
-        if args.iters is None:
-            raise UserError("--resume needs --iters (the total number of steps to reach)")
-        _refuse_changed_flags(args)
+        device = _resume_device(args)
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
-        device = _device(args.device) if args.device else None
         hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
     else:
         if args.data is None:
@@ -196,11 +198,8 @@ def cmd_train_sdf(args) -> int:
     from .train.sdf import SDFConfig, train_sdf
 
     if args.resume:
-        if args.iters is None:
-            raise UserError("--resume needs --iters (the total number of steps to reach)")
-        _refuse_changed_flags(args)
+        dev = _resume_device(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
-        dev = _device(args.device) if args.device else None
         m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev)
     else:
         if args.points is None:
