@@ -292,6 +292,12 @@ def test_cli_train_eval_render_nerf(tmp_path):
             + ["--hash-max-res", "8"],
             "max_res",
         ),
+        (["train", "nerf", "--data", "builtin", "--out", "o", "--grid-res", "8"], "--field hash"),
+        (
+            ["train", "nerf", "--data", "builtin", "--out", "o", "--field", "hash"]
+            + ["--grid-res", "7"],
+            "even",
+        ),
     ],
 )
 def test_cli_nerf_user_errors(tmp_path, args, needle):
@@ -305,10 +311,12 @@ def test_cli_train_hash_field_then_eval(tmp_path):
     args = ["train", "nerf", "--data", "builtin", "--out", "r", "--field", "hash", "--iters", "3"]
     args += ["--builtin-size", "8", "--samples", "8", "--coarse-fine", "--fine-samples", "8"]
     args += ["--hash-levels", "2", "--hash-log2-size", "8", "--hash-max-res", "16", "--quiet"]
+    args += ["--grid-res", "16", "--march-step", "0.05", "--grid-every", "2"]
     p = run(["-m", "warpnerf.cli", *args, "--val-every", "3", "--batch", "64"], tmp_path)
     assert last_json(p.stdout)["step"] == 3
     cfg = json.loads((tmp_path / "r" / "config.json").read_text())
     assert cfg["field"] == "hash" and cfg["lr"] == 1e-2 and cfg["aabb"] > 0
+    assert cfg["grid_res"] == 16 and cfg["march_step"] == 0.05
     p = run(["-m", "warpnerf.cli", "eval", "r", "--max-images", "1"], tmp_path)
     assert last_json(p.stdout)["psnr"] > 5
 

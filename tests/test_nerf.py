@@ -67,16 +67,27 @@ def test_field_view_dependence(view_dependence):
 
 
 HASH = dict(
-    field="hash", hash_levels=3, hash_log2_size=8, hash_base_res=4, hash_max_res=16, hidden=8
+    field="hash",
+    hash_levels=3,
+    hash_log2_size=8,
+    hash_base_res=4,
+    hash_max_res=16,
+    hidden=8,
+    grid_res=0,
 )
+# The hash field with an occupancy grid (coarse lattice so the CPU run stays small); the warm-up
+# ends inside the 6 steps so both kinds of update (all cells, random subsets) run.
+GRID = dict(HASH, grid_res=8, grid_every=2, grid_warmup=2, march_step=0.05, target_samples=2000)
 
 
 VOLSDF = dict(field="volsdf", n_layers=2, width=24, skip=1, pos_freqs=2, dir_freqs=1)
 
 
-@pytest.mark.parametrize("n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash"), (8, "volsdf")])
+@pytest.mark.parametrize(
+    "n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash"), (0, "grid"), (8, "volsdf")]
+)
 def test_resume_continues_exactly(tmp_path, n_fine, field):
-    kw = {"hash": HASH, "volsdf": VOLSDF}.get(field, {})
+    kw = {"hash": HASH, "grid": GRID, "volsdf": VOLSDF}.get(field, {})
     straight = train_nerf(
         tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
     )
@@ -88,8 +99,9 @@ def test_resume_continues_exactly(tmp_path, n_fine, field):
     assert resumed["loss"] == straight["loss"]  # same batches, same jitter, same optimiser state
     a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
     b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
-    for level in ("coarse", "fine"):
-        if a["fields"][level] is None:
+    assert a.get("batch") == b.get("batch")
+    for level in ("coarse", "fine", "grid"):
+        if a["fields"].get(level) is None:
             continue
         for k, v in a["fields"][level].items():
             assert torch.equal(v, b["fields"][level][k]), (level, k)
@@ -174,6 +186,7 @@ def test_hash_field_trains_to_psnr_floor(tmp_path):
         hash_base_res=4,
         hash_max_res=32,
         hidden=32,
+        grid_res=0,
         lr=1e-2,
         lr_final=1e-3,
         iters=600,

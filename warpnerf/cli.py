@@ -182,6 +182,13 @@ def cmd_train_nerf(args) -> int:
             max_seconds=args.max_seconds,
             tf32=args.tf32,
             t_threshold=args.t_threshold,
+            grid_res=getattr(args, "grid_res", 0),  # None: the field's default
+            grid_every=getattr(args, "grid_every", 16),
+            grid_warmup=getattr(args, "grid_warmup", 256),
+            occ_threshold=getattr(args, "occ_threshold", 0.01),
+            march_step=getattr(args, "march_step", None) or 0.0,
+            max_samples=getattr(args, "max_samples", 1024),
+            target_samples=getattr(args, "target_samples", 0),
         )
         hist = train_nerf(cfg, args.out, progress=not args.quiet)
     last = {
@@ -443,6 +450,35 @@ def _nerf_flags(tn) -> None:
     tn.add_argument("--quiet", action="store_true")
 
 
+def _grid_flags(tn) -> None:
+    """Occupancy-grid flags (`train nerf` only: the grid needs the hash field)."""
+    tn.add_argument(
+        "--grid-res",
+        type=_nonnegative,
+        default=None,
+        help="occupancy grid cells per axis, even (default 128 with --field hash; 0: no grid, "
+        "stratified/hierarchical samples instead)",
+    )
+    tn.add_argument("--grid-every", type=_positive(int), default=16, help="steps between updates")
+    tn.add_argument(
+        "--grid-warmup", type=_nonnegative, default=256, help="steps of full-grid updates"
+    )
+    tn.add_argument(
+        "--occ-threshold", type=_positive(float), default=0.01, help="opacity per step of an empty cell"
+    )
+    tn.add_argument(
+        "--march-step", type=_positive(float), default=None, help="default: box diagonal / 1024"
+    )
+    tn.add_argument("--max-samples", type=_positive(int), default=1024, help="per ray, with a grid")
+    tn.add_argument(
+        "--target-samples",
+        type=_nonnegative,
+        default=0,
+        help="with a grid: adapt rays per step to composite about this many samples (0: fixed "
+        "--batch)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="warpnerf",
@@ -483,6 +519,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
     _nerf_flags(tn)
+    _grid_flags(tn)
     tn.set_defaults(func=cmd_train_nerf)
 
     tv = tsub.add_parser(

@@ -11,7 +11,7 @@ import torch
 
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 
-__all__ = ["render_rays", "render_image", "render_views", "render_nerf"]
+__all__ = ["render_rays", "render_image", "render_views", "render_nerf", "render_marched"]
 
 
 def render_rays(
@@ -160,3 +160,74 @@ def _shade(field, o, d, smp, background, t_threshold, want_weights, mode="sigma"
         return_weights=want_weights,
         **kw,
     )
+
+
+def render_marched(
+    grid,
+    field,
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] unit length
+    near,  # float or [n_rays]
+    far,  # float or [n_rays]
+    *,
+    perturb: bool = False,
+    generator: torch.Generator | None = None,
+    background=1.0,
+    t_threshold: float = 1e-4,
+    max_samples: int = 1024,
+):
+    """Volume rendering with an occupancy grid: packed marching + early termination.
+
+    ``grid`` (:class:`warpnerf.OccupancyGrid`) emits lattice samples of step ``grid.dt`` in
+    occupied cells (the lattice shifted by a random fraction of a step per ray when ``perturb``,
+    drawn from ``generator`` on the rays' device). ``field`` is a module with ``density(positions)
+    -> (sigmas [n], features)`` and ``color(features, directions) -> rgbs [n, 3]``. Densities of
+    all marched samples are computed first without gradients; each ray keeps its samples before
+    transmittance drops below ``t_threshold`` (the compositing kernels' own rule, so forward and
+    backward see the same samples); the field then runs again with gradients on the kept samples
+    only (under ``torch.no_grad()`` the colours come from the first pass's features instead).
+
+    Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
+    ``n_marched`` / ``n_kept`` (ints).
+    """
+    from .ops.occupancy import live_samples
+    from .ops.sampling import Samples
+
+    n_rays, dev = origins.shape[0], origins.device
+    jitter = None
+    if perturb:
+        jitter = torch.rand(n_rays, device=dev, generator=generator)
+    smp, _ = grid.march(origins, directions, near, far, jitter=jitter, max_samples=max_samples)
+    ri = smp.ray_indices
+    positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    with torch.no_grad():
+        sigmas, feats = field.density(positions)
+    keep, n_live = live_samples(smp, sigmas, t_threshold)
+    idx = torch.nonzero(keep).squeeze(1)
+    counts = n_live.to(torch.int64)
+    info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
+    kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
+    dirs = directions[kept.ray_indices]
+    if torch.is_grad_enabled():
+        sigmas, feats = field.density(positions[idx])
+        rgbs = field.color(feats, dirs)
+    else:
+        sigmas, rgbs = sigmas[idx], field.color(feats[idx], dirs)
+    rgb, depth, opacity = render_packed(
+        kept.t_starts,
+        kept.t_ends,
+        kept.ray_indices,
+        sigmas,
+        rgbs,
+        n_rays,
+        background=background,
+        packed_info=kept.packed_info,
+        t_threshold=t_threshold,
+    )
+    return {
+        "rgb": rgb,
+        "depth": depth,
+        "opacity": opacity,
+        "n_marched": int(smp.t_starts.shape[0]),
+        "n_kept": int(idx.shape[0]),
+    }

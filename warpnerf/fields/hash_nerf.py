@@ -72,14 +72,18 @@ class HashNeRFField(nn.Module):
         sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 
-    def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
-        sigma, h = self.density(positions)
+    def color(self, h: torch.Tensor, directions: torch.Tensor | None = None):
+        """rgbs [n, 3] from the density MLP's outputs h [n, 16] (and directions [n, 3])."""
         feat = h
         if self.view_dependence:
             if directions is None:
                 raise ValueError("a view-dependent field needs directions")
             feat = torch.cat([h, self.sh(directions.to(h.dtype))], -1)
-        return sigma, torch.sigmoid(self.color_mlp(feat))
+        return torch.sigmoid(self.color_mlp(feat))
+
+    def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
+        sigma, h = self.density(positions)
+        return sigma, self.color(h, directions)
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())

@@ -17,7 +17,7 @@ from ..errors import UserError
 from ..fields.nerf import NeRFField
 from ..io import atomic_path, write_json
 from ..ops import generate_rays, random_pixels
-from ..render import render_nerf
+from ..render import render_marched, render_nerf
 
 __all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
 
@@ -53,6 +53,15 @@ class NeRFConfig:
     beta_min: float = 1e-4
     learn_beta: bool = True
     eikonal_weight: float = 0.1  # volsdf: weight of (|grad d| - 1)^2 (samples + random points)
+    grid_res: int | None = None  # occupancy grid cells per axis (even; 0 = no grid, dense
+    # stratified/hierarchical samples); None: 128 for the hash field, 0 otherwise
+    grid_every: int = 16  # steps between grid updates
+    grid_warmup: int = 256  # steps during which every update evaluates all cells
+    occ_threshold: float = 0.01  # a cell is empty when one step through it has opacity below this
+    march_step: float = 0.0  # marching step with a grid; 0: the box diagonal / 1024
+    max_samples: int = 1024  # samples per ray at most with a grid
+    target_samples: int = 0  # > 0: rays per step adapt so each step composites ~this many
+    # samples (starting from --batch); 0: fixed --batch
     aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
     # restricted to it); 0: 1.5 for datasets (lego), the built-in scene's own for builtin
     near: float | None = None  # None: 2 for datasets (lego), the built-in scene's own for builtin
@@ -96,6 +105,10 @@ class NeRFConfig:
                 self.aabb = BOUND
             else:
                 self.aabb = 1.5
+        if self.grid_res is None:
+            self.grid_res = 128 if self.field == "hash" else 0
+        if self.grid_res and self.march_step <= 0:
+            self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
         if self.near is None or self.far is None:
             if self.data == "builtin":
                 from ..data.synthetic import FAR, NEAR
@@ -142,6 +155,18 @@ class NeRFConfig:
             if self.hidden < 1:
                 raise UserError(f"--hidden must be >= 1, got {self.hidden}")
         self.resolve()
+        if self.grid_res:
+            if self.field != "hash":
+                raise UserError("--grid-res needs --field hash (set --grid-res 0 otherwise)")
+            if self.grid_res < 2 or self.grid_res % 2:
+                raise UserError(f"--grid-res must be an even number >= 2, got {self.grid_res}")
+            for name in ("grid_every", "max_samples"):
+                if getattr(self, name) < 1:
+                    raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+            if not (0 < self.occ_threshold < 1 and math.isfinite(self.march_step)):
+                raise UserError("--occ-threshold must be in (0, 1) and --march-step finite")
+            if self.grid_warmup < 0 or self.target_samples < 0:
+                raise UserError("--grid-warmup and --target-samples must be >= 0")
         if not 0.0 <= self.t_threshold < 1.0:
             raise UserError(f"--t-threshold must be in [0, 1), got {self.t_threshold}")
         if self.max_seconds < 0 or self.val_images < 0 or self.max_images < 0:
@@ -206,7 +231,18 @@ def build_fields(cfg: NeRFConfig) -> dict:
             cfg.hidden,
             cfg.view_dependence,
         ).to(cfg.device)
-        return {"coarse": f, "fine": f if cfg.n_fine > 0 else None}
+        out = {"coarse": f, "fine": f if cfg.n_fine > 0 and not cfg.grid_res else None}
+        if cfg.grid_res:
+            from ..occupancy import OccupancyGrid
+
+            out["grid"] = OccupancyGrid(
+                cfg.aabb_box(),
+                cfg.grid_res,
+                dt=cfg.march_step,
+                occ_threshold=cfg.occ_threshold,
+                warmup=-(-cfg.grid_warmup // cfg.grid_every),
+            ).to(cfg.device)
+        return out
 
     def make():
         return NeRFField(
@@ -247,7 +283,34 @@ def load_data(cfg: NeRFConfig, split: str):
     return ds
 
 
-def render_rays_of(fields_, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None):
+def render_rays_of(
+    fields_, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None
+):
+    """Renders rays with the run's fields: grid marching when the run has an occupancy grid
+    (``generator``, on the rays' device, jitters the lattice when ``perturb``), otherwise
+    stratified (+ hierarchical) samples."""
+    if fields_.get("grid") is not None:
+        n = o.shape[0]
+        chunk = chunk or max(n, 1)
+        outs = [
+            render_marched(
+                fields_["grid"],
+                fields_["coarse"],
+                o[s : s + chunk],
+                d[s : s + chunk],
+                cfg.near,
+                cfg.far,
+                perturb=perturb,
+                generator=generator,
+                background=cfg.background,
+                t_threshold=cfg.t_threshold,
+                max_samples=cfg.max_samples,
+            )
+            for s in range(0, max(n, 1), chunk)
+        ]
+        out = {k: torch.cat([x[k] for x in outs]) for k in ("rgb", "depth", "opacity")}
+        out.update({k: sum(x[k] for x in outs) for k in ("n_marched", "n_kept")})
+        return out
     return render_nerf(
         fields_,
         o,
@@ -297,8 +360,9 @@ def _optimizer(cfg, params):
     return torch.optim.Adam(params, lr=cfg.lr)
 
 
-def _save(run: Path, step, fields_, opt, gen, history, cfg):
+def _save(run: Path, step, fields_, opt, gen, history, cfg, extra=None):
     state = {
+        **(extra or {}),
         "step": step,
         "fields": {
             k: (v.state_dict() if v is not None else None) for k, v in _unique(fields_).items()
@@ -335,7 +399,7 @@ def load_run(run, device: str | None = None):
     fields_ = build_fields(cfg)
     ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
     for k, f in _unique(fields_).items():
-        if f is not None:
+        if f is not None and k in ckpt["fields"]:  # (runs before the grid existed have none)
             f.load_state_dict(ckpt["fields"][k])
     return cfg, fields_, ckpt
 
@@ -383,12 +447,18 @@ def train_nerf(
     params = _parameters(fields_)
     opt = _optimizer(cfg, params)
     gen = torch.Generator().manual_seed(cfg.seed)
+    grid = fields_.get("grid")
+    # The grid's updates and lattice jitter draw from a generator on the device (saved too).
+    grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1) if grid else None
     history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
-    start = 0
+    start, batch = 0, cfg.batch
     if ckpt is not None:
         opt.load_state_dict(ckpt["optimizer"])
         gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
         history, start = ckpt["history"], ckpt["step"]
+        batch = ckpt.get("batch", cfg.batch)
+        if grid_gen is not None:
+            grid_gen.set_state(ckpt["grid_generator"].cpu())
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
@@ -402,13 +472,24 @@ def train_nerf(
         lr = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
         for group in opt.param_groups:
             group["lr"] = lr
-        cam, px, py, idx = random_pixels(n_img, w, h, cfg.batch, generator=gen, device=cfg.device)
+        if grid is not None and step % cfg.grid_every == 0:
+            field = fields_["coarse"]
+            grid.update(lambda x: field.density(x)[0], grid_gen)
+        cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
         o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
-        out = render_rays_of(fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step)
+        out = render_rays_of(
+            fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step, generator=grid_gen
+        )
+        if grid is not None:
+            history.setdefault("samples_per_ray", []).append(out["n_kept"] / batch)
+            history.setdefault("batch", []).append(batch)
+            if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
+                batch = int(batch * cfg.target_samples / max(out["n_kept"], 1))
+                batch = min(max(batch, 64), 1 << 16)
         target = flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         loss = loss_fine
-        if out["rgb_coarse"].requires_grad and fields_.get("fine") is not None:
+        if "rgb_coarse" in out and out["rgb_coarse"].requires_grad and fields_.get("fine") is not None:
             loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
         if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
             f = fields_["coarse"]
@@ -443,7 +524,10 @@ def train_nerf(
                 f"{seconds:.0f} s"
             )
         if done % cfg.ckpt_every == 0 or done == cfg.iters or out_of_time:
-            _save(run, done, fields_, opt, gen, history, cfg)
+            extra = {"batch": batch}
+            if grid_gen is not None:
+                extra["grid_generator"] = grid_gen.get_state()
+            _save(run, done, fields_, opt, gen, history, cfg, extra)
             write_json(run / "history.json", history)
         if out_of_time:
             log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")

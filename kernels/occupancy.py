@@ -1,0 +1,208 @@
+"""Occupancy grid and packed ray marching (pure Warp, float32, no gradients).
+
+The grid is a cube of ``res^3`` cells over the scene box ``lo .. hi``; cell ``c = (ix * res + iy)
+* res + iz``. It keeps one density value per cell (an EMA of the field's density at points in the
+cell) and a bitfield (``uint8``, 8 cells per byte, bit ``c & 7`` of byte ``c >> 3``) of the cells
+whose value is above the threshold.
+
+Update (every N training steps, :class:`warpnerf.OccupancyGrid`):
+    points  = lo + (cell + jitter) * cell_size           cell_points
+    newmax  = max over the update's points in a cell      scatter_max (atomic max: order-free)
+    density = max(decay * density, newmax)  for the cells evaluated in this update   ema
+    bits    = density > threshold                          pack_bits
+
+Marching. A ray's samples lie on a lattice of fixed step ``dt`` anchored at the start of its
+interval ``[t_lo, t_hi]`` (the scene box clipped to near/far, computed by the caller):
+    interval k = [t_lo + (k + j) dt, min(t_lo + (k + j + 1) dt, t_hi)],  j = the ray's jitter
+is emitted when the cell holding its midpoint is occupied. From an empty cell the ray jumps to
+the first lattice interval whose midpoint lies past the cell's exit (DDA over the cells), less a
+small margin so that rounding can only re-test an interval, never skip one. Samples therefore
+are exactly the dense lattice intervals whose midpoint cell is occupied (tests compare with that
+brute force). One kernel serves both passes: ``fill == 0`` counts a ray's samples (capped at
+``max_samples``), ``fill == 1`` writes them at the ray's offset (the exclusive prefix sum of the
+counts). ``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done).
+"""
+
+import warp as wp
+
+SKIP_MARGIN = 1.0e-3  # in units of dt: how far before a cell's exit the marcher lands
+
+
+@wp.kernel(enable_backward=False)
+def cell_points(
+    cells: wp.array(dtype=wp.int32),  # [m] cell indices
+    jitter: wp.array2d(dtype=float),  # [m, 3] in [0, 1)
+    res: int,
+    lo: wp.vec3,
+    cell_size: wp.vec3,
+    points: wp.array(dtype=wp.vec3),  # [m] out
+):
+    i = wp.tid()
+    c = cells[i]
+    ix = c // (res * res)
+    iy = (c // res) % res
+    iz = c % res
+    points[i] = wp.vec3(
+        lo[0] + (float(ix) + jitter[i, 0]) * cell_size[0],
+        lo[1] + (float(iy) + jitter[i, 1]) * cell_size[1],
+        lo[2] + (float(iz) + jitter[i, 2]) * cell_size[2],
+    )
+
+
+@wp.kernel(enable_backward=False)
+def scatter_max(
+    cells: wp.array(dtype=wp.int32),  # [m]
+    values: wp.array(dtype=float),  # [m] densities >= 0 (NaN rejected by the caller)
+    newmax: wp.array(dtype=float),  # [res^3] -1 where not evaluated; out
+):
+    i = wp.tid()
+    wp.atomic_max(newmax, cells[i], wp.max(values[i], 0.0))
+
+
+@wp.kernel(enable_backward=False)
+def ema(
+    newmax: wp.array(dtype=float),  # [res^3]
+    decay: float,
+    density: wp.array(dtype=float),  # [res^3] in/out
+):
+    c = wp.tid()
+    v = newmax[c]
+    if v >= 0.0:
+        density[c] = wp.max(density[c] * decay, v)
+
+
+@wp.kernel(enable_backward=False)
+def pack_bits(
+    density: wp.array(dtype=float),  # [res^3]
+    threshold: float,
+    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8] out
+):
+    j = wp.tid()
+    word = int(0)
+    for b in range(8):
+        if density[j * 8 + b] > threshold:
+            word = word | (1 << b)
+    bits[j] = wp.uint8(word)
+
+
+@wp.func
+def occupied(bits: wp.array(dtype=wp.uint8), c: int):
+    return (int(bits[c >> 3]) >> (c & 7)) & 1
+
+
+@wp.func
+def cell_coord(x: float, lo: float, inv_size: float, res: int):
+    return wp.clamp(int(wp.floor((x - lo) * inv_size)), 0, res - 1)
+
+
+@wp.func
+def axis_exit(o: float, d: float, lo: float, size: float, i: int):
+    """t at which the ray leaves cell column i of one axis (inf for d == 0)."""
+    if d > 0.0:
+        return (lo + float(i + 1) * size - o) / d
+    if d < 0.0:
+        return (lo + float(i) * size - o) / d
+    return float(wp.inf)
+
+
+@wp.kernel(enable_backward=False)
+def march(
+    origins: wp.array(dtype=wp.vec3),  # [n_rays]
+    directions: wp.array(dtype=wp.vec3),  # [n_rays]
+    t_lo: wp.array(dtype=float),  # [n_rays] lattice anchor (box entry clipped to near)
+    t_hi: wp.array(dtype=float),  # [n_rays] end (box exit clipped to far); <= t_lo: no samples
+    jitter: wp.array(dtype=float),  # [n_rays] lattice shift in [0, 1), or [0] for none
+    k_begin: wp.array(dtype=wp.int32),  # [n_rays] first lattice index, or [0] for 0
+    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8]
+    res: int,
+    lo: wp.vec3,
+    cell_size: wp.vec3,
+    dt: float,
+    max_samples: int,
+    fill: int,
+    offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
+    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass)
+    k_next: wp.array(dtype=wp.int32),  # [n_rays] out (count pass): next index, -1 = done
+    t_starts: wp.array(dtype=float),  # [n] out (fill pass)
+    t_ends: wp.array(dtype=float),  # [n] out (fill pass)
+    ray_indices: wp.array(dtype=wp.int32),  # [n] out (fill pass)
+):
+    r = wp.tid()
+    o = origins[r]
+    d = directions[r]
+    t0 = t_lo[r]
+    t1 = t_hi[r]
+    j = float(0.0)
+    if jitter.shape[0] > 0:
+        j = jitter[r]
+    k = int(0)
+    if k_begin.shape[0] > 0:
+        k = int(k_begin[r])
+    inv = wp.vec3(1.0 / cell_size[0], 1.0 / cell_size[1], 1.0 / cell_size[2])
+    n = int(0)
+    base = int(0)
+    if fill != 0:
+        base = int(offsets[r])
+    if k < 0 or not (t1 > t0):
+        k = -1
+    while k >= 0 and n < max_samples:
+        s = t0 + (float(k) + j) * dt
+        if s >= t1:
+            k = -1
+            break
+        e = wp.min(s + dt, t1)
+        m = 0.5 * (s + e)
+        p = o + d * m
+        ix = cell_coord(p[0], lo[0], inv[0], res)
+        iy = cell_coord(p[1], lo[1], inv[1], res)
+        iz = cell_coord(p[2], lo[2], inv[2], res)
+        if occupied(bits, (ix * res + iy) * res + iz) != 0:
+            if fill != 0:
+                t_starts[base + n] = s
+                t_ends[base + n] = e
+                ray_indices[base + n] = r
+            n += 1
+            k += 1
+        else:
+            t_exit = wp.min(
+                axis_exit(o[0], d[0], lo[0], cell_size[0], ix),
+                wp.min(
+                    axis_exit(o[1], d[1], lo[1], cell_size[1], iy),
+                    axis_exit(o[2], d[2], lo[2], cell_size[2], iz),
+                ),
+            )
+            if not (t_exit < t1):
+                k = -1  # the rest of the ray lies in this empty cell
+                break
+            # first k whose midpoint t0 + (k + j + 1/2) dt is past t_exit, less a margin
+            kn = int(wp.ceil((t_exit - t0) / dt - j - 0.5 - SKIP_MARGIN))
+            k = wp.max(k + 1, kn)
+    if fill == 0:
+        counts[r] = n
+        k_next[r] = k
+
+
+@wp.kernel(enable_backward=False)
+def live_counts(
+    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2]
+    t_starts: wp.array(dtype=float),  # [n]
+    t_ends: wp.array(dtype=float),  # [n]
+    sigmas: wp.array(dtype=float),  # [n]
+    t_threshold: float,
+    n_live: wp.array(dtype=wp.int32),  # [n_rays] out
+):
+    """The compositing kernels' early-termination rule on densities alone: a ray's live samples
+    are those before the first one whose transmittance T_i = exp(-sum_{j<i} sigma_j delta_j) is
+    below t_threshold."""
+    r = wp.tid()
+    start = int(packed_info[r, 0])
+    count = int(packed_info[r, 1])
+    log_t = float(0.0)
+    m = count
+    for k in range(count):
+        i = start + k
+        if wp.exp(log_t) < t_threshold:
+            m = k
+            break
+        log_t -= sigmas[i] * (t_ends[i] - t_starts[i])
+    n_live[r] = m

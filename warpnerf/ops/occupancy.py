@@ -1,0 +1,226 @@
+"""Torch bridge for the occupancy grid and packed ray marching (kernels/occupancy.py).
+
+No gradients flow through these ops (they place samples and keep state); the samples they emit
+are composited by :func:`warpnerf.ops.render_packed`, whose backward is exact. The readable twins
+are in ``warpnerf.reference.occupancy``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from . import _bridge
+from .rays import ray_aabb_intersect
+from .sampling import Samples
+
+__all__ = [
+    "march_rays",
+    "grid_cell_points",
+    "grid_ema_update",
+    "grid_pack_bits",
+    "live_samples",
+    "unpack_bits",
+]
+
+
+def _box(aabb, device):
+    box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1).cpu()
+    if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[3:] > box[:3]).all()):
+        raise ValueError("aabb must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax], min < max")
+    return box
+
+
+def _cell_geometry(aabb, res: int):
+    from warpnerf.kernels import occupancy as K  # noqa: F401  (registers the module)
+
+    wp = _bridge._wp()
+    box = _box(aabb, "cpu")
+    size = (box[3:] - box[:3]) / res
+    return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
+
+
+def _check_res(res: int, n_cells: int | None = None):
+    if isinstance(res, bool) or not isinstance(res, int) or res < 2 or res % 2:
+        raise ValueError(f"grid resolution must be an even int >= 2, got {res!r}")
+    if n_cells is not None and n_cells != res**3:
+        raise ValueError(f"grid has {n_cells} cells, expected res^3 = {res**3}")
+
+
+def grid_cell_points(
+    cells: torch.Tensor,  # [m] int32 cell indices
+    jitter: torch.Tensor,  # [m, 3] float32 in [0, 1)
+    res: int,
+    aabb,
+) -> torch.Tensor:
+    """Points ``lo + (cell + jitter) * cell_size`` [m, 3] (one per listed cell)."""
+    from warpnerf.kernels import occupancy as K
+
+    _check_res(res)
+    m, dev = cells.shape[0], cells.device
+    _bridge.check_float("jitter", jitter, (m, 3), torch.float32, dev)
+    lo, size = _cell_geometry(aabb, res)
+    points = torch.empty(m, 3, device=dev, dtype=torch.float32)
+    wp = _bridge._wp()
+    inputs = [_bridge.arr(cells.to(torch.int32)), _bridge.arr(jitter), res, lo, size]
+    _bridge.launch(K.cell_points, m, inputs + [_bridge.arr(points, wp.vec3)], dev)
+    return points
+
+
+def grid_ema_update(
+    density: torch.Tensor,  # [res^3] float32, updated in place
+    cells: torch.Tensor,  # [m] int32
+    values: torch.Tensor,  # [m] float32 densities at the cells' points
+    decay: float,
+) -> torch.Tensor:
+    """``density[c] = max(decay * density[c], max of values at c)`` for every listed cell c
+    (duplicates allowed: the maximum wins). NaN values raise ValueError."""
+    from warpnerf.kernels import occupancy as K
+
+    dev = density.device
+    _bridge.check_float("density", density, (None,), torch.float32)
+    _bridge.check_float("values", values, (cells.shape[0],), torch.float32, dev)
+    if not 0.0 <= decay <= 1.0:
+        raise ValueError(f"decay must be in [0, 1], got {decay}")
+    if values.numel() and bool(torch.isnan(values).any()):
+        raise ValueError("the field returned NaN densities; the occupancy grid cannot be updated")
+    newmax = torch.full_like(density, -1.0)
+    a = _bridge.arr
+    _bridge.launch(K.scatter_max, cells.shape[0], [a(cells.to(torch.int32)), a(values), a(newmax)], dev)
+    _bridge.launch(K.ema, density.shape[0], [a(newmax), float(decay), a(density)], dev)
+    return density
+
+
+def grid_pack_bits(density: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Bitfield [n_cells / 8] uint8 of ``density > threshold`` (bit c & 7 of byte c >> 3)."""
+    from warpnerf.kernels import occupancy as K
+
+    n = density.shape[0]
+    if n % 8:
+        raise ValueError(f"the number of cells must be a multiple of 8, got {n}")
+    bits = torch.empty(n // 8, device=density.device, dtype=torch.uint8)
+    a = _bridge.arr
+    _bridge.launch(K.pack_bits, n // 8, [a(density), float(threshold), a(bits)], density.device)
+    return bits
+
+
+def unpack_bits(bits: torch.Tensor) -> torch.Tensor:
+    """Bool [n_cells] from a bitfield [n_cells / 8] uint8."""
+    shifts = torch.arange(8, device=bits.device, dtype=torch.uint8)
+    return ((bits.unsqueeze(-1) >> shifts) & 1).bool().reshape(-1)
+
+
+def march_rays(
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] float32
+    near,  # float or [n_rays]
+    far,  # float or [n_rays]
+    bits: torch.Tensor,  # [res^3 / 8] uint8
+    res: int,
+    aabb,  # [6]
+    dt: float,
+    *,
+    jitter: torch.Tensor | None = None,  # [n_rays] in [0, 1): lattice shift (training)
+    k_begin: torch.Tensor | None = None,  # [n_rays] int32: resume each ray at this index
+    max_samples: int = 1024,
+):
+    """Packed samples in the occupied cells along each ray (see kernels/occupancy.py).
+
+    A ray's lattice of step ``dt`` starts at ``t_lo = max(near, box entry)`` (shifted by
+    ``jitter * dt``) and ends at ``t_hi = min(far, box exit)``; an interval is kept when the grid
+    cell of its midpoint is occupied. At most ``max_samples`` per ray per call.
+
+    Returns:
+        (Samples with t_starts, t_ends [n] float32, ray_indices [n] int32, packed_info
+        [n_rays, 2] int32, and k_next [n_rays] int32: the lattice index to continue from, -1 when
+        the ray has no more samples).
+    Raises ValueError for non-finite origins/directions, bad shapes or dt <= 0.
+    """
+    from warpnerf.kernels import occupancy as K
+
+    wp = _bridge._wp()
+    _bridge.check_float("origins", origins, (None, 3), torch.float32)
+    n_rays, dev = origins.shape[0], origins.device
+    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
+    _check_res(res)
+    if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
+        raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
+    if not (dt > 0 and dt < float("inf")) or max_samples < 1:
+        raise ValueError(f"need dt > 0 (got {dt}) and max_samples >= 1 (got {max_samples})")
+    near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n_rays)
+    far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n_rays)
+    box = _box(aabb, dev)
+    t_in, t_out, hit = ray_aabb_intersect(origins, directions, box.to(dev))
+    t_lo = torch.maximum(t_in, near).contiguous()
+    t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo).contiguous()
+    # One host sync for the total below; the finiteness check rides on it.
+    finite = torch.isfinite(origins).all() & torch.isfinite(directions).all()
+    finite = finite & torch.isfinite(near).all() & ~torch.isnan(far).any()
+    empty_f = torch.empty(0, device=dev, dtype=torch.float32)
+    empty_i = torch.empty(0, device=dev, dtype=torch.int32)
+    jit = empty_f if jitter is None else jitter.to(dev, torch.float32).contiguous()
+    kb = empty_i if k_begin is None else k_begin.to(dev, torch.int32).contiguous()
+    if jit.numel() not in (0, n_rays) or kb.numel() not in (0, n_rays):
+        raise ValueError(f"jitter and k_begin must have shape [{n_rays}]")
+    lo, size = _cell_geometry(box, res)
+    a = _bridge.arr
+    counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    head = [
+        a(origins, wp.vec3),
+        a(directions, wp.vec3),
+        a(t_lo),
+        a(t_hi),
+        a(jit),
+        a(kb),
+        a(bits),
+        res,
+        lo,
+        size,
+        float(dt),
+        int(max_samples),
+    ]
+    _bridge.launch(
+        K.march,
+        n_rays,
+        head + [0, a(empty_i), a(counts), a(k_next), a(empty_f), a(empty_f), a(empty_i)],
+        dev,
+    )
+    csum = torch.cumsum(counts, 0, dtype=torch.int64)
+    total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
+    total, ok = torch.stack([total[0], finite.to(torch.int64)]).tolist()
+    if not ok:
+        raise ValueError("origins, directions, near and far must be finite (and far not NaN)")
+    offsets = (csum - counts).to(torch.int32)
+    t_starts = torch.empty(total, device=dev, dtype=torch.float32)
+    t_ends = torch.empty(total, device=dev, dtype=torch.float32)
+    ray_indices = torch.empty(total, device=dev, dtype=torch.int32)
+    if total:
+        _bridge.launch(
+            K.march,
+            n_rays,
+            head + [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)],
+            dev,
+        )
+    packed_info = torch.stack([offsets, counts], -1)
+    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float):
+    """Early termination on densities alone: (keep [n] bool, n_live [n_rays] int32).
+
+    keep marks each ray's samples before the first one with transmittance below ``t_threshold``
+    (the rule of the compositing kernels); n_live counts them per ray.
+    """
+    from warpnerf.kernels import occupancy as K
+
+    ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
+    n = ts.shape[0]
+    _bridge.check_float("sigmas", sigmas, (n,), torch.float32, ts.device)
+    n_rays, dev = info.shape[0], ts.device
+    n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    a = _bridge.arr
+    inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]
+    _bridge.launch(K.live_counts, n_rays, inputs, dev)
+    ri = samples.ray_indices.long()
+    pos = torch.arange(n, device=dev) - info[:, 0].long()[ri]
+    return pos < n_live.long()[ri], n_live

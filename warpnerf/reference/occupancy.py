@@ -1,0 +1,109 @@
+"""Pure-PyTorch twins of warpnerf.ops.occupancy (same names and signatures).
+
+The marcher's twin is the brute force the kernel must equal: enumerate every lattice interval of
+every ray and keep those whose midpoint cell is occupied (no cell skipping at all).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from warpnerf.ops.sampling import Samples
+
+from .rays import ray_aabb_intersect
+
+__all__ = [
+    "march_rays",
+    "grid_cell_points",
+    "grid_ema_update",
+    "grid_pack_bits",
+    "live_samples",
+    "unpack_bits",
+]
+
+
+def _geometry(aabb, res, dtype, device):
+    box = torch.as_tensor(aabb, dtype=dtype, device=device).reshape(2, 3)
+    return box[0], (box[1] - box[0]) / res
+
+
+def grid_cell_points(cells, jitter, res, aabb):
+    lo, size = _geometry(aabb, res, jitter.dtype, jitter.device)
+    c = cells.long()
+    ijk = torch.stack([c // (res * res), (c // res) % res, c % res], -1).to(jitter.dtype)
+    return lo + (ijk + jitter) * size
+
+
+def grid_ema_update(density, cells, values, decay):
+    newmax = torch.full_like(density, -1.0)
+    newmax.scatter_reduce_(0, cells.long(), values.clamp_min(0), reduce="amax")
+    upd = newmax >= 0
+    density[upd] = torch.maximum(density[upd] * decay, newmax[upd])
+    return density
+
+
+def grid_pack_bits(density, threshold):
+    occ = (density > threshold).reshape(-1, 8).to(torch.int64)
+    weights = 2 ** torch.arange(8, device=density.device)
+    return (occ * weights).sum(-1).to(torch.uint8)
+
+
+def unpack_bits(bits):
+    shifts = torch.arange(8, device=bits.device, dtype=torch.uint8)
+    return ((bits.unsqueeze(-1) >> shifts) & 1).bool().reshape(-1)
+
+
+def march_rays(
+    origins, directions, near, far, bits, res, aabb, dt, *, jitter=None, k_begin=None,
+    max_samples=1024,
+):  # fmt: skip
+    """Reference for :func:`warpnerf.ops.occupancy.march_rays` (brute force over the lattice;
+    k_next is the index after the last sample for rays stopped by the cap, else -1)."""
+    n_rays, dev, dt_ = origins.shape[0], origins.device, origins.dtype
+    near = torch.as_tensor(near, device=dev, dtype=dt_).expand(n_rays)
+    far = torch.as_tensor(far, device=dev, dtype=dt_).expand(n_rays)
+    t_in, t_out, hit = ray_aabb_intersect(origins, directions, aabb)
+    t0 = torch.maximum(t_in, near)
+    t1 = torch.where(hit, torch.minimum(t_out, far), t0)
+    j = torch.zeros(n_rays, device=dev, dtype=dt_) if jitter is None else jitter.to(dt_)
+    kb = torch.zeros(n_rays, device=dev, dtype=torch.long) if k_begin is None else k_begin.long()
+    span = torch.where(t1 > t0, (t1 - t0) / dt, torch.zeros_like(t0))
+    n_lat = int(torch.ceil(span.max()).item()) + 2 if n_rays else 0
+    k = torch.arange(n_lat, device=dev, dtype=torch.long).expand(n_rays, n_lat)
+    s = t0[:, None] + (k.to(dt_) + j[:, None]) * dt
+    e = torch.minimum(s + dt, t1[:, None])
+    mid = 0.5 * (s + e)
+    p = origins[:, None, :] + directions[:, None, :] * mid[..., None]
+    lo, size = _geometry(aabb, res, dt_, dev)
+    ijk = torch.floor((p - lo) * (1.0 / size)).clamp(0, res - 1).long()
+    cell = (ijk[..., 0] * res + ijk[..., 1]) * res + ijk[..., 2]
+    valid = (s < t1[:, None]) & (k >= kb[:, None]) & (kb[:, None] >= 0)
+    keep = valid & unpack_bits(bits)[cell]
+    keep = keep & (torch.cumsum(keep.long(), 1) <= max_samples)
+    counts = keep.sum(1)
+    last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if n_lat else counts - 1
+    # a ray stopped by the cap continues after its last sample (its next call may find none)
+    k_next = torch.where(counts == max_samples, last + 1, -1).to(torch.int32)
+    starts = torch.cumsum(counts, 0) - counts
+    ray_indices = torch.arange(n_rays, device=dev).repeat_interleave(counts).to(torch.int32)
+    info = torch.stack([starts, counts], -1).to(torch.int32)
+    return Samples(s[keep], e[keep], ray_indices, info), k_next
+
+
+def live_samples(samples, sigmas, t_threshold):
+    """Reference for :func:`warpnerf.ops.occupancy.live_samples`."""
+    info = samples.packed_info
+    tau = sigmas * (samples.t_ends - samples.t_starts)
+    n_rays = info.shape[0]
+    n_live = torch.zeros(n_rays, dtype=torch.int32, device=tau.device)
+    keep = torch.zeros(tau.shape[0], dtype=torch.bool, device=tau.device)
+    for r in range(n_rays):
+        s, c = int(info[r, 0]), int(info[r, 1])
+        acc = torch.zeros((), dtype=tau.dtype, device=tau.device)
+        for i in range(s, s + c):
+            if torch.exp(-acc) < t_threshold:
+                break
+            keep[i] = True
+            n_live[r] += 1
+            acc = acc + tau[i]
+    return keep, n_live
