@@ -464,7 +464,7 @@ def _grid_flags(tn) -> None:
         "--grid-warmup", type=_nonnegative, default=256, help="steps of full-grid updates"
     )
     tn.add_argument(
-        "--occ-threshold", type=_positive(float), default=0.01, help="opacity per step of an empty cell"
+        "--occ-threshold", type=_positive(float), default=0.01, help="step opacity of empty cells"
     )
     tn.add_argument(
         "--march-step", type=_positive(float), default=None, help="default: box diagonal / 1024"

@@ -26,7 +26,7 @@ __all__ = [
 def _box(aabb, device):
     box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1).cpu()
     if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[3:] > box[:3]).all()):
-        raise ValueError("aabb must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax], min < max")
+        raise ValueError("aabb must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax]")
     return box
 
 
@@ -85,7 +85,8 @@ def grid_ema_update(
         raise ValueError("the field returned NaN densities; the occupancy grid cannot be updated")
     newmax = torch.full_like(density, -1.0)
     a = _bridge.arr
-    _bridge.launch(K.scatter_max, cells.shape[0], [a(cells.to(torch.int32)), a(values), a(newmax)], dev)
+    cells = cells.to(torch.int32)
+    _bridge.launch(K.scatter_max, cells.shape[0], [a(cells), a(values), a(newmax)], dev)
     _bridge.launch(K.ema, density.shape[0], [a(newmax), float(decay), a(density)], dev)
     return density
 

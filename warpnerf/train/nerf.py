@@ -450,6 +450,10 @@ def train_nerf(
     grid = fields_.get("grid")
     # The grid's updates and lattice jitter draw from a generator on the device (saved too).
     grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1) if grid else None
+
+    def density_of(x):
+        return fields_["coarse"].density(x)[0]
+
     history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
     start, batch = 0, cfg.batch
     if ckpt is not None:
@@ -473,8 +477,7 @@ def train_nerf(
         for group in opt.param_groups:
             group["lr"] = lr
         if grid is not None and step % cfg.grid_every == 0:
-            field = fields_["coarse"]
-            grid.update(lambda x: field.density(x)[0], grid_gen)
+            grid.update(density_of, grid_gen)
         cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
         o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
         out = render_rays_of(
@@ -489,8 +492,9 @@ def train_nerf(
         target = flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         loss = loss_fine
-        if "rgb_coarse" in out and out["rgb_coarse"].requires_grad and fields_.get("fine") is not None:
-            loss = loss + torch.mean((out["rgb_coarse"] - target) ** 2)
+        coarse = out.get("rgb_coarse")
+        if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
+            loss = loss + torch.mean((coarse - target) ** 2)
         if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
             f = fields_["coarse"]
             box = (torch.rand(cfg.batch, 3, generator=gen) * 2 - 1).to(cfg.device) * cfg.aabb
