@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # NeRF figures on the lent GPU (see docs/PERFORMANCE.md).
-# Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash
+# Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash|lego_grid|lego_grid_more|sweep
+# (lego_grid: hash field + occupancy grid for SECS seconds, then eval on all val images;
+#  lego_grid_more: resume that run for SECS more seconds and eval again; sweep: speed vs error)
 # Expects Warp importable and the package installed; data under .devdata/ (carried); writes $OUT.
 set -u
 OUT=${OUT:-/tmp/out}
@@ -33,6 +35,28 @@ lego_seed|lego_full|lego_hash)
   cp /tmp/$1/eval_val/metrics.json "$OUT/$1_metrics.json"
   cp /tmp/$1/eval_val/val_000.png "$OUT/$1_val_000.png"
   cp /tmp/$1/config.json "$OUT/$1_config.json"
+  ;;
+lego_grid|lego_grid_more)
+  run=/tmp/lego_grid
+  if [ "$1" = lego_grid ]; then
+    python3 -m warpnerf.cli train nerf --data ${DATA:-.devdata/lego} --out $run --device cuda \
+      --tf32 --field hash --batch 4096 --target-samples ${TARGET:-262144} ${EXTRA:-} \
+      --iters ${ITERS:-20000} --max-seconds ${SECS:-120} --val-every 2000 --val-images 2 --quiet \
+      2>&1 | tail -4 | tee -a "$OUT/log.txt"
+  else
+    python3 -m warpnerf.cli train nerf --out $run --resume --iters ${ITERS:-20000} \
+      --max-seconds ${SECS:-180} --quiet 2>&1 | tail -3 | tee -a "$OUT/log.txt"
+  fi
+  python3 -m warpnerf.cli eval $run --split val --chunk 400000 --max-images ${EVAL_IMAGES:-25} \
+    2>&1 | tail -1 | tee -a "$OUT/log.txt"
+  cp $run/history.json "$OUT/$1_history.json"
+  cp $run/eval_val/metrics.json "$OUT/$1_metrics.json"
+  cp $run/eval_val/val_000.png "$OUT/$1_val_000.png"
+  cp $run/config.json "$OUT/$1_config.json"
+  ;;
+sweep)
+  python3 scripts/speed_vs_error.py sweep /tmp/lego_grid "$OUT/speed_vs_error.json" --images ${EVAL_IMAGES:-5} \
+    2>&1 | tee -a "$OUT/log.txt"
   ;;
 esac
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader >> "$OUT/log.txt"

@@ -284,3 +284,21 @@ def test_reference_composite_twin_on_marched_samples(device):
     b = reference.render_packed(*args, sig, rgb, 50, 1.0, packed_info=s.packed_info)
     for x, y in zip(a, b):
         torch.testing.assert_close(x, y)
+
+
+def test_render_in_rounds_matches_single_pass(device):
+    field = _Ball(sigma=60.0).to(device)
+    grid = OccupancyGrid(BOX, 32, dt=0.01).to(device)  # all occupied: long rays, many rounds
+    o, d = hard_rays(96, device, seed=7)
+    with torch.no_grad():
+        one = render_marched(grid, field, o, d, 0.0, 9.0, background=0.3, t_threshold=0.0)
+        for rs in (1, 7, 64):
+            r = render_marched(grid, field, o, d, 0.0, 9.0, background=0.3, t_threshold=0.0,
+                               round_samples=rs)  # fmt: skip
+            for key in ("rgb", "depth", "opacity"):
+                torch.testing.assert_close(r[key], one[key], rtol=1e-5, atol=1e-5)
+            assert r["n_marched"] == one["n_marched"]
+        cut = render_marched(grid, field, o, d, 0.0, 9.0, background=0.3, t_threshold=1e-3,
+                             round_samples=8)  # fmt: skip
+    torch.testing.assert_close(cut["rgb"], one["rgb"], rtol=0, atol=2e-3)
+    assert cut["n_marched"] < 0.9 * one["n_marched"]  # nothing marched behind the ball

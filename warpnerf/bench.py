@@ -19,7 +19,9 @@ import torch
 from . import reference
 from .ops import render_packed, stratified_samples
 
-__all__ = ["run_bench", "composite_bytes", "measure_copy_bandwidth"]
+__all__ = ["run_bench", "composite_bytes", "measure_copy_bandwidth", "KERNELS"]
+
+KERNELS = ("composite", "march", "encoding", "sphere-trace", "all")
 
 
 def _sync(dev):
@@ -191,6 +193,104 @@ def _encoding_grids(dev, quick: bool):
     return cases[:1] if quick else cases
 
 
+def _camera_rays(size: int, dev, radius: float = 4.0):
+    """Rays of one size x size camera on a sphere of ``radius`` looking at the origin (lego's
+    camera distance), fov 0.69 rad."""
+    from .data.cameras import intrinsics_from_fov, look_at
+    from .ops import generate_rays
+
+    c2w = look_at((0.6 * radius, -0.64 * radius, 0.48 * radius)).to(dev)
+    return generate_rays(c2w, intrinsics_from_fov(size, size, 0.69).to(dev), size, size)
+
+
+def ball_bits(res: int, radius: float, dev):
+    """Bitfield of the cells of a res^3 grid over [-1.5, 1.5]^3 whose centre lies in a ball."""
+    from .ops.occupancy import grid_pack_bits
+
+    c = (torch.arange(res, device=dev, dtype=torch.float32) + 0.5) / res * 3.0 - 1.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    inside = (x * x + y * y + z * z).reshape(-1) <= radius * radius
+    return grid_pack_bits(inside.float(), 0.5)
+
+
+def march_bytes(n_rays: int, n: int) -> int:
+    """Fewest bytes of the two marching passes: each reads origins, directions, t_lo, t_hi
+    (32 B/ray); the count pass writes counts and k_next (8 B/ray), the fill pass reads offsets
+    (4 B/ray) and writes t_starts, t_ends, ray_indices (12 B/sample). Bitfield reads are cached."""
+    return 2 * 32 * n_rays + 12 * n_rays + 12 * n
+
+
+def _march_case(size: int, radius: float, res: int, dev, repeats: int):
+    """Marching a size^2 camera through a res^3 grid whose occupied cells form a ball."""
+    from .ops.occupancy import march_rays, unpack_bits
+    from .reference.occupancy import march_rays as ref_march
+
+    aabb = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
+    dt = 3.0 * 3**0.5 / 1024
+    o, d = _camera_rays(size, dev)
+    bits = ball_bits(res, radius, dev)
+    n_rays = o.shape[0]
+
+    def run(fn):
+        return lambda: fn(o, d, 2.0, 6.0, bits, res, aabb, dt)
+
+    smp, _ = run(march_rays)()
+    n = smp.t_starts.shape[0]
+    row = {
+        "kernel": "march",
+        "n_rays": n_rays,
+        "grid_res": res,
+        "occupancy": float(unpack_bits(bits).float().mean()),
+        "samples_per_ray": n / n_rays,
+        "n_samples": n,
+        "warp_ms": 1e3 * _time(run(march_rays), dev, repeats),
+    }
+    twin_rays = 1 << 14  # the brute-force twin enumerates every lattice step (memory)
+    sub = slice(0, n_rays, max(n_rays // twin_rays, 1))
+    osub, dsub = o[sub].contiguous(), d[sub].contiguous()
+    t_torch = _time(lambda: ref_march(osub, dsub, 2.0, 6.0, bits, res, aabb, dt), dev, 2, 1)
+    row["torch_ms_scaled"] = 1e3 * t_torch * n_rays / osub.shape[0]
+    row["speedup"] = row["torch_ms_scaled"] / row["warp_ms"]
+    row["rays_per_s"] = n_rays / (row["warp_ms"] / 1e3)
+    row["bytes"] = march_bytes(n_rays, n)
+    # float32 kernel against the float64 brute force on the same rays: samples in a different
+    # cell (rounding at cell boundaries) and the largest difference of matching samples.
+    s32, _ = march_rays(osub, dsub, 2.0, 6.0, bits, res, aabb, dt)
+    s64, _ = ref_march(osub.double(), dsub.double(), 2.0, 6.0, bits, res, aabb, dt)
+    c32, c64 = s32.packed_info[:, 1].long(), s64.packed_info[:, 1].long()
+    row["count_mismatch"] = int((c32 - c64).abs().sum())
+    same = torch.repeat_interleave(c32 == c64, c32)
+    same64 = torch.repeat_interleave(c32 == c64, c64)
+    diff = (s32.t_starts[same].double() - s64.t_starts[same64]).abs()
+    row["max_err_t"] = float(diff.max()) if diff.numel() else 0.0
+    return row
+
+
+def _sphere_trace_case(size: int, dev, repeats: int):
+    """Sphere tracing the 32-primitive scene from one camera, against the torch twin."""
+    from .fields.sdf_scene import many_primitives_scene
+    from .ops.sphere_trace import sphere_trace
+    from .reference.sphere_trace import sphere_trace as ref_trace
+
+    scene = many_primitives_scene()
+    o, d = _camera_rays(size, dev, radius=5.0)
+    n = o.shape[0]
+    row = {"kernel": "sphere_trace", "n_rays": n, "primitives": len(scene.primitives)}
+    tr = sphere_trace(o, d, scene, 0.0, 12.0)
+    row["evals_per_ray"] = float(tr.iters.float().mean())
+    row["warp_ms"] = 1e3 * _time(lambda: sphere_trace(o, d, scene, 0.0, 12.0), dev, repeats)
+    row["torch_ms"] = 1e3 * _time(lambda: ref_trace(o, d, scene, 0.0, 12.0), dev, 2, 1)
+    row["speedup"] = row["torch_ms"] / row["warp_ms"]
+    row["rays_per_s"] = n / (row["warp_ms"] / 1e3)
+    # bytes: rays in (24 B), t, status, iters, points, normals, ids out (40 B); scene is cached
+    row["bytes"] = 64 * n
+    ref = ref_trace(o.double(), d.double(), scene, 0.0, 12.0)
+    both = tr.hit & ref.hit
+    row["status_mismatch"] = int((tr.status.long() != ref.status.long()).sum())
+    row["max_err_t"] = float((tr.t[both].double() - ref.t[both]).abs().max()) if both.any() else 0
+    return row
+
+
 def _sizes(dev, quick: bool):
     if dev.type == "cuda":
         sizes = [(1 << 14, 128), (1 << 17, 128), (1 << 20, 128)]
@@ -237,6 +337,24 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
                     rows.append(row)
         finally:
             C._IMPL.update(saved)
+    if kernel in ("march", "all"):
+        if dev.type == "cuda":
+            cases = [(400, r, 128) for r in (0.25, 0.5, 0.8, 1.2, 3.0)] + [(800, 0.8, 128)]
+        else:
+            cases = [(100, r, 64) for r in (0.25, 0.8, 3.0)]
+        for size, radius, res in cases[:2] if quick else cases:
+            row = _march_case(size, radius, res, dev, repeats)
+            row["bw_pct"] = 100 * row["bytes"] / (row["warp_ms"] / 1e3) / bw
+            rows.append(row)
+    if kernel in ("sphere-trace", "all"):
+        for size in (
+            ((400,) if dev.type == "cuda" else (64,))
+            if quick
+            else ((400, 800) if dev.type == "cuda" else (64, 128))
+        ):
+            row = _sphere_trace_case(size, dev, repeats)
+            row["bw_pct"] = 100 * row["bytes"] / (row["warp_ms"] / 1e3) / bw
+            rows.append(row)
     if kernel in ("encoding", "all"):
         for n, grid in _encoding_grids(dev, quick):
             row = _encoding_case(n, grid, dev, repeats)
@@ -257,41 +375,79 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
     return result
 
 
+_COMPOSITE_COLS = [
+    ("rays x samples", lambda r: f"{r['n_rays']} x {r['samples_per_ray']}"),
+    ("warp fwd ms", "{warp_fwd_ms:.3f}"),
+    ("torch fwd ms", "{torch_fwd_ms:.3f}"),
+    ("warp fwd+bwd ms", "{warp_fwdbwd_ms:.3f}"),
+    ("torch fwd+bwd ms", "{torch_fwdbwd_ms:.3f}"),
+    ("speedup fwd / fwd+bwd", "{speedup_fwd:.1f}x / {speedup_fwdbwd:.1f}x"),
+    ("Gsamples/s fwd+bwd", lambda r: f"{r['samples_per_s_fwdbwd'] / 1e9:.3f}"),
+    ("% copy BW fwd+bwd", "{bw_pct_fwdbwd:.1f}"),
+    ("max err rgb / v_sigmas (vs f64)", "{max_err_rgb:.1e} / {max_err_v_sigmas:.1e}"),
+]
+_TABLES = {
+    "composite": _COMPOSITE_COLS,
+    "march": [
+        ("rays", "{n_rays}"),
+        ("grid", "{grid_res}^3"),
+        ("occupancy", "{occupancy:.3f}"),
+        ("samples/ray", "{samples_per_ray:.1f}"),
+        ("warp ms (count+fill)", "{warp_ms:.3f}"),
+        ("torch brute force ms (scaled)", "{torch_ms_scaled:.1f}"),
+        ("speedup", "{speedup:.0f}x"),
+        ("Mrays/s", lambda r: f"{r['rays_per_s'] / 1e6:.1f}"),
+        ("% copy BW", "{bw_pct:.1f}"),
+        ("samples in another cell / max t err (vs f64)", "{count_mismatch} / {max_err_t:.1e}"),
+    ],
+    "encoding": [
+        ("points", "{n_points}"),
+        ("levels x rows", "{levels} x {rows}"),
+        ("warp fwd ms", "{warp_fwd_ms:.3f}"),
+        ("torch fwd ms", "{torch_fwd_ms:.3f}"),
+        ("warp fwd+bwd ms", "{warp_fwdbwd_ms:.3f}"),
+        ("torch fwd+bwd ms", "{torch_fwdbwd_ms:.3f}"),
+        ("speedup fwd / fwd+bwd", "{speedup_fwd:.1f}x / {speedup_fwdbwd:.1f}x"),
+        ("Mpoints/s fwd+bwd", lambda r: f"{r['points_per_s_fwdbwd'] / 1e6:.1f}"),
+        ("% copy BW fwd+bwd (lower bound)", "{bw_pct_fwdbwd:.1f}"),
+        ("max err out / v_table (vs f64)", "{max_err_out:.1e} / {max_err_v_table:.1e}"),
+    ],
+    "sphere-trace": [
+        ("rays", "{n_rays}"),
+        ("primitives", "{primitives}"),
+        ("evals/ray", "{evals_per_ray:.1f}"),
+        ("warp ms", "{warp_ms:.3f}"),
+        ("torch ms", "{torch_ms:.1f}"),
+        ("speedup", "{speedup:.0f}x"),
+        ("Mrays/s", lambda r: f"{r['rays_per_s'] / 1e6:.1f}"),
+        ("% copy BW", "{bw_pct:.2f}"),
+        ("status mismatches / max t err (vs f64)", "{status_mismatch} / {max_err_t:.1e}"),
+    ],
+}
+
+
+def _family(row) -> str:
+    k = row["kernel"]
+    if k.startswith("composite"):
+        return "composite"
+    return {"hash_encode": "encoding", "sphere_trace": "sphere-trace"}.get(k, k)
+
+
 def markdown_table(result) -> str:
-    head = (
+    """One Markdown table per kernel family present in ``result["rows"]``."""
+    lines = [
         f"Device: {result['device_name']} ({result['device']}), measured copy bandwidth "
-        f"{result['copy_bandwidth_GBps']:.0f} GB/s (read+write)\n\n"
-        "| kernel | rays x samples | warp fwd ms | torch fwd ms | warp fwd+bwd ms | "
-        "torch fwd+bwd ms | speedup fwd / fwd+bwd | Gsamples/s fwd+bwd | % copy BW fwd+bwd | "
-        "max err rgb / v_sigmas (vs f64) |\n|---|---|---|---|---|---|---|---|---|---|"
-    )
-    enc = [r for r in result["rows"] if r["kernel"] == "hash_encode"]
-    lines = [head] if len(enc) < len(result["rows"]) else [head.split("\n\n")[0]]
-    for r in result["rows"]:
-        if r["kernel"] == "hash_encode":
+        f"{result['copy_bandwidth_GBps']:.0f} GB/s (read+write)"
+    ]
+    for fam, cols in _TABLES.items():
+        rows = [r for r in result["rows"] if _family(r) == fam]
+        if not rows:
             continue
-        lines.append(
-            f"| {r['kernel']} | {r['n_rays']} x {r['samples_per_ray']} | {r['warp_fwd_ms']:.3f} | "
-            f"{r['torch_fwd_ms']:.3f} | {r['warp_fwdbwd_ms']:.3f} | {r['torch_fwdbwd_ms']:.3f} | "
-            f"{r['speedup_fwd']:.1f}x / {r['speedup_fwdbwd']:.1f}x | "
-            f"{r['samples_per_s_fwdbwd'] / 1e9:.3f} | {r['bw_pct_fwdbwd']:.1f} | "
-            f"{r['max_err_rgb']:.1e} / {r['max_err_v_sigmas']:.1e} |"
-        )
-    if enc:
-        lines.append(
-            "\n| kernel | points | levels x rows | warp fwd ms | torch fwd ms | warp fwd+bwd ms | "
-            "torch fwd+bwd ms | speedup fwd / fwd+bwd | Mpoints/s fwd+bwd | % copy BW fwd+bwd "
-            "(lower bound) | max err out / v_table (vs f64) |\n|---|---|---|---|---|---|---|---|"
-            "---|---|---|"
-        )
-        for r in enc:
-            lines.append(
-                f"| hash_encode | {r['n_points']} | {r['levels']} x {r['rows']} | "
-                f"{r['warp_fwd_ms']:.3f} | {r['torch_fwd_ms']:.3f} | {r['warp_fwdbwd_ms']:.3f} | "
-                f"{r['torch_fwdbwd_ms']:.3f} | {r['speedup_fwd']:.1f}x / "
-                f"{r['speedup_fwdbwd']:.1f}x | {r['points_per_s_fwdbwd'] / 1e6:.1f} | "
-                f"{r['bw_pct_fwdbwd']:.1f} | {r['max_err_out']:.1e} / {r['max_err_v_table']:.1e} |"
-            )
+        lines += ["", "| kernel | " + " | ".join(c for c, _ in cols) + " |"]
+        lines.append("|---" * (len(cols) + 1) + "|")
+        for r in rows:
+            cells = [f(r) if callable(f) else f.format(**r) for _, f in cols]
+            lines.append(f"| {r['kernel']} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 

@@ -189,6 +189,7 @@ def cmd_train_nerf(args) -> int:
             march_step=getattr(args, "march_step", None) or 0.0,
             max_samples=getattr(args, "max_samples", 1024),
             target_samples=getattr(args, "target_samples", 0),
+            round_samples=getattr(args, "round_samples", 16),
         )
         hist = train_nerf(cfg, args.out, progress=not args.quiet)
     last = {
@@ -244,8 +245,12 @@ def cmd_eval(args) -> int:
         args.split,
         device=_device(args.device) if args.device else None,
         max_images=args.max_images,
+        chunk=args.chunk,
+        march_step=args.march_step,
+        out_dir=args.out,
     )
-    print(json.dumps({k: m[k] for k in ("split", "step", "n_images", "psnr", "ssim")}))
+    keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
+    print(json.dumps({k: m[k] for k in keys}))
     return 0
 
 
@@ -471,6 +476,12 @@ def _grid_flags(tn) -> None:
     )
     tn.add_argument("--max-samples", type=_positive(int), default=1024, help="per ray, with a grid")
     tn.add_argument(
+        "--round-samples",
+        type=_nonnegative,
+        default=16,
+        help="with a grid, renders march in rounds of this many samples per ray (0: one pass)",
+    )
+    tn.add_argument(
         "--target-samples",
         type=_nonnegative,
         default=0,
@@ -557,6 +568,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--split", default="val", choices=["train", "val", "test"])
     e.add_argument("--device", default=None, help="default: the run's device")
     e.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all images of the split")
+    e.add_argument(
+        "--chunk", type=_positive(int), default=None, help="rays rendered at once (run's own)"
+    )
+    e.add_argument(
+        "--march-step", type=_positive(float), default=None, help="grid runs: another step"
+    )
+    e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
@@ -580,7 +598,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
     b.add_argument(
-        "kernel", nargs="?", default="composite", choices=["composite", "encoding", "all"]
+        "kernel",
+        nargs="?",
+        default="composite",
+        choices=["composite", "march", "encoding", "sphere-trace", "all"],
     )
     b.add_argument("--device", default="cpu")
     b.add_argument("--json", default=None, help="write the results as JSON here")

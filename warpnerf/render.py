@@ -175,6 +175,7 @@ def render_marched(
     background=1.0,
     t_threshold: float = 1e-4,
     max_samples: int = 1024,
+    round_samples: int = 0,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -187,12 +188,23 @@ def render_marched(
     backward see the same samples); the field then runs again with gradients on the kept samples
     only (under ``torch.no_grad()`` the colours come from the first pass's features instead).
 
+    ``round_samples > 0`` (rendering only, no gradients): march in rounds of at most that many
+    samples per live ray (more as rays finish), compositing each round onto the rays' running
+    colour and transmittance and dropping rays once T < t_threshold, so samples behind opaque
+    surfaces are never marched or evaluated (a round is composited whole: the cut is at round
+    granularity, i.e. never earlier than the single pass's).
+
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
     """
     from .ops.occupancy import live_samples
     from .ops.sampling import Samples
 
+    if round_samples > 0 and not torch.is_grad_enabled():
+        return _render_rounds(
+            grid, field, origins, directions, near, far, background, t_threshold, round_samples,
+            max_samples,
+        )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     jitter = None
     if perturb:
@@ -230,4 +242,51 @@ def render_marched(
         "opacity": opacity,
         "n_marched": int(smp.t_starts.shape[0]),
         "n_kept": int(idx.shape[0]),
+    }
+
+
+def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_samples, cap):
+    n_rays, dev, dt = o.shape[0], o.device, o.dtype
+    rgb = torch.zeros(n_rays, 3, device=dev, dtype=dt)
+    depth = torch.zeros(n_rays, device=dev, dtype=dt)
+    trans = torch.ones(n_rays, device=dev, dtype=dt)
+    near = torch.as_tensor(near, device=dev, dtype=dt).expand(n_rays)
+    far = torch.as_tensor(far, device=dev, dtype=dt).expand(n_rays)
+    alive = torch.arange(n_rays, device=dev)
+    k = torch.zeros(n_rays, device=dev, dtype=torch.int32)
+    n_marched, budget = 0, round_samples * n_rays
+    while alive.numel():
+        per_ray = min(max(round_samples, budget // alive.numel()), cap)
+        oa, da = o[alive], d[alive]
+        smp, k_next = grid.march(
+            oa, da, near[alive], far[alive], k_begin=k[alive], max_samples=per_ray
+        )
+        ri = smp.ray_indices
+        n_marched += smp.t_starts.shape[0]
+        sig, feats = field.density(oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1))
+        c, z, op = render_packed(
+            smp.t_starts,
+            smp.t_ends,
+            ri,
+            sig,
+            field.color(feats, da[ri]),
+            alive.numel(),
+            packed_info=smp.packed_info,
+        )
+        t_a = trans[alive]
+        rgb[alive] += t_a.unsqueeze(-1) * c
+        depth[alive] += t_a * z
+        t_a = t_a * (1.0 - op)
+        trans[alive] = t_a
+        k[alive] = k_next
+        alive = alive[(k_next >= 0) & (t_a >= t_threshold)]
+    bg = torch.as_tensor(background, device=dev, dtype=dt)
+    bg = bg.expand(3) if bg.dim() == 0 else bg
+    rgb = rgb + trans.unsqueeze(-1) * bg
+    return {
+        "rgb": rgb,
+        "depth": depth,
+        "opacity": 1.0 - trans,
+        "n_marched": n_marched,
+        "n_kept": n_marched,
     }

@@ -60,6 +60,8 @@ class NeRFConfig:
     occ_threshold: float = 0.01  # a cell is empty when one step through it has opacity below this
     march_step: float = 0.0  # marching step with a grid; 0: the box diagonal / 1024
     max_samples: int = 1024  # samples per ray at most with a grid
+    round_samples: int = 16  # with a grid, rendering (no gradients) marches in rounds of this
+    # many samples per live ray; 0: one pass over all marched samples
     target_samples: int = 0  # > 0: rays per step adapt so each step composites ~this many
     # samples (starting from --batch); 0: fixed --batch
     aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
@@ -165,8 +167,8 @@ class NeRFConfig:
                     raise UserError(f"--{name.replace('_', '-')} must be >= 1")
             if not (0 < self.occ_threshold < 1 and math.isfinite(self.march_step)):
                 raise UserError("--occ-threshold must be in (0, 1) and --march-step finite")
-            if self.grid_warmup < 0 or self.target_samples < 0:
-                raise UserError("--grid-warmup and --target-samples must be >= 0")
+            if min(self.grid_warmup, self.target_samples, self.round_samples) < 0:
+                raise UserError("--grid-warmup, --target-samples, --round-samples must be >= 0")
         if not 0.0 <= self.t_threshold < 1.0:
             raise UserError(f"--t-threshold must be in [0, 1), got {self.t_threshold}")
         if self.max_seconds < 0 or self.val_images < 0 or self.max_images < 0:
@@ -305,6 +307,7 @@ def render_rays_of(
                 background=cfg.background,
                 t_threshold=cfg.t_threshold,
                 max_samples=cfg.max_samples,
+                round_samples=cfg.round_samples,
             )
             for s in range(0, max(n, 1), chunk)
         ]

@@ -1,0 +1,76 @@
+"""Speed against error on a trained grid run: val PSNR, render time per frame and samples per ray
+for several marching steps (run on the GPU; writes JSON), and the PNG from that JSON (locally).
+
+    python3 scripts/speed_vs_error.py sweep RUN OUT.json [--images 5] [--chunk 400000]
+    python3 scripts/speed_vs_error.py plot OUT.json [MORE.json ...] --png docs/speed_vs_error.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+
+def sweep(run, out, images, chunk, divisors):
+    from warpnerf.train.nerf_eval import evaluate_run
+
+    rows = []
+    for div in divisors:
+        step = 3.0 * math.sqrt(3.0) / div
+        m = evaluate_run(run, "val", max_images=images, chunk=chunk, march_step=step,
+                         out_dir=f"/tmp/sweep_{div}")  # fmt: skip
+        rows.append({"steps_per_diagonal": div, "march_step": step, "psnr": m["psnr"],
+                     "ssim": m["ssim"], "render_ms": m["render_ms_median"]})  # fmt: skip
+        print(json.dumps(rows[-1]), flush=True)
+    with open(out, "w") as f:
+        json.dump({"run": str(run), "images": images, "rows": rows}, f, indent=1)
+
+
+def plot(paths, png):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    for p in paths:
+        d = json.load(open(p))
+        rows = d["rows"]
+        xs, ys = [r["render_ms"] for r in rows], [r["psnr"] for r in rows]
+        ax.plot(xs, ys, "o-", label=d.get("label", "grid marching, steps per box diagonal"))
+        for r in rows:
+            label = r.get("note") or str(r.get("steps_per_diagonal"))
+            ax.annotate(label, (r["render_ms"], r["psnr"]), textcoords="offset points",
+                        xytext=(4, -10), fontsize=8)  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_xlabel("render time per 400x400 frame (ms, H100)")
+    ax.set_ylabel("val PSNR (dB)")
+    ax.set_title("lego, hash field: speed against error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+
+
+def main():
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("sweep")
+    s.add_argument("run")
+    s.add_argument("out")
+    s.add_argument("--images", type=int, default=5)
+    s.add_argument("--chunk", type=int, default=400000)
+    s.add_argument("--divisors", default="128,256,512,1024,2048")
+    q = sub.add_parser("plot")
+    q.add_argument("json", nargs="+")
+    q.add_argument("--png", required=True)
+    a = p.parse_args()
+    if a.cmd == "sweep":
+        sweep(a.run, a.out, a.images, a.chunk, [int(x) for x in a.divisors.split(",")])
+    else:
+        plot(a.json, a.png)
+
+
+if __name__ == "__main__":
+    main()
