@@ -192,7 +192,8 @@ def render_marched(
     samples per live ray (more as rays finish), compositing each round onto the rays' running
     colour and transmittance and dropping rays once T < t_threshold, so samples behind opaque
     surfaces are never marched or evaluated (a round is composited whole: the cut is at round
-    granularity, i.e. never earlier than the single pass's).
+    granularity, i.e. never earlier than the single pass's). Colours are computed only for
+    samples whose weight reaches ``COLOR_WEIGHT_EPS`` (1e-5); the others are taken as black.
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
@@ -245,6 +246,9 @@ def render_marched(
     }
 
 
+COLOR_WEIGHT_EPS = 1e-5  # rendering in rounds: colours of samples weighing less are skipped
+
+
 def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_samples, cap):
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     rgb = torch.zeros(n_rays, 3, device=dev, dtype=dt)
@@ -264,16 +268,23 @@ def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_
         ri = smp.ray_indices
         n_marched += smp.t_starts.shape[0]
         sig, feats = field.density(oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1))
-        c, z, op = render_packed(
+        # Weights first (no colours): the colour MLP runs only where a sample's weight in the
+        # image, T_ray * w, reaches COLOR_WEIGHT_EPS; the rest add at most their weight's sum.
+        _, z, op, w = render_packed(
             smp.t_starts,
             smp.t_ends,
             ri,
             sig,
-            field.color(feats, da[ri]),
+            sig.new_zeros(1, 3).expand(sig.shape[0], 3),
             alive.numel(),
             packed_info=smp.packed_info,
+            return_weights=True,
         )
         t_a = trans[alive]
+        seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
+        rs = ri[seen]
+        c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
+        c.index_add_(0, rs, w[seen].unsqueeze(-1) * field.color(feats[seen], da[rs]))
         rgb[alive] += t_a.unsqueeze(-1) * c
         depth[alive] += t_a * z
         t_a = t_a * (1.0 - op)

@@ -150,7 +150,7 @@ def march_rays(
     near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n_rays)
     far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n_rays)
     box = _box(aabb, dev)
-    t_in, t_out, hit = ray_aabb_intersect(origins, directions, box.to(dev))
+    t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
     t_lo = torch.maximum(t_in, near).contiguous()
     t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo).contiguous()
     # One host sync for the total below; the finiteness check rides on it.

@@ -121,9 +121,10 @@ def ray_aabb_intersect(
     _bridge.check_float("origins", origins, (None, 3))
     n, dev, dt = origins.shape[0], origins.device, origins.dtype
     _bridge.check_float("directions", directions, (n, 3), dt, dev)
-    box = torch.as_tensor(aabb, device=dev, dtype=dt).reshape(-1)
+    box = torch.as_tensor(aabb, dtype=dt).reshape(-1)  # checked where it is (host: no sync)
     if box.shape != (6,) or bool((box[:3] > box[3:]).any()):
         raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min <= max")
+    box = box.to(dev)
     t_near = torch.empty(n, device=dev, dtype=dt)
     t_far = torch.empty(n, device=dev, dtype=dt)
     hit = torch.empty(n, device=dev, dtype=torch.bool)

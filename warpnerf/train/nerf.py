@@ -399,6 +399,8 @@ def load_run(run, device: str | None = None):
         raise UserError(
             f"{run}: trained on {cfg.device}, which is not available here; pass --device cpu"
         )
+    if cfg.device.startswith("cuda"):  # matrix products as in training
+        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     fields_ = build_fields(cfg)
     ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
     for k, f in _unique(fields_).items():
