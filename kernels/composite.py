@@ -333,14 +333,11 @@ def composite_fwd_tiled(
         i = start + k
         tau = float(0.0)
         alpha = float(0.0)
-        tau_prev = float(0.0)
         if k < count:
             tau, alpha, keep = optical_depth(0, sigmas[i], t_ends[i] - t_starts[i])
-            if lane > 0:
-                tau_prev = sigmas[i - 1] * (t_ends[i - 1] - t_starts[i - 1])
-        # Exclusive prefix sum as the inclusive scan of each lane's predecessor: exact, whereas
-        # inclusive - tau loses the small sum in front of a huge tau (and gives inf - inf).
-        excl = wp.untile(wp.tile_scan_inclusive(wp.tile(tau_prev)))
+        # An exclusive scan sums each lane's predecessors: exact, whereas inclusive - tau loses
+        # the small sum in front of a huge tau (and gives inf - inf).
+        excl = wp.untile(wp.tile_scan_exclusive(wp.tile(tau)))
         t = wp.exp(-(acc + excl))
         live_tau = float(0.0)
         if k < count:

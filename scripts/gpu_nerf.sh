@@ -25,7 +25,7 @@ materials)
 lego_seed|lego_full|lego_hash)
   if [ "$1" = lego_seed ]; then extra="--downscale 3 --samples 128"; else extra="--samples 64 --coarse-fine --fine-samples 128"; fi
   if [ "$1" = lego_hash ]; then
-    common="--device cuda --tf32 --field hash --batch ${BATCH:-4096} --quiet"
+    common="--device cuda --tf32 --field hash --grid-res 0 --batch ${BATCH:-4096} --quiet"
     extra="--samples ${COARSE:-64} --coarse-fine --fine-samples ${FINE:-128}"
   fi
   python3 -m warpnerf.cli train nerf --data .devdata/lego --out /tmp/$1 $common $extra \
@@ -47,7 +47,7 @@ lego_grid|lego_grid_more)
     python3 -m warpnerf.cli train nerf --out $run --resume --iters ${ITERS:-20000} \
       --max-seconds ${SECS:-180} --quiet 2>&1 | tail -3 | tee -a "$OUT/log.txt"
   fi
-  python3 -m warpnerf.cli eval $run --split val --chunk 400000 --max-images ${EVAL_IMAGES:-25} \
+  python3 -m warpnerf.cli eval $run --split val --chunk 400000 --max-images ${EVAL_IMAGES:-25} ${EVAL_EXTRA:-} \
     2>&1 | tail -1 | tee -a "$OUT/log.txt"
   cp $run/history.json "$OUT/$1_history.json"
   cp $run/eval_val/metrics.json "$OUT/$1_metrics.json"
