@@ -248,8 +248,8 @@ def test_packed_marching_equals_dense_stratified_without_empty_space(device):
 
 
 def test_render_marched_early_termination_and_no_grad_path(device):
-    """The kept samples stop where transmittance falls below the threshold; the no-grad path
-    (colours from the first pass's features) equals the gradient path; after the warm-up the
+    """The kept samples stop where transmittance falls below the threshold; the rendering path
+    (no gradients) matches the training path; after the warm-up the
     ball renders the same with the grid as with every cell occupied. (One jittered point per
     cell and update can miss a cell the ball only clips: after 1 update 13 of these rays differ
     by up to 0.37, after 4 updates 2 rays by 0.02, after 16 none; the EMA keeps what was seen.)"""
@@ -263,7 +263,8 @@ def test_render_marched_early_termination_and_no_grad_path(device):
     out = render_marched(grid, field, o, d, 0.0, 9.0, t_threshold=1e-3)
     with torch.no_grad():
         out2 = render_marched(grid, field, o, d, 0.0, 9.0, t_threshold=1e-3)
-    torch.testing.assert_close(out["rgb"].detach(), out2["rgb"])
+    # rendering composites whole rounds and skips colours of samples weighing < 1e-5
+    torch.testing.assert_close(out["rgb"].detach(), out2["rgb"], rtol=0, atol=2e-3)
     assert out["n_kept"] < out["n_marched"]  # opaque ball: termination drops samples
     full = OccupancyGrid(BOX, 32, dt=0.01).to(device)  # bits all set before any update
     ref = render_marched(full, field, o, d, 0.0, 9.0, t_threshold=1e-3)

@@ -189,7 +189,7 @@ def cmd_train_nerf(args) -> int:
             march_step=getattr(args, "march_step", None) or 0.0,
             max_samples=getattr(args, "max_samples", 1024),
             target_samples=getattr(args, "target_samples", 0),
-            round_samples=getattr(args, "round_samples", 16),
+            round_samples=getattr(args, "round_samples", 0),
         )
         hist = train_nerf(cfg, args.out, progress=not args.quiet)
     last = {
@@ -479,8 +479,8 @@ def _grid_flags(tn) -> None:
     tn.add_argument(
         "--round-samples",
         type=_nonnegative,
-        default=16,
-        help="with a grid, renders march in rounds of this many samples per ray (0: one pass)",
+        default=0,
+        help="with a grid, renders march in rounds of this many samples per ray (0: one round)",
     )
     tn.add_argument(
         "--target-samples",

@@ -186,14 +186,16 @@ def render_marched(
     all marched samples are computed first without gradients; each ray keeps its samples before
     transmittance drops below ``t_threshold`` (the compositing kernels' own rule, so forward and
     backward see the same samples); the field then runs again with gradients on the kept samples
-    only (under ``torch.no_grad()`` the colours come from the first pass's features instead).
+    only.
 
-    ``round_samples > 0`` (rendering only, no gradients): march in rounds of at most that many
-    samples per live ray (more as rays finish), compositing each round onto the rays' running
-    colour and transmittance and dropping rays once T < t_threshold, so samples behind opaque
-    surfaces are never marched or evaluated (a round is composited whole: the cut is at round
-    granularity, i.e. never earlier than the single pass's). Colours are computed only for
-    samples whose weight reaches ``COLOR_WEIGHT_EPS`` (1e-5); the others are taken as black.
+    Without gradients (rendering) the field's density runs once on the marched samples, their
+    weights are composited, and the colour MLP runs only on samples whose weight reaches
+    ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight).
+    ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
+    rays finish), compositing each round onto the rays' running colour and transmittance and
+    dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
+    (a round is composited whole); 0 marches everything in one round (on the H100 one round
+    was faster on lego: every round costs host syncs and launches).
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
@@ -201,10 +203,10 @@ def render_marched(
     from .ops.occupancy import live_samples
     from .ops.sampling import Samples
 
-    if round_samples > 0 and not torch.is_grad_enabled():
+    if not torch.is_grad_enabled():
         return _render_rounds(
-            grid, field, origins, directions, near, far, background, t_threshold, round_samples,
-            max_samples,
+            grid, field, origins, directions, near, far, background, t_threshold,
+            round_samples or max_samples, max_samples,
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     jitter = None
@@ -214,18 +216,15 @@ def render_marched(
     ri = smp.ray_indices
     positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
     with torch.no_grad():
-        sigmas, feats = field.density(positions)
+        sigmas, _ = field.density(positions)
     keep, n_live = live_samples(smp, sigmas, t_threshold)
     idx = torch.nonzero(keep).squeeze(1)
     counts = n_live.to(torch.int64)
     info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
     dirs = directions[kept.ray_indices]
-    if torch.is_grad_enabled():
-        sigmas, feats = field.density(positions[idx])
-        rgbs = field.color(feats, dirs)
-    else:
-        sigmas, rgbs = sigmas[idx], field.color(feats[idx], dirs)
+    sigmas, feats = field.density(positions[idx])
+    rgbs = field.color(feats, dirs)
     rgb, depth, opacity = render_packed(
         kept.t_starts,
         kept.t_ends,
@@ -246,7 +245,7 @@ def render_marched(
     }
 
 
-COLOR_WEIGHT_EPS = 1e-5  # rendering in rounds: colours of samples weighing less are skipped
+COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipped
 
 
 def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_samples, cap):

@@ -60,8 +60,8 @@ class NeRFConfig:
     occ_threshold: float = 0.01  # a cell is empty when one step through it has opacity below this
     march_step: float = 0.0  # marching step with a grid; 0: the box diagonal / 1024
     max_samples: int = 1024  # samples per ray at most with a grid
-    round_samples: int = 16  # with a grid, rendering (no gradients) marches in rounds of this
-    # many samples per live ray; 0: one pass over all marched samples
+    round_samples: int = 0  # with a grid, rendering (no gradients) marches in rounds of this
+    # many samples per live ray; 0: one round over all marched samples
     target_samples: int = 0  # > 0: rays per step adapt so each step composites ~this many
     # samples (starting from --batch); 0: fixed --batch
     aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
