@@ -2,7 +2,8 @@
 for several marching steps (run on the GPU; writes JSON), and the PNG from that JSON (locally).
 
     python3 scripts/speed_vs_error.py sweep RUN OUT.json [--images 5] [--chunk 400000]
-    python3 scripts/speed_vs_error.py plot OUT.json [MORE.json ...] --png docs/speed_vs_error.png
+    python3 scripts/speed_vs_error.py plot OUT.json --png docs/speed_vs_error.png \
+        --curves docs/data/grid/lego_grid_300s_history.json=grid ...
 """
 
 from __future__ import annotations
@@ -27,30 +28,48 @@ def sweep(run, out, images, chunk, divisors):
         json.dump({"run": str(run), "images": images, "rows": rows}, f, indent=1)
 
 
-def plot(paths, png):
+def plot(paths, png, curves=()):
+    """Left: render time vs val PSNR per marching step (one JSON per line, optional extra points
+    under "points"). Right (when ``curves`` are history JSONs): val PSNR against training time."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, axes = plt.subplots(1, 2 if curves else 1, figsize=(11 if curves else 6.4, 4.2))
+    ax = axes[0] if curves else axes
     for p in paths:
         d = json.load(open(p))
         rows = d["rows"]
         xs, ys = [r["render_ms"] for r in rows], [r["psnr"] for r in rows]
-        ax.plot(xs, ys, "o-", label=d.get("label", "grid marching, steps per box diagonal"))
+        ax.plot(xs, ys, "o-", label=d.get("label", "grid marching: steps per box diagonal"))
         for r in rows:
-            label = r.get("note") or str(r.get("steps_per_diagonal"))
-            ax.annotate(label, (r["render_ms"], r["psnr"]), textcoords="offset points",
-                        xytext=(4, -10), fontsize=8)  # fmt: skip
+            ax.annotate(str(r["steps_per_diagonal"]), (r["render_ms"], r["psnr"]),
+                        textcoords="offset points", xytext=(4, -10), fontsize=8)  # fmt: skip
+        for pt in d.get("points", []):
+            ax.plot([pt["render_ms"]], [pt["psnr"]], "s", label=pt["label"])
+    ax.axvline(10.0, color="gray", ls=":", lw=1)
     ax.set_xscale("log")
-    ax.set_xlabel("render time per 400x400 frame (ms, H100)")
+    ax.set_xlabel("render time per 400x400 frame (ms, H100, median)")
     ax.set_ylabel("val PSNR (dB)")
-    ax.set_title("lego, hash field: speed against error")
+    ax.set_title("lego, hash field: render speed against error")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="lower right")
+    if curves:
+        ax = axes[1]
+        for c in curves:
+            path, label = c.split("=", 1) if "=" in c else (c, c)
+            h = json.load(open(path))
+            ax.plot(h["val_seconds"], h["val_psnr"], "o-", label=label)
+        ax.axhline(33.0, color="gray", ls=":", lw=1)
+        ax.axhline(35.0, color="gray", ls=":", lw=1)
+        ax.set_xlabel("training time (s, H100; validation excluded)")
+        ax.set_ylabel("val PSNR during training (dB, 2 images)")
+        ax.set_title("lego 400x400, hash field: with and without the grid")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(png, dpi=120)
+    fig.savefig(png, dpi=110)
 
 
 def main():
@@ -65,11 +84,12 @@ def main():
     q = sub.add_parser("plot")
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)
+    q.add_argument("--curves", nargs="*", default=(), help="history.json[=label] files")
     a = p.parse_args()
     if a.cmd == "sweep":
         sweep(a.run, a.out, a.images, a.chunk, [int(x) for x in a.divisors.split(",")])
     else:
-        plot(a.json, a.png)
+        plot(a.json, a.png, a.curves)
 
 
 if __name__ == "__main__":

@@ -110,6 +110,31 @@ def test_cli_bench_encoding_quick(tmp_path):
     assert rows[0]["max_err_out"] < 1e-4 and rows[0]["max_err_v_table"] < 1e-3
 
 
+def test_cli_bench_march_and_sphere_trace_quick(tmp_path):
+    """Marching: samples per ray grow with occupancy, the kernel matches the float64 brute force
+    (at most a boundary sample off); sphere tracing matches the float64 twin."""
+    p = run(["-m", "warpnerf.cli", "bench", "march", "--quick", "--json", "m.json"], tmp_path)
+    rows = json.loads((tmp_path / "m.json").read_text())["rows"]
+    assert [r["kernel"] for r in rows] == ["march", "march"] and "| march |" in p.stdout
+    assert rows[0]["occupancy"] < rows[1]["occupancy"]
+    assert rows[0]["samples_per_ray"] < rows[1]["samples_per_ray"]
+    assert all(r["count_mismatch"] <= 2 and r["max_err_t"] < 1e-5 for r in rows)
+    args = ["-m", "warpnerf.cli", "bench", "sphere-trace", "--quick", "--json", "s.json"]
+    p = run(args, tmp_path)
+    (row,) = json.loads((tmp_path / "s.json").read_text())["rows"]
+    assert row["status_mismatch"] <= 2 and row["max_err_t"] < 2e-4 and row["evals_per_ray"] > 1
+
+
+def test_demo_10_occupancy_grid_tiny(tmp_path):
+    args = [str(ROOT / "demos" / "10_occupancy_grid.py"), "--out", "o", "--iters", "8"]
+    args += ["--batch", "64", "--samples", "8", "--builtin-size", "12", "--eval-images", "1"]
+    p = run(args + ["--grid-res", "8"], tmp_path)
+    res = last_json(p.stdout)
+    assert 0 < res["occupancy"] <= 1 and res["samples_per_ray_no_grid"] == 8
+    assert res["psnr_grid"] == res["psnr_grid"] and res["samples_per_ray_grid"] > 0
+    assert (tmp_path / "o" / "occupancy.png").exists()
+
+
 def test_demo_01_render_volume(tmp_path):
     p = run(
         [

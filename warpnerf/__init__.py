@@ -10,6 +10,8 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 - :class:`NeRFField`, :class:`PositionalEncoding`, :func:`render_nerf`, :func:`psnr`, :func:`ssim`
 - :class:`HashGrid`, :func:`hash_encode` (hash-grid encoding), :class:`HashEncoding`,
   :class:`SphericalHarmonics`, :class:`HashNeRFField` (the fast NeRF field)
+- :class:`OccupancyGrid`, :func:`march_rays` (packed marching through occupied cells),
+  :func:`render_marched` (grid marching + early termination + compositing)
 """
 
 from . import data
@@ -18,6 +20,7 @@ from .fields.hash_nerf import HashNeRFField
 from .fields.nerf import NeRFField
 from .fields.sdf_volume import SDFVolume, laplace_cdf
 from .metrics import psnr, ssim
+from .occupancy import OccupancyGrid
 from .ops import (
     HashGrid,
     Samples,
@@ -31,7 +34,8 @@ from .ops import (
     render_packed,
     stratified_samples,
 )
-from .render import render_image, render_nerf, render_rays, render_views
+from .ops.occupancy import march_rays
+from .render import render_image, render_marched, render_nerf, render_rays, render_views
 
 __version__ = "0.1.0"
 
@@ -59,6 +63,9 @@ __all__ = [
     "HashEncoding",
     "SphericalHarmonics",
     "HashNeRFField",
+    "OccupancyGrid",
+    "march_rays",
+    "render_marched",
     "psnr",
     "ssim",
 ]
