@@ -15,8 +15,10 @@ Marching. A ray's samples lie on a lattice of fixed step ``dt`` anchored at the 
 interval ``[t_lo, t_hi]`` (the scene box clipped to near/far, computed by the caller):
     interval k = [t_lo + (k + j) dt, min(t_lo + (k + j + 1) dt, t_hi)],  j = the ray's jitter
 is emitted when the cell holding its midpoint is occupied. From an empty cell the ray jumps to
-the first lattice interval whose midpoint lies past the cell's exit (DDA over the cells), less a
-small margin so that rounding can only re-test an interval, never skip one. Samples therefore
+the first lattice interval whose midpoint lies past the cell's exit (DDA over the cells), then
+backs off while the previous interval's midpoint is already outside the cell by the occupancy
+test's own floor() (rounding can only re-test an interval, never skip one; rays nearly parallel
+to a cell face need this: the exit plane and floor() then disagree by ~ulp / |d|). Samples therefore
 are exactly the dense lattice intervals whose midpoint cell is occupied (tests compare with that
 brute force). One kernel serves both passes: ``fill == 0`` counts a ray's samples (capped at
 ``max_samples``), ``fill == 1`` writes them at the ray's offset (the exclusive prefix sum of the
@@ -174,8 +176,20 @@ def march(
             if not (t_exit < t1):
                 k = -1  # the rest of the ray lies in this empty cell
                 break
-            # first k whose midpoint t0 + (k + j + 1/2) dt is past t_exit, less a margin
+            # first k whose midpoint t0 + (k + j + 1/2) dt is past t_exit, less a margin ...
             kn = int(wp.ceil((t_exit - t0) / dt - j - 0.5 - SKIP_MARGIN))
+            # ... then back off while the interval before it still leaves this cell by the
+            # occupancy test's own rounding (for rays nearly parallel to a cell face the exact
+            # exit plane and floor() disagree by ~ulp / |d|, far more than the margin)
+            while kn - 1 > k:
+                sb = t0 + (float(kn - 1) + j) * dt
+                pb = o + d * (0.5 * (sb + wp.min(sb + dt, t1)))
+                jx = cell_coord(pb[0], lo[0], inv[0], res)
+                jy = cell_coord(pb[1], lo[1], inv[1], res)
+                jz = cell_coord(pb[2], lo[2], inv[2], res)
+                if jx == ix and jy == iy and jz == iz:
+                    break
+                kn -= 1
             k = wp.max(k + 1, kn)
     if fill == 0:
         counts[r] = n

@@ -11,6 +11,7 @@ from warpnerf.errors import UserError
 from warpnerf.fields.encoding import PositionalEncoding
 from warpnerf.fields.nerf import NeRFField
 from warpnerf.train import NeRFConfig, evaluate_run, render_run, train_nerf
+from warpnerf.train.nerf import load_run
 from warpnerf.train.nerf_eval import camera_path
 
 
@@ -107,6 +108,18 @@ def test_resume_continues_exactly(tmp_path, n_fine, field):
             assert torch.equal(v, b["fields"][level][k]), (level, k)
     saved = json.loads((tmp_path / "b" / "config.json").read_text())
     assert saved["iters"] == 6 and saved["n_fine"] == n_fine
+
+
+def test_runs_from_before_the_grid_load_without_one(tmp_path):
+    train_nerf(tiny(iters=3, n_fine=8, **HASH), tmp_path / "r", progress=False, log=lambda *a: 0)
+    cfg_path = tmp_path / "r" / "config.json"
+    saved = json.loads(cfg_path.read_text())
+    del saved["grid_res"], saved["max_samples"]  # as written before the grid existed
+    cfg_path.write_text(json.dumps(saved))
+    cfg, fields_, _ = load_run(tmp_path / "r")
+    assert cfg.grid_res == 0 and fields_.get("grid") is None and fields_["fine"] is not None
+    with pytest.raises(UserError, match="max-samples"):
+        train_nerf(tiny(**dict(GRID, max_samples=3)), tmp_path / "x", progress=False)
 
 
 def test_run_folder_guards(tmp_path):

@@ -398,7 +398,7 @@ _TABLES = {
         ("speedup", "{speedup:.0f}x"),
         ("Mrays/s", lambda r: f"{r['rays_per_s'] / 1e6:.1f}"),
         ("% copy BW", "{bw_pct:.1f}"),
-        ("samples in another cell / max t err (vs f64)", "{count_mismatch} / {max_err_t:.1e}"),
+        ("count diff (sum over rays) / max t err (vs f64)", "{count_mismatch} / {max_err_t:.1e}"),
     ],
     "encoding": [
         ("points", "{n_points}"),

@@ -40,8 +40,8 @@ def _cell_geometry(aabb, res: int):
 
 
 def _check_res(res: int, n_cells: int | None = None):
-    if isinstance(res, bool) or not isinstance(res, int) or res < 2 or res % 2:
-        raise ValueError(f"grid resolution must be an even int >= 2, got {res!r}")
+    if isinstance(res, bool) or not isinstance(res, int) or res < 2 or res % 2 or res > 1024:
+        raise ValueError(f"grid resolution must be an even int in [2, 1024], got {res!r}")
     if n_cells is not None and n_cells != res**3:
         raise ValueError(f"grid has {n_cells} cells, expected res^3 = {res**3}")
 
@@ -134,7 +134,7 @@ def march_rays(
         (Samples with t_starts, t_ends [n] float32, ray_indices [n] int32, packed_info
         [n_rays, 2] int32, and k_next [n_rays] int32: the lattice index to continue from, -1 when
         the ray has no more samples).
-    Raises ValueError for non-finite origins/directions, bad shapes or dt <= 0.
+    Raises ValueError for non-finite origins/directions, zero directions, bad shapes or dt <= 0.
     """
     from warpnerf.kernels import occupancy as K
 
@@ -156,6 +156,7 @@ def march_rays(
     # One host sync for the total below; the finiteness check rides on it.
     finite = torch.isfinite(origins).all() & torch.isfinite(directions).all()
     finite = finite & torch.isfinite(near).all() & ~torch.isnan(far).any()
+    finite = finite & (directions.abs().amax(-1) > 0).all()  # a zero direction never ends
     empty_f = torch.empty(0, device=dev, dtype=torch.float32)
     empty_i = torch.empty(0, device=dev, dtype=torch.int32)
     jit = empty_f if jitter is None else jitter.to(dev, torch.float32).contiguous()
@@ -190,7 +191,11 @@ def march_rays(
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     total, ok = torch.stack([total[0], finite.to(torch.int64)]).tolist()
     if not ok:
-        raise ValueError("origins, directions, near and far must be finite (and far not NaN)")
+        raise ValueError(
+            "origins, directions and near must be finite, far not NaN, directions non-zero"
+        )
+    if total >= 2**31:
+        raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
     offsets = (csum - counts).to(torch.int32)
     t_starts = torch.empty(total, device=dev, dtype=torch.float32)
     t_ends = torch.empty(total, device=dev, dtype=torch.float32)

@@ -160,13 +160,19 @@ class NeRFConfig:
         if self.grid_res:
             if self.field != "hash":
                 raise UserError("--grid-res needs --field hash (set --grid-res 0 otherwise)")
-            if self.grid_res < 2 or self.grid_res % 2:
-                raise UserError(f"--grid-res must be an even number >= 2, got {self.grid_res}")
+            if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
+                raise UserError(f"--grid-res must be even, in [2, 1024], got {self.grid_res}")
             for name in ("grid_every", "max_samples"):
                 if getattr(self, name) < 1:
                     raise UserError(f"--{name.replace('_', '-')} must be >= 1")
             if not (0 < self.occ_threshold < 1 and math.isfinite(self.march_step)):
                 raise UserError("--occ-threshold must be in (0, 1) and --march-step finite")
+            need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step) + 1
+            if self.max_samples < need:  # training would cut rays off where rendering does not
+                raise UserError(
+                    f"--max-samples {self.max_samples} is below the {need} steps of "
+                    f"--march-step {self.march_step:g} across the box diagonal"
+                )
             if min(self.grid_warmup, self.target_samples, self.round_samples) < 0:
                 raise UserError("--grid-warmup, --target-samples, --round-samples must be >= 0")
         if not 0.0 <= self.t_threshold < 1.0:
@@ -386,6 +392,8 @@ def load_run(run, device: str | None = None):
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     try:
         saved = json.loads((run / "config.json").read_text())
+        if isinstance(saved, dict) and saved.get("field") and "grid_res" not in saved:
+            saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
         if isinstance(saved, dict) and saved.get("model") == "neural_sdf":
             raise UserError(
                 f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
@@ -466,8 +474,12 @@ def train_nerf(
         gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
         history, start = ckpt["history"], ckpt["step"]
         batch = ckpt.get("batch", cfg.batch)
-        if grid_gen is not None:
-            grid_gen.set_state(ckpt["grid_generator"].cpu())
+        state = ckpt.get("grid_generator")
+        if grid_gen is not None and ckpt.get("grid_generator_device") == grid_gen.device.type:
+            grid_gen.set_state(state.cpu())
+        elif grid_gen is not None:
+            log(f"{run}: resumed on another device type; the grid's random stream restarts "
+                "from the seed (the continuation is not bit-exact)")  # fmt: skip
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
@@ -536,6 +548,7 @@ def train_nerf(
             extra = {"batch": batch}
             if grid_gen is not None:
                 extra["grid_generator"] = grid_gen.get_state()
+                extra["grid_generator_device"] = grid_gen.device.type
             _save(run, done, fields_, opt, gen, history, cfg, extra)
             write_json(run / "history.json", history)
         if out_of_time:
