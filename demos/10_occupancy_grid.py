@@ -9,6 +9,12 @@ every 16 steps) is above threshold, and stop once transmittance falls below 1e-4
 every ray takes ``--samples`` stratified samples across the scene box. The demo prints val PSNR,
 samples per ray and training time of both, writes ``occupancy.png`` (the grid's middle slices
 along x, y and z: white = occupied) and ``metrics.json``, and one JSON line last.
+
+Measured with the defaults on the 2-core CPU machine (built-in 24x24 scene, 500 steps,
+2026-11-22): with the grid 27.53 dB val, 16.6 samples per ray at the last step, 27.7 s of
+training, 11.3 % of the 32^3 cells occupied; without it 25.71 dB, 32 samples per ray, 18.9 s
+(on one CPU thread the grid updates and marching cost more than the samples they save; on the
+H100 the grid is what makes lego train in minutes, see docs/PERFORMANCE.md).
 """
 
 from __future__ import annotations
