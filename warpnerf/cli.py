@@ -249,6 +249,7 @@ def cmd_eval(args) -> int:
         march_step=args.march_step,
         out_dir=args.out,
         round_samples=args.round_samples,
+        half=True if args.half else None,
     )
     keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
     print(json.dumps({k: m[k] for k in keys}))
@@ -576,6 +577,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--march-step", type=_positive(float), default=None, help="grid runs: another step"
     )
     e.add_argument("--round-samples", type=_nonnegative, default=None, help="grid runs: another")
+    e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
     e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
     e.set_defaults(func=cmd_eval)
 

@@ -176,6 +176,7 @@ def render_marched(
     t_threshold: float = 1e-4,
     max_samples: int = 1024,
     round_samples: int = 0,
+    half: bool = False,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -195,7 +196,9 @@ def render_marched(
     rays finish), compositing each round onto the rays' running colour and transmittance and
     dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
     (a round is composited whole); 0 marches everything in one round (on the H100 one round
-    was faster on lego: every round costs host syncs and launches).
+    was faster on lego: every round costs host syncs and launches). ``half`` (rendering on
+    CUDA only) runs the field's MLPs under float16 autocast; densities, weights and compositing
+    stay float32.
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
@@ -206,7 +209,7 @@ def render_marched(
     if not torch.is_grad_enabled():
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
-            round_samples or max_samples, max_samples,
+            round_samples or max_samples, max_samples, half,
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     jitter = None
@@ -248,8 +251,11 @@ def render_marched(
 COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipped
 
 
-def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_samples, cap):
+def _render_rounds(
+    grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False
+):
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
+    use_half = half and dev.type == "cuda"
     rgb = torch.zeros(n_rays, 3, device=dev, dtype=dt)
     depth = torch.zeros(n_rays, device=dev, dtype=dt)
     trans = torch.ones(n_rays, device=dev, dtype=dt)
@@ -266,7 +272,9 @@ def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_
         )
         ri = smp.ray_indices
         n_marched += smp.t_starts.shape[0]
-        sig, feats = field.density(oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1))
+        with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
+            sig, feats = field.density(oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1))
+        sig = sig.to(dt)
         # Weights first (no colours): the colour MLP runs only where a sample's weight in the
         # image, T_ray * w, reaches COLOR_WEIGHT_EPS; the rest add at most their weight's sum.
         _, z, op, w = render_packed(
@@ -283,7 +291,9 @@ def _render_rounds(grid, field, o, d, near, far, background, t_threshold, round_
         seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
         rs = ri[seen]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
-        c.index_add_(0, rs, w[seen].unsqueeze(-1) * field.color(feats[seen], da[rs]))
+        with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
+            col = field.color(feats[seen], da[rs])
+        c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))
         rgb[alive] += t_a.unsqueeze(-1) * c
         depth[alive] += t_a * z
         t_a = t_a * (1.0 - op)

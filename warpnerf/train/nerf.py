@@ -62,6 +62,7 @@ class NeRFConfig:
     max_samples: int = 1024  # samples per ray at most with a grid
     round_samples: int = 0  # with a grid, rendering (no gradients) marches in rounds of this
     # many samples per live ray; 0: one round over all marched samples
+    render_half: bool = False  # with a grid on CUDA, rendering runs the MLPs in float16
     target_samples: int = 0  # > 0: rays per step adapt so each step composites ~this many
     # samples (starting from --batch); 0: fixed --batch
     aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
@@ -314,6 +315,7 @@ def render_rays_of(
                 t_threshold=cfg.t_threshold,
                 max_samples=cfg.max_samples,
                 round_samples=cfg.round_samples,
+                half=cfg.render_half,
             )
             for s in range(0, max(n, 1), chunk)
         ]

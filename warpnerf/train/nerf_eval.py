@@ -36,13 +36,14 @@ def evaluate_run(
     march_step=None,
     out_dir=None,
     round_samples=None,
+    half=None,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
     RUN/eval_{split}/. Returns the metrics dict; ``render_ms`` is each image's rendering time
     alone (device synchronised before and after; metrics and PNGs excluded), ``chunk`` the rays
     rendered at once (default: the run's); ``march_step`` renders a grid run with another
-    marching step (the speed-versus-error sweep) and ``round_samples`` another rendering round
-    size; ``out_dir`` replaces RUN/eval_{split}."""
+    marching step (the speed-versus-error sweep), ``round_samples`` another rendering round
+    size and ``half`` float16 MLPs; ``out_dir`` replaces RUN/eval_{split}."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
@@ -56,6 +57,8 @@ def evaluate_run(
         cfg.march_step = fields_["grid"].dt = float(march_step)
     if round_samples is not None:
         cfg.round_samples = int(round_samples)
+    if half is not None:
+        cfg.render_half = bool(half)
     ds = load_data(cfg, split)
     out_dir = Path(out_dir) if out_dir else Path(run) / f"eval_{split}"
     for stale in out_dir.glob(f"{split}_*.png"):  # a previous, possibly larger, evaluation
@@ -100,6 +103,7 @@ def evaluate_run(
         "chunk": cfg.chunk,
         "march_step": cfg.march_step if fields_.get("grid") is not None else None,
         "round_samples": cfg.round_samples if fields_.get("grid") is not None else None,
+        "render_half": cfg.render_half if fields_.get("grid") is not None else None,
         "per_image": rows,
     }
     write_json(out_dir / "metrics.json", metrics)
