@@ -168,7 +168,8 @@ class NeRFConfig:
                     raise UserError(f"--{name.replace('_', '-')} must be >= 1")
             if not (0 < self.occ_threshold < 1 and math.isfinite(self.march_step)):
                 raise UserError("--occ-threshold must be in (0, 1) and --march-step finite")
-            need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step) + 1
+            # lattice intervals across the diagonal (the default step gives exactly 1024)
+            need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step * (1 - 1e-6))
             if self.max_samples < need:  # training would cut rays off where rendering does not
                 raise UserError(
                     f"--max-samples {self.max_samples} is below the {need} steps of "
