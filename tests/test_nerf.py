@@ -232,3 +232,8 @@ def test_config_defaults_resolve_per_data():
     assert (cfg.near, cfg.far) == (2.0, 6.0)
     with pytest.raises(UserError, match="t-threshold"):
         tiny(t_threshold=1.5).validate()
+    # the hash field's defaults: a 128^3 grid, step = diagonal / 1024, and they validate
+    cfg = NeRFConfig(data="some/folder", field="hash").validate()
+    assert cfg.grid_res == 128 and cfg.max_samples == 1024
+    assert cfg.march_step == pytest.approx(3.0 * 3**0.5 / 1024)
+    assert NeRFConfig(data="some/folder").validate().grid_res == 0  # NeRF's MLP: no grid
