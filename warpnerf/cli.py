@@ -7,7 +7,7 @@ import json
 import math
 import sys
 
-from .errors import UserError
+from .errors import Interrupted, UserError
 
 
 def _device(name: str) -> str:
@@ -625,6 +625,9 @@ def main(argv=None) -> int:
     except UserError as e:
         print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except Interrupted as e:  # training checkpointed its last step before stopping
+        print(f"warpnerf {args.command}: interrupted by {e}", file=sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -13,11 +13,12 @@ from pathlib import Path
 
 import torch
 
-from ..errors import UserError
+from ..errors import Interrupted, UserError
 from ..fields.nerf import NeRFField
 from ..io import atomic_path, write_json
 from ..ops import generate_rays, random_pixels
 from ..render import render_marched, render_nerf
+from ._signals import stop_requests
 
 __all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
 
@@ -492,73 +493,79 @@ def train_nerf(
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.iters, initial=start, desc="train nerf", unit="step", disable=None)
-    for step in range(start, cfg.iters):
-        lr = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
-        for group in opt.param_groups:
-            group["lr"] = lr
-        if grid is not None and step % cfg.grid_every == 0:
-            grid.update(density_of, grid_gen)
-        cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
-        o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
-        out = render_rays_of(
-            fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step, generator=grid_gen
-        )
-        if grid is not None:
-            history.setdefault("samples_per_ray", []).append(out["n_kept"] / batch)
-            history.setdefault("batch", []).append(batch)
-            if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
-                batch = int(batch * cfg.target_samples / max(out["n_kept"], 1))
-                batch = min(max(batch, 64), 1 << 16)
-        target = flat[idx]
-        loss_fine = torch.mean((out["rgb"] - target) ** 2)
-        loss = loss_fine
-        coarse = out.get("rgb_coarse")
-        if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
-            loss = loss + torch.mean((coarse - target) ** 2)
-        if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
-            f = fields_["coarse"]
-            box = (torch.rand(cfg.batch, 3, generator=gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            eik = 0.5 * (f.last_eikonal + f.eikonal(box))
-            loss = loss + cfg.eikonal_weight * eik
-            history.setdefault("beta", []).append(float(f.beta.detach()))
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        done = step + 1
-        if cfg.device.startswith("cuda"):
-            torch.cuda.synchronize()
-        seconds = elapsed0 + time.perf_counter() - t0 - val_time
-        history["step"].append(done)
-        history["loss"].append(loss.item())
-        history["psnr"].append(_psnr(loss_fine.item()))
-        history["seconds"].append(seconds)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{history['psnr'][-1]:.2f}")
-        session = seconds - elapsed0  # this invocation's training time
-        out_of_time = cfg.max_seconds > 0 and session >= cfg.max_seconds
-        if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
-            tv = time.perf_counter()
-            v = validate(fields_, cfg, val)
-            val_time += time.perf_counter() - tv
-            history["val_step"].append(done)
-            history["val_psnr"].append(v)
-            log(
-                f"step {done}: train psnr {history['psnr'][-1]:.2f}, val psnr {v:.2f}, "
-                f"{seconds:.0f} s"
+    with stop_requests() as stop:
+        for step in range(start, cfg.iters):
+            lr = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            if grid is not None and step % cfg.grid_every == 0:
+                grid.update(density_of, grid_gen)
+            cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
+            o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
+            out = render_rays_of(
+                fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step, generator=grid_gen
             )
-        if done % cfg.ckpt_every == 0 or done == cfg.iters or out_of_time:
-            extra = {"batch": batch}
-            if grid_gen is not None:
-                extra["grid_generator"] = grid_gen.get_state()
-                extra["grid_generator_device"] = grid_gen.device.type
-            _save(run, done, fields_, opt, gen, history, cfg, extra)
-            write_json(run / "history.json", history)
-        if out_of_time:
-            log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
-            break
+            if grid is not None:
+                history.setdefault("samples_per_ray", []).append(out["n_kept"] / batch)
+                history.setdefault("batch", []).append(batch)
+                if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
+                    batch = int(batch * cfg.target_samples / max(out["n_kept"], 1))
+                    batch = min(max(batch, 64), 1 << 16)
+            target = flat[idx]
+            loss_fine = torch.mean((out["rgb"] - target) ** 2)
+            loss = loss_fine
+            coarse = out.get("rgb_coarse")
+            if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
+                loss = loss + torch.mean((coarse - target) ** 2)
+            if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
+                f = fields_["coarse"]
+                box = (torch.rand(cfg.batch, 3, generator=gen) * 2 - 1).to(cfg.device) * cfg.aabb
+                eik = 0.5 * (f.last_eikonal + f.eikonal(box))
+                loss = loss + cfg.eikonal_weight * eik
+                history.setdefault("beta", []).append(float(f.beta.detach()))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            done = step + 1
+            if cfg.device.startswith("cuda"):
+                torch.cuda.synchronize()
+            seconds = elapsed0 + time.perf_counter() - t0 - val_time
+            history["step"].append(done)
+            history["loss"].append(loss.item())
+            history["psnr"].append(_psnr(loss_fine.item()))
+            history["seconds"].append(seconds)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{history['psnr'][-1]:.2f}")
+            session = seconds - elapsed0  # this invocation's training time
+            out_of_time = cfg.max_seconds > 0 and session >= cfg.max_seconds
+            if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
+                tv = time.perf_counter()
+                v = validate(fields_, cfg, val)
+                val_time += time.perf_counter() - tv
+                history["val_step"].append(done)
+                history["val_psnr"].append(v)
+                log(
+                    f"step {done}: train psnr {history['psnr'][-1]:.2f}, val psnr {v:.2f}, "
+                    f"{seconds:.0f} s"
+                )
+            stopping = out_of_time or stop["signum"] is not None
+            if done % cfg.ckpt_every == 0 or done == cfg.iters or stopping:
+                extra = {"batch": batch}
+                if grid_gen is not None:
+                    extra["grid_generator"] = grid_gen.get_state()
+                    extra["grid_generator_device"] = grid_gen.device.type
+                _save(run, done, fields_, opt, gen, history, cfg, extra)
+                write_json(run / "history.json", history)
+            if out_of_time:
+                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
+                break
+            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done, checkpoint it
+                break
     if bar is not None:
         bar.close()
+    if stop["signum"] is not None:
+        raise Interrupted(stop["signum"], history["step"][-1], run)
     return history
 
 
