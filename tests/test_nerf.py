@@ -120,6 +120,10 @@ def test_runs_from_before_the_grid_load_without_one(tmp_path):
     assert cfg.grid_res == 0 and fields_.get("grid") is None and fields_["fine"] is not None
     with pytest.raises(UserError, match="max-samples"):
         train_nerf(tiny(**dict(GRID, max_samples=3)), tmp_path / "x", progress=False)
+    with pytest.raises(UserError, match="occupancy grid"):  # a grid-only rendering setting
+        evaluate_run(tmp_path / "r", max_images=1, march_step=0.1)
+    m = evaluate_run(tmp_path / "r", max_images=1, chunk=50)
+    assert m["chunk"] == 50 and m["march_step"] is None
 
 
 def test_run_folder_guards(tmp_path):

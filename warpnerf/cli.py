@@ -245,11 +245,11 @@ def cmd_eval(args) -> int:
         args.split,
         device=_device(args.device) if args.device else None,
         max_images=args.max_images,
+        out_dir=args.out,
         chunk=args.chunk,
         march_step=args.march_step,
-        out_dir=args.out,
         round_samples=args.round_samples,
-        half=True if args.half else None,
+        render_half=True if args.half else None,
     )
     keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
     print(json.dumps({k: m[k] for k in keys}))

@@ -34,9 +34,7 @@ class OccupancyGrid(nn.Module):
 
     def __init__(self, aabb, resolution=128, *, dt, occ_threshold=0.01, decay=0.95, warmup=16):
         super().__init__()
-        box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1)
-        if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
-            raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min < max")
+        box = ops._box(aabb)
         ops._check_res(resolution)
         if not (dt > 0 and 0 < occ_threshold < 1 and 0 <= decay <= 1 and warmup >= 0):
             raise ValueError("need dt > 0, 0 < occ_threshold < 1, 0 <= decay <= 1, warmup >= 0")

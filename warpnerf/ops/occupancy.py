@@ -23,7 +23,7 @@ __all__ = [
 ]
 
 
-def _box(aabb, device):
+def _box(aabb):
     box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1).cpu()
     if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[3:] > box[:3]).all()):
         raise ValueError("aabb must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax]")
@@ -34,7 +34,7 @@ def _cell_geometry(aabb, res: int):
     from warpnerf.kernels import occupancy as K  # noqa: F401  (registers the module)
 
     wp = _bridge._wp()
-    box = _box(aabb, "cpu")
+    box = _box(aabb)
     size = (box[3:] - box[:3]) / res
     return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
 
@@ -149,7 +149,7 @@ def march_rays(
         raise ValueError(f"need dt > 0 (got {dt}) and max_samples >= 1 (got {max_samples})")
     near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n_rays)
     far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n_rays)
-    box = _box(aabb, dev)
+    box = _box(aabb)
     t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
     t_lo = torch.maximum(t_in, near).contiguous()
     t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo).contiguous()

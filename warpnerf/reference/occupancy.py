@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from warpnerf.ops.occupancy import unpack_bits  # pure torch: shared, not twinned
 from warpnerf.ops.sampling import Samples
 
 from .rays import ray_aabb_intersect
@@ -46,11 +47,6 @@ def grid_pack_bits(density, threshold):
     occ = (density > threshold).reshape(-1, 8).to(torch.int64)
     weights = 2 ** torch.arange(8, device=density.device)
     return (occ * weights).sum(-1).to(torch.uint8)
-
-
-def unpack_bits(bits):
-    shifts = torch.arange(8, device=bits.device, dtype=torch.uint8)
-    return ((bits.unsqueeze(-1) >> shifts) & 1).bool().reshape(-1)
 
 
 def march_rays(

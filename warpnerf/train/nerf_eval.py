@@ -18,6 +18,8 @@ from .nerf import load_data, load_run, render_dataset_image, render_rays_of
 
 __all__ = ["evaluate_run", "render_run", "camera_path", "train_and_evaluate"]
 
+# NeRFConfig fields that only affect rendering, so evaluation may override them.
+RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
 
 
@@ -32,33 +34,31 @@ def evaluate_run(
     split: str = "val",
     device: str | None = None,
     max_images: int = 0,
-    chunk=None,
-    march_step=None,
     out_dir=None,
-    round_samples=None,
-    half=None,
+    **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
-    RUN/eval_{split}/. Returns the metrics dict; ``render_ms`` is each image's rendering time
-    alone (device synchronised before and after; metrics and PNGs excluded), ``chunk`` the rays
-    rendered at once (default: the run's); ``march_step`` renders a grid run with another
-    marching step (the speed-versus-error sweep), ``round_samples`` another rendering round
-    size and ``half`` float16 MLPs; ``out_dir`` replaces RUN/eval_{split}."""
+    RUN/eval_{split}/ (or ``out_dir``). Returns the metrics dict; ``render_ms`` is each image's
+    rendering time alone (device synchronised before and after; metrics and PNGs excluded).
+    ``render`` overrides the run's rendering settings (:data:`RENDER_SETTINGS`: rays at once,
+    and for grid runs the marching step, round size, float16 MLPs), e.g. for the
+    speed-versus-error sweep."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
     cfg, fields_, ckpt = load_run(run, device)
-    if chunk is not None:
-        cfg.chunk = int(chunk)
-    if march_step is not None:
-        if fields_.get("grid") is None or not march_step > 0:
-            raise UserError("--march-step needs a run with an occupancy grid and a value > 0")
-        cfg.march_step = fields_["grid"].dt = float(march_step)
-    if round_samples is not None:
-        cfg.round_samples = int(round_samples)
-    if half is not None:
-        cfg.render_half = bool(half)
+    grid = fields_.get("grid")
+    for key, value in render.items():
+        if key not in RENDER_SETTINGS:
+            raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
+        if value is None:
+            continue
+        if key != "chunk" and grid is None:
+            raise UserError(f"--{key.replace('_', '-')} needs a run with an occupancy grid")
+        setattr(cfg, key, type(getattr(cfg, key))(value))
+    if grid is not None:
+        grid.dt = cfg.march_step
     ds = load_data(cfg, split)
     out_dir = Path(out_dir) if out_dir else Path(run) / f"eval_{split}"
     for stale in out_dir.glob(f"{split}_*.png"):  # a previous, possibly larger, evaluation
@@ -100,10 +100,7 @@ def evaluate_run(
         "ssim_settings": SSIM_SETTINGS if with_ssim else "not computed: images under 11x11",
         "seconds_per_image": (time.perf_counter() - t0) / max(n, 1),
         "render_ms_median": statistics.median(r["render_ms"] for r in rows) if rows else None,
-        "chunk": cfg.chunk,
-        "march_step": cfg.march_step if fields_.get("grid") is not None else None,
-        "round_samples": cfg.round_samples if fields_.get("grid") is not None else None,
-        "render_half": cfg.render_half if fields_.get("grid") is not None else None,
+        **{k: getattr(cfg, k) if k == "chunk" or grid else None for k in RENDER_SETTINGS},
         "per_image": rows,
     }
     write_json(out_dir / "metrics.json", metrics)
