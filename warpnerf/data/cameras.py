@@ -74,3 +74,97 @@ def orbit_views(n_views: int, radius: float = 4.0, seed: int = 0, dtype=torch.fl
             look_at((radius * r * math.cos(th), radius * r * math.sin(th), radius * z), dtype=dtype)
         )
     return torch.stack(mats)
+
+
+def undistort_points(xd: torch.Tensor, yd: torch.Tensor, dist, iters: int = 10):
+    """Undistorted normalised image coordinates (x, y) of distorted ones, OpenCV's radial-
+    tangential model with ``dist`` = (k1, k2, p1, p2) [4] or per point [n, 4]:
+
+        x_d = x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)   (y_d likewise)
+
+    solved by Newton's method on the 2x2 Jacobian, in float64."""
+    dt = xd.dtype
+    xd, yd = xd.double(), yd.double()
+    dist = torch.as_tensor(dist, dtype=torch.float64, device=xd.device)
+    k1, k2, p1, p2 = dist.reshape(-1, 4).unbind(-1)
+    x, y = xd.clone(), yd.clone()
+    for _ in range(iters):
+        r2 = x * x + y * y
+        rad = 1 + k1 * r2 + k2 * r2 * r2
+        fx = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+        fy = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+        drad = 2 * k1 + 4 * k2 * r2  # d rad / d(r^2) * 2
+        a = rad + x * drad * x + 2 * p1 * y + 6 * p2 * x  # d fx / dx
+        b = x * drad * y + 2 * p1 * x + 2 * p2 * y  # d fx / dy
+        c = y * drad * x + 2 * p1 * x + 2 * p2 * y  # d fy / dx
+        d = rad + y * drad * y + 6 * p1 * y + 2 * p2 * x  # d fy / dy
+        det = a * d - b * c
+        x, y = x - (d * fx - b * fy) / det, y - (a * fy - c * fx) / det
+    return x.to(dt), y.to(dt)
+
+
+def ndc_rays(origins, directions, ndc, near: float = 1.0):
+    """NeRF's normalised device coordinates for forward-facing scenes: the frustum z in
+    [-inf, -near] of the camera ``ndc`` = (fx, fy, W, H) maps to the cube [-1, 1]^3 (z = 1 at
+    infinity). Rays start on the near plane; returns origins [n, 3] and unit directions [n, 3]
+    in NDC space (distances along them are NDC lengths, not world lengths)."""
+    fx, fy, w, h = (float(v) for v in ndc)
+    o, d = origins, directions
+    t = -(near + o[:, 2]) / d[:, 2]
+    o = o + t[:, None] * d
+    ax, ay = -2.0 * fx / w, -2.0 * fy / h
+    oz = o[:, 2]
+    o_ndc = torch.stack([ax * o[:, 0] / oz, ay * o[:, 1] / oz, 1.0 + 2.0 * near / oz], -1)
+    d_ndc = torch.stack(
+        [
+            ax * (d[:, 0] / d[:, 2] - o[:, 0] / oz),
+            ay * (d[:, 1] / d[:, 2] - o[:, 1] / oz),
+            -2.0 * near / oz,
+        ],
+        -1,
+    )
+    return o_ndc, torch.nn.functional.normalize(d_ndc, dim=-1)
+
+
+def camera_rays(
+    c2w,  # [n_cams, 3|4, 4] or [4, 4], OpenGL camera-to-world
+    intrinsics,  # [n_cams, 4] or [4]
+    width: int | None = None,
+    height: int | None = None,
+    *,
+    cam_idx=None,  # [n] (a batch of pixels) or None (every pixel)
+    px=None,  # [n] continuous pixel x of the (distorted) image
+    py=None,  # [n]
+    distortion=None,  # [n_cams, 4] (k1, k2, p1, p2) or None
+    ndc=None,  # (fx, fy, W, H) of the NDC camera, or None
+):
+    """Rays of dataset pixels: :func:`warpnerf.ops.generate_rays` after undistorting the pixel
+    positions (when ``distortion`` is non-zero), then mapped to NDC (when ``ndc`` is given).
+    Returns origins [n, 3], unit directions [n, 3]."""
+    from ..ops import generate_rays
+
+    undistort = distortion is not None and bool(torch.as_tensor(distortion).abs().max() > 0)
+    if not undistort:
+        o, d = generate_rays(c2w, intrinsics, width, height, cam_idx=cam_idx, px=px, py=py)
+    else:
+        k = intrinsics if intrinsics.dim() == 2 else intrinsics[None]
+        dist = torch.as_tensor(distortion, device=k.device)
+        dist = dist if dist.dim() == 2 else dist[None]
+        if cam_idx is None:  # every pixel of every camera, (camera, row, column) order
+            n_cams = k.shape[0]
+            ys, xs = torch.meshgrid(
+                torch.arange(height, device=k.device, dtype=k.dtype) + 0.5,
+                torch.arange(width, device=k.device, dtype=k.dtype) + 0.5,
+                indexing="ij",
+            )
+            cam_idx = torch.arange(n_cams, device=k.device).repeat_interleave(width * height)
+            px, py = xs.reshape(-1).repeat(n_cams), ys.reshape(-1).repeat(n_cams)
+        kk = k[cam_idx]
+        x, y = undistort_points(
+            (px - kk[:, 2]) / kk[:, 0], (py - kk[:, 3]) / kk[:, 1], dist[cam_idx]
+        )
+        px, py = x * kk[:, 0] + kk[:, 2], y * kk[:, 1] + kk[:, 3]
+        o, d = generate_rays(c2w, intrinsics, cam_idx=cam_idx, px=px, py=py)
+    if ndc is not None:
+        o, d = ndc_rays(o, d, ndc)
+    return o, d

@@ -16,7 +16,7 @@ import torch
 from ..errors import Interrupted, UserError
 from ..fields.nerf import NeRFField
 from ..io import atomic_path, write_json
-from ..ops import generate_rays, random_pixels
+from ..ops import random_pixels
 from ..render import render_marched, render_nerf
 from ._signals import stop_requests
 
@@ -28,6 +28,11 @@ CHECKPOINT = "checkpoint.pt"
 @dataclass
 class NeRFConfig:
     data: str = "builtin"  # a dataset folder, or "builtin" for the small synthetic scene
+    data_format: str = "auto"  # auto (detect), blender, nerfstudio, colmap or llff
+    holdout: int = 8  # COLMAP/LLFF: every holdout-th image is val/test (0: none)
+    ndc: str = "auto"  # COLMAP/LLFF: NDC rays on/off; auto: on for forward-facing captures
+    scene: dict | None = None  # COLMAP/LLFF, resolved at the start: format, transform (world ->
+    # normalised [4][4]), ndc camera (fx, fy, W, H) or None, near, far, aabb
     iters: int = 2000
     batch: int = 1024  # rays per step, uniform across all training images
     field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast);
@@ -102,6 +107,9 @@ class NeRFConfig:
             self.lr = 1e-2 if self.field == "hash" else 5e-4
         if self.lr_final is None:
             self.lr_final = self.lr / (20.0 if self.field == "hash" else 10.0)
+        self._resolve_scene()
+        if self.aabb <= 0 and self.scene is not None:
+            self.aabb = self.scene["aabb"]
         if self.aabb <= 0 and self.field in ("hash", "volsdf"):
             if self.data == "builtin":
                 from ..data.synthetic import BOUND
@@ -113,14 +121,49 @@ class NeRFConfig:
             self.grid_res = 128 if self.field == "hash" else 0
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
+        self._resolve_scene()
         if self.near is None or self.far is None:
-            if self.data == "builtin":
+            if self.scene is not None:
+                NEAR, FAR = self.scene["near"], self.scene["far"]
+            elif self.data == "builtin":
                 from ..data.synthetic import FAR, NEAR
             else:
                 NEAR, FAR = 2.0, 6.0
             self.near = NEAR if self.near is None else self.near
             self.far = FAR if self.far is None else self.far
         return self
+
+    def _resolve_scene(self):
+        """Reads a COLMAP/LLFF folder's poses once (no pixels) into ``scene``."""
+        if self.scene is not None or self.data == "builtin":
+            return
+        from ..data.capture import capture_info
+        from ..data.datasets import FORMATS, detect_format
+
+        if self.data_format not in FORMATS or self.ndc not in ("auto", "on", "off"):
+            raise UserError(
+                f"--format must be one of {', '.join(FORMATS)} and --ndc auto, on or off; "
+                f"got {self.data_format!r}, {self.ndc!r}"
+            )
+        fmt = self.data_format if self.data_format != "auto" else detect_format(self.data)
+        if fmt not in ("colmap", "llff"):
+            if self.ndc == "on":
+                raise UserError("--ndc on needs a forward-facing COLMAP or LLFF capture")
+            return
+        info = capture_info(self.data, fmt, self.downscale, self.holdout)
+        ndc = info["forward_facing"] if self.ndc == "auto" else self.ndc == "on"
+        self.scene = {
+            "format": fmt,
+            "transform": info["transform"],
+            "ndc": info["ndc_camera"] if ndc else None,
+            "near": 0.0 if ndc else info["near"],
+            "far": 4.0 if ndc else info["far"],
+            "aabb": 1.5 if ndc else info["aabb"],
+        }
+
+    def ndc_camera(self):
+        """(fx, fy, W, H) of the NDC camera, or None when rays stay in world space."""
+        return self.scene["ndc"] if self.scene else None
 
     def validate(self):
         for name in (
@@ -201,10 +244,13 @@ class NeRFConfig:
         )
 
     def aabb_box(self):
-        """The hash/VolSDF field's scene box [6], or None for the MLP field (near..far)."""
+        """The scene box [6]: with NDC rays [-a, a]^2 x [-1, 1] (z = 1 is infinity), for the
+        hash/VolSDF field [-a, a]^3, else None (the MLP field samples near..far)."""
+        a = float(self.aabb)
+        if self.ndc_camera() is not None:
+            return [-a, -a, -1.0, a, a, 1.0]
         if self.field not in ("hash", "volsdf"):
             return None
-        a = float(self.aabb)
         return [-a, -a, -a, a, a, a]
 
 
@@ -288,10 +334,31 @@ def load_data(cfg: NeRFConfig, split: str):
             background=(cfg.background,) * 3,
             downscale=cfg.downscale,
             max_images=cfg.max_images or None,
+            fmt=cfg.data_format,
+            holdout=cfg.holdout,
         )
-    for k in ("images", "c2w", "intrinsics"):
-        ds[k] = ds[k].to(cfg.device)
+    for k in ("images", "c2w", "intrinsics", "distortion"):
+        if k in ds:
+            ds[k] = ds[k].to(cfg.device)
     return ds
+
+
+def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None):
+    """Rays of a batch of pixels (cam_idx, px, py) or of every pixel of ``image``: undistorted
+    when the dataset has distortion, in NDC when the run uses it."""
+    from ..data.cameras import camera_rays
+
+    dist = ds.get("distortion")
+    if image is not None:
+        sl = slice(image, image + 1)
+        return camera_rays(
+            ds["c2w"][sl], ds["intrinsics"][sl], ds["width"], ds["height"],
+            distortion=None if dist is None else dist[sl], ndc=cfg.ndc_camera(),
+        )  # fmt: skip
+    return camera_rays(
+        ds["c2w"], ds["intrinsics"], cam_idx=cam_idx, px=px, py=py, distortion=dist,
+        ndc=cfg.ndc_camera(),
+    )  # fmt: skip
 
 
 def render_rays_of(
@@ -345,7 +412,7 @@ def render_rays_of(
 def render_dataset_image(fields_, cfg, ds, i):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
     h, w = ds["height"], ds["width"]
-    o, d = generate_rays(ds["c2w"][i], ds["intrinsics"][i], w, h)
+    o, d = dataset_rays(cfg, ds, image=i)
     out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
     return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
 
@@ -501,7 +568,7 @@ def train_nerf(
             if grid is not None and step % cfg.grid_every == 0:
                 grid.update(density_of, grid_gen)
             cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
-            o, d = generate_rays(train["c2w"], train["intrinsics"], cam_idx=cam, px=px, py=py)
+            o, d = dataset_rays(cfg, train, cam, px, py)
             out = render_rays_of(
                 fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step, generator=grid_gen
             )

@@ -1,0 +1,436 @@
+"""Real captures: COLMAP sparse models and LLFF ``poses_bounds.npy`` folders.
+
+Both become the same thing: images sorted by file name, OpenGL camera-to-world poses, pinhole
+intrinsics plus OpenCV distortion ``(k1, k2, p1, p2)`` (undistorted per pixel ray by
+:func:`warpnerf.data.cameras.camera_rays`; the images are never resampled), per-image depth bounds,
+and a **scene normalisation** ``transform`` [4, 4] with ``x_norm = transform @ x_world``:
+
+- forward-facing captures (every camera's viewing axis within 45 degrees of their mean), as the
+  NeRF paper: recentre on the mean camera pose (it becomes the identity: looking down -z, +y up)
+  and scale by ``1 / (0.75 * min near)``; rendering then uses NDC rays (near plane 1).
+- other captures (objects, 360-degree): centre = the point closest to all viewing axes (least
+  squares), +z = the cameras' mean up vector, scale = 4 / the cameras' median distance to the
+  centre (so cameras sit near radius 4, as in the Blender scenes).
+
+Only camera poses decide the transform, so a COLMAP model and the LLFF file made from it normalise
+the same way. The transform is a similarity (rotation, uniform scale, translation) and is stored
+in the run's config; meshes are mapped back to world units with its inverse.
+
+Hold-out (the LLFF convention): images ``i % holdout == 0`` in sorted order are val/test, the
+others train; ``holdout = 0`` trains on all and validates on all.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from .blender import _area_downscale, _composite
+from .colmap import find_model, qvec_to_rotmat, read_model
+
+__all__ = ["detect_capture", "capture_info", "load_capture", "HOLDOUT", "NDC_NEAR"]
+
+HOLDOUT = 8
+NDC_NEAR = 1.0
+FORWARD_FACING_DEGREES = 45.0
+CAMERA_RADIUS = 4.0
+_EXTS = (".png", ".jpg", ".jpeg")
+_OPENCV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def detect_capture(root: Path) -> str | None:
+    """ "colmap" (a sparse model under sparse/0, sparse or the folder), "llff"
+    (poses_bounds.npy) or None."""
+    if find_model(root) is not None:
+        return "colmap"
+    if (root / "poses_bounds.npy").is_file():
+        return "llff"
+    return None
+
+
+def _image_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in _EXTS and p.is_file())
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, read from its header where possible."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            return im.size
+    except ImportError:  # pragma: no cover - imageio brings pillow
+        pass
+    except Exception as e:
+        raise UserError(f"{path}: cannot read image ({e})") from None
+    return _read(path).shape[1::-1]
+
+
+def _read(path: Path) -> np.ndarray:
+    import imageio.v3 as iio
+
+    try:
+        img = np.asarray(iio.imread(path))
+    except Exception as e:  # imageio raises many types for corrupt files
+        raise UserError(f"{path}: cannot read image ({e})") from None
+    if img.ndim == 2:
+        img = img[..., None].repeat(3, -1)
+    if img.ndim != 3 or img.shape[-1] not in (3, 4) or img.dtype not in (np.uint8, np.uint16):
+        raise UserError(f"{path}: expected an 8/16-bit RGB(A) image, got {img.shape} {img.dtype}")
+    return img.astype(np.float32) / (255.0 if img.dtype == np.uint8 else 65535.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Poses of each format, in world units: names, c2w [N, 4, 4] OpenGL, intrinsics [N, 4] of the
+# chosen image folder, distortion [N, 4], bounds [N, 2] (or None), points [M, 3] (or None).
+
+
+def _colmap(root: Path, downscale: int) -> dict:
+    model = find_model(root)
+    cams, images, points = read_model(model)
+    if not images:
+        raise UserError(f"{model}: the model has no registered images")
+    folder = root / "images"
+    if downscale > 1 and (root / f"images_{downscale}").is_dir():
+        folder = root / f"images_{downscale}"
+    if not folder.is_dir():
+        raise UserError(f"{root}: no images/ folder next to the COLMAP model {model}")
+    ims = sorted(images.values(), key=lambda im: im.name)
+    missing = [im.name for im in ims if not (folder / im.name).is_file()]
+    if missing:
+        raise UserError(
+            f"{folder}: {len(missing)} image(s) of the model are missing, e.g. {missing[:3]}"
+        )
+    registered = {im.name for im in ims}
+    unregistered = [p.name for p in _image_files(folder) if p.name not in registered]
+    c2w, k, dist, bounds = [], [], [], []
+    if points is not None:
+        order = np.argsort(points["ids"])
+        order_ids = points["ids"][order]
+    for im in ims:
+        cam = cams[im.camera_id]
+        r, t = qvec_to_rotmat(im.qvec), im.tvec
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = r.T, -r.T @ t
+        c2w.append(m @ _OPENCV_TO_GL)
+        ki, di = cam.pinhole()
+        k.append(ki)
+        dist.append(di)
+        ids = im.point3d_ids[im.point3d_ids >= 0]
+        if points is not None and len(ids):
+            rows = np.searchsorted(order_ids, ids).clip(0, len(order_ids) - 1)
+            rows = order[rows[order_ids[rows] == ids]]
+            z = (points["xyz"][rows] - m[:3, 3]) @ r[2]  # depth along the viewing axis (OpenCV +z)
+            z = z[z > 0]
+            bounds.append(np.percentile(z, [0.1, 99.9]) if len(z) else [np.nan, np.nan])
+        else:
+            bounds.append([np.nan, np.nan])
+    size = {(cams[im.camera_id].width, cams[im.camera_id].height) for im in ims}
+    if len(size) > 1:
+        raise UserError(f"{model}: cameras of different sizes {sorted(size)}; one size needed")
+    (w_cam, h_cam) = size.pop()
+    first = folder / ims[0].name
+    w_img, h_img = _image_size(first)
+    k = np.asarray(k)
+    if (w_img, h_img) != (w_cam, h_cam):
+        sx, sy = w_img / w_cam, h_img / h_cam
+        if folder.name == "images" or abs(sx - sy) > 1e-3:
+            raise UserError(
+                f"{first}: image is {w_img}x{h_img} but its COLMAP camera is {w_cam}x{h_cam}"
+            )
+        k = k * np.array([sx, sy, sx, sy])  # images_N: a downscaled copy
+    bounds = np.asarray(bounds, dtype=np.float64)
+    return {
+        "names": [im.name for im in ims],
+        "folder": folder,
+        "c2w": np.asarray(c2w),
+        "intrinsics": k,
+        "distortion": np.asarray(dist),
+        "bounds": None if np.isnan(bounds).all() else bounds,
+        "points": points["xyz"] if points is not None and len(points["xyz"]) else None,
+        "size": (w_img, h_img),
+        "unregistered": unregistered,
+        "model": str(model),
+        "camera_models": sorted({cams[im.camera_id].model for im in ims}),
+    }
+
+
+def _llff(root: Path, downscale: int) -> dict:
+    path = root / "poses_bounds.npy"
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except Exception as e:
+        raise UserError(f"{path}: cannot read ({e})") from None
+    if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1:
+        raise UserError(f"{path}: expected an [N, 17] array (LLFF poses_bounds), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        bad = sorted({int(i) for i in np.argwhere(~np.isfinite(arr))[:, 0]})
+        raise UserError(f"{path}: non-finite values in row(s) {bad[:5]}")
+    poses = arr[:, :15].reshape(-1, 3, 5).astype(np.float64)
+    bounds = arr[:, 15:17].astype(np.float64)
+    if (bounds <= 0).any() or (bounds[:, 1] <= bounds[:, 0]).any():
+        raise UserError(f"{path}: bounds (columns 15, 16) must satisfy 0 < near < far")
+    h_full, w_full, focal = poses[0, :, 4]
+    if min(h_full, w_full, focal) <= 0:
+        raise UserError(f"{path}: [H, W, focal] = {poses[0, :, 4]} must be positive")
+    # Folder: images_<downscale>, else images, else the smallest images_<N> there is.
+    cands = [root / f"images_{downscale}"] if downscale > 1 else []
+    cands.append(root / "images")
+    cands += sorted(
+        (p for p in root.glob("images_*") if p.is_dir() and p.name[7:].isdigit()),
+        key=lambda p: int(p.name[7:]),
+    )
+    folder = next((c for c in cands if c.is_dir() and _image_files(c)), None)
+    if folder is None:
+        raise UserError(f"{root}: no images/ or images_N/ folder with PNG/JPEG images")
+    files = _image_files(folder)
+    if len(files) != len(arr):
+        raise UserError(
+            f"{folder}: {len(files)} image(s) but {path} has {len(arr)} pose rows "
+            "(one row per image, in sorted file-name order)"
+        )
+    w_img, h_img = _image_size(files[0])
+    s = w_img / w_full
+    if abs(h_img / h_full - s) > 0.01:
+        raise UserError(
+            f"{files[0]}: image {w_img}x{h_img} is not a scaled copy of the poses' "
+            f"{int(w_full)}x{int(h_full)}"
+        )
+    c2w = np.tile(np.eye(4), (len(arr), 1, 1))
+    # columns [down, right, back] -> OpenGL [right, up, back]
+    c2w[:, :3, 0], c2w[:, :3, 1], c2w[:, :3, 2] = poses[:, :, 1], -poses[:, :, 0], poses[:, :, 2]
+    c2w[:, :3, 3] = poses[:, :, 3]
+    k = np.array([focal * s, focal * s, 0.5 * w_img, 0.5 * h_img])
+    return {
+        "names": [p.name for p in files],
+        "folder": folder,
+        "c2w": c2w,
+        "intrinsics": np.tile(k, (len(arr), 1)),
+        "distortion": np.zeros((len(arr), 4)),
+        "bounds": bounds,
+        "points": None,
+        "size": (w_img, h_img),
+        "unregistered": [],
+        "model": str(path),
+        "camera_models": ["PINHOLE"],
+    }
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _check_poses(c2w: np.ndarray, where: str):
+    r = c2w[:, :3, :3]
+    err = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    if not np.isfinite(c2w).all() or (err > 1e-3).any():
+        bad = int(np.argmax(~np.isfinite(err) | (err > 1e-3)))
+        raise UserError(f"{where}: pose {bad} is not a finite rotation (error {err[bad]:.2g})")
+
+
+def _normalisation(c2w: np.ndarray, bounds) -> tuple[np.ndarray, bool, float]:
+    """(transform [4, 4] world -> normalised, forward_facing, scale) from the camera poses."""
+    back = c2w[:, :3, 2]
+    mean_back = back.mean(0)
+    mean_back /= np.linalg.norm(mean_back)
+    cos = np.clip(back @ mean_back, -1.0, 1.0)
+    forward = bool(np.degrees(np.arccos(cos)).max() < FORWARD_FACING_DEGREES)
+    centres = c2w[:, :3, 3]
+    up = c2w[:, :3, 1].mean(0)
+    if forward:  # mean pose -> identity, then NeRF's 1 / (0.75 * min near)
+        z = mean_back
+        x = np.cross(up, z)
+        x /= np.linalg.norm(x)
+        rot = np.stack([x, np.cross(z, x), z])  # rows: world -> camera-aligned axes
+        centre = centres.mean(0)
+        near = bounds[:, 0].min() if bounds is not None else None
+        if near is None:  # no bounds: the cameras' spread sets the scale
+            near = max(np.linalg.norm(centres - centre, axis=1).max(), 1e-6) * 10
+        scale = 1.0 / (0.75 * near)
+    else:  # centre on the viewing axes' closest point, +z up, cameras near radius 4
+        fwd = -back
+        proj = np.eye(3)[None] - fwd[:, :, None] * fwd[:, None, :]
+        centre = np.linalg.lstsq(proj.sum(0), (proj @ centres[:, :, None]).sum(0), rcond=None)[0]
+        centre = centre[:, 0]
+        z = up / np.linalg.norm(up)
+        x = np.cross(np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0, 0]), z)
+        x /= np.linalg.norm(x)
+        rot = np.stack([x, np.cross(z, x), z])
+        dist = np.median(np.linalg.norm(centres - centre, axis=1))
+        scale = CAMERA_RADIUS / max(dist, 1e-12)
+    t = np.eye(4)
+    t[:3, :3] = scale * rot
+    t[:3, 3] = -scale * rot @ centre
+    return t, forward, float(scale)
+
+
+def apply_transform(transform: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses [N, 4, 4] in the normalised frame (rotations stay orthonormal)."""
+    scale = np.cbrt(np.linalg.det(transform[:3, :3]))
+    out = transform @ c2w
+    out[:, :3, :3] /= scale
+    return out
+
+
+def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
+    root = Path(root)
+    if not root.is_dir():
+        raise UserError(f"{root}: data folder not found")
+    found = detect_capture(root)
+    fmt = fmt or found
+    if fmt not in ("colmap", "llff"):
+        raise UserError(f"{root}: no COLMAP model (sparse/0) or poses_bounds.npy found")
+    if fmt == "colmap" and find_model(root) is None:
+        raise UserError(f"{root}: --format colmap, but no cameras/images.{{bin,txt}} found")
+    if fmt == "llff" and not (root / "poses_bounds.npy").is_file():
+        raise UserError(f"{root}: --format llff, but no poses_bounds.npy found")
+    sc = _colmap(root, downscale) if fmt == "colmap" else _llff(root, downscale)
+    sc["format"] = fmt
+    # --downscale d reads images_d when it exists, else area-averages the folder used by d.
+    sc["extra"] = 1 if sc["folder"].name == f"images_{downscale}" else downscale
+    _check_poses(sc["c2w"], sc["model"])
+    transform, forward, scale = _normalisation(sc["c2w"], sc["bounds"])
+    sc.update(transform=transform, forward_facing=forward, scale=scale)
+    sc["c2w_norm"] = apply_transform(transform, sc["c2w"])
+    # Scene-wide depth bounds in normalised units.
+    if sc["bounds"] is not None and np.isfinite(sc["bounds"]).all():
+        near, far = sc["bounds"][:, 0].min() * scale * 0.9, sc["bounds"][:, 1].max() * scale * 1.1
+    else:
+        near, far = 0.1 * CAMERA_RADIUS, 3.0 * CAMERA_RADIUS
+    sc["near"], sc["far"] = float(near), float(far)
+    # Scene box half-size for fields that need one (not used with NDC): the sparse points'
+    # 2-98 % box when there are points, else 1.5 camera radii.
+    aabb = 1.5 * CAMERA_RADIUS
+    if sc["points"] is not None and not forward:
+        p = sc["points"] @ transform[:3, :3].T + transform[:3, 3]
+        box = np.abs(np.percentile(p, [2, 98], axis=0)).max()
+        aabb = float(np.clip(box, 1.0, sc["far"]))
+    sc["aabb"] = round(aabb, 3)
+    return sc
+
+
+def _split(n: int, split: str, holdout: int, where) -> list[int]:
+    if holdout == 0:
+        return list(range(n))
+    held = split != "train"
+    idx = [i for i in range(n) if (i % holdout == 0) == held]
+    if not idx:
+        raise UserError(f"{where}: split '{split}' is empty ({n} images, holdout {holdout})")
+    return idx
+
+
+def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT) -> dict:
+    """Everything but the pixels: format, splits, image size, intrinsics, near/far, NDC use,
+    scene transform and bounds (normalised), camera centres' box. JSON-ready."""
+    if holdout < 0 or holdout == 1:
+        raise UserError(f"holdout must be 0 (none) or >= 2, got {holdout}")
+    sc = _scene(root, fmt, downscale)
+    n = len(sc["names"])
+    folder = sc["folder"]
+    extra = sc["extra"]
+    w, h = sc["size"][0] // extra, sc["size"][1] // extra
+    centres = sc["c2w_norm"][:, :3, 3]
+    info = {
+        "format": sc["format"],
+        "model": sc["model"],
+        "images_folder": str(folder),
+        "images": n,
+        "splits": {s: len(_split(n, s, holdout, root)) for s in ("train", "val")},
+        "holdout": holdout,
+        "image_size": [w, h],
+        "camera_models": sc["camera_models"],
+        "intrinsics": (sc["intrinsics"][0] / extra).round(4).tolist(),
+        "distortion": sc["distortion"][0].tolist(),
+        "distorted": bool(np.abs(sc["distortion"]).max() > 0),
+        "unregistered_images": sc["unregistered"],
+        "forward_facing": sc["forward_facing"],
+        "ndc": sc["forward_facing"],
+        "near": sc["near"],
+        "far": sc["far"],
+        "transform": sc["transform"].tolist(),
+        "scale": sc["scale"],
+        "aabb": sc["aabb"],
+        "camera_centres_box": [centres.min(0).round(4).tolist(), centres.max(0).round(4).tolist()],
+    }
+    if sc["points"] is not None:
+        p = sc["points"] @ sc["transform"][:3, :3].T + sc["transform"][:3, 3]
+        info["points"] = len(p)
+        info["points_box_2_98"] = [
+            np.percentile(p, 2, axis=0).round(4).tolist(),
+            np.percentile(p, 98, axis=0).round(4).tolist(),
+        ]
+    info["ndc_camera"] = _ndc_camera_info(sc, extra)  # used when NDC is on
+    return info
+
+
+def _ndc_camera_info(sc, extra) -> list[float]:
+    k = sc["intrinsics"][0] / extra
+    return [float(k[0]), float(k[1]), sc["size"][0] / extra, sc["size"][1] / extra]
+
+
+def load_capture(
+    root,
+    split: str = "train",
+    background=(1.0, 1.0, 1.0),
+    downscale: int = 1,
+    max_images: int | None = None,
+    fmt: str | None = None,
+    holdout: int = HOLDOUT,
+) -> dict:
+    """A COLMAP or LLFF folder as a dataset dict (see :func:`warpnerf.data.load_dataset`), in the
+    normalised frame, plus ``distortion`` [N, 4], ``transform`` [4, 4] (float64, world ->
+    normalised), ``near``/``far``, ``ndc`` (None, or [fx, fy, W, H] of the NDC camera)."""
+    if holdout < 0 or holdout == 1:
+        raise UserError(f"holdout must be 0 (none) or >= 2, got {holdout}")
+    root = Path(root)
+    sc = _scene(root, fmt, downscale)
+    idx = _split(len(sc["names"]), split, holdout, root)
+    if max_images:
+        idx = idx[:max_images]
+    bg = np.asarray(background, dtype=np.float32).reshape(-1)
+    extra = sc["extra"]
+    images, paths = [], []
+    for i in idx:
+        p = sc["folder"] / sc["names"][i]
+        img = _read(p)
+        if img.shape[1::-1] != tuple(sc["size"])[:2]:
+            raise UserError(
+                f"{p}: size {img.shape[1]}x{img.shape[0]} differs from "
+                f"{sc['size'][0]}x{sc['size'][1]} of {sc['folder'] / sc['names'][0]}"
+            )
+        if min(img.shape[:2]) < extra:
+            raise UserError(f"downscale {extra} is larger than the image {p}")
+        images.append(_area_downscale(_composite(img, bg), extra).astype(np.float32))
+        paths.append(str(p))
+    images = np.stack(images)
+    return {
+        "images": torch.from_numpy(np.ascontiguousarray(images)),
+        "c2w": torch.from_numpy(sc["c2w_norm"][idx]).float(),
+        "intrinsics": torch.from_numpy(sc["intrinsics"][idx] / extra).float(),
+        "distortion": torch.from_numpy(sc["distortion"][idx]).float(),
+        "width": int(images.shape[2]),
+        "height": int(images.shape[1]),
+        "paths": paths,
+        "format": sc["format"],
+        "transform": sc["transform"],
+        "near": sc["near"],
+        "far": sc["far"],
+        "ndc": _ndc_camera_info(sc, extra) if sc["forward_facing"] else None,
+        "indices": idx,
+    }
+
+
+def normalised_to_world(points, transform, ndc=None, near: float = NDC_NEAR) -> np.ndarray:
+    """Points [n, 3] of the normalised frame (or of NDC space when ``ndc`` = (fx, fy, W, H) is
+    given) back in the capture's world units: the inverse of the loaders' mapping. NDC points
+    at z >= 1 (infinity) come back non-finite."""
+    p = np.asarray(points, dtype=np.float64)
+    if ndc is not None:
+        fx, fy, w, h = ndc
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = 2.0 * near / (p[:, 2] - 1.0)
+            p = np.stack([p[:, 0] * z / (-2 * fx / w), p[:, 1] * z / (-2 * fy / h), z], -1)
+    t = np.asarray(transform, dtype=np.float64)
+    return (p - t[:3, 3]) @ np.linalg.inv(t[:3, :3]).T

@@ -1,0 +1,372 @@
+"""COLMAP sparse models (``cameras``, ``images``, ``points3D``; binary ``.bin`` or text ``.txt``).
+
+Read as COLMAP writes them: ``images`` hold world-to-camera poses in the OpenCV camera convention
+(x right, y down, z forward), ``X_cam = R(q) X_world + t`` with ``q = (qw, qx, qy, qz)``; the
+loader (:mod:`warpnerf.data.capture`) converts them once to OpenGL camera-to-world.
+
+Camera models read (COLMAP's ids and parameter orders):
+
+==============  ==  ============================
+SIMPLE_PINHOLE   0  f, cx, cy
+PINHOLE          1  fx, fy, cx, cy
+SIMPLE_RADIAL    2  f, cx, cy, k
+RADIAL           3  f, cx, cy, k1, k2
+OPENCV           4  fx, fy, cx, cy, k1, k2, p1, p2
+==============  ==  ============================
+
+Every camera becomes ``(fx, fy, cx, cy)`` plus OpenCV distortion ``(k1, k2, p1, p2)``. Other
+models (fisheye ones, FULL_OPENCV, ...) raise a UserError naming the model.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+
+__all__ = ["Camera", "Image", "read_model", "find_model", "qvec_to_rotmat", "rotmat_to_qvec"]
+
+# id -> (name, number of parameters)
+MODELS = {
+    0: ("SIMPLE_PINHOLE", 3),
+    1: ("PINHOLE", 4),
+    2: ("SIMPLE_RADIAL", 4),
+    3: ("RADIAL", 5),
+    4: ("OPENCV", 8),
+}
+_OTHER_MODELS = {
+    5: "OPENCV_FISHEYE",
+    6: "FULL_OPENCV",
+    7: "FOV",
+    8: "SIMPLE_RADIAL_FISHEYE",
+    9: "RADIAL_FISHEYE",
+    10: "THIN_PRISM_FISHEYE",
+}
+_BY_NAME = {name: (i, n) for i, (name, n) in MODELS.items()}
+
+
+@dataclass
+class Camera:
+    id: int
+    model: str
+    width: int
+    height: int
+    params: np.ndarray  # as COLMAP stores them (see the module docstring)
+
+    def pinhole(self) -> tuple[np.ndarray, np.ndarray]:
+        """(fx, fy, cx, cy) [4] and OpenCV distortion (k1, k2, p1, p2) [4], float64."""
+        p, m = self.params, self.model
+        dist = np.zeros(4)
+        if m in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+            k = np.array([p[0], p[0], p[1], p[2]])
+            dist[: len(p) - 3] = p[3:]
+        else:  # PINHOLE, OPENCV
+            k = p[:4].copy()
+            dist[: len(p) - 4] = p[4:]
+        return k, dist
+
+
+@dataclass
+class Image:
+    id: int
+    qvec: np.ndarray  # [4] (qw, qx, qy, qz), world-to-camera rotation
+    tvec: np.ndarray  # [3]
+    camera_id: int
+    name: str
+    point3d_ids: np.ndarray  # [n] int64, -1 where a 2D observation has no 3D point
+
+
+def qvec_to_rotmat(q) -> np.ndarray:
+    """[3, 3] rotation of the unit quaternion (qw, qx, qy, qz) (normalised first)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotmat_to_qvec(r) -> np.ndarray:
+    """(qw, qx, qy, qz) with qw >= 0 of a [3, 3] rotation (for writing models in tests)."""
+    r = np.asarray(r, dtype=np.float64)
+    k = (
+        np.array(
+            [
+                [r[0, 0] - r[1, 1] - r[2, 2], 0, 0, 0],
+                [r[1, 0] + r[0, 1], r[1, 1] - r[0, 0] - r[2, 2], 0, 0],
+                [r[2, 0] + r[0, 2], r[2, 1] + r[1, 2], r[2, 2] - r[0, 0] - r[1, 1], 0],
+                [
+                    r[2, 1] - r[1, 2],
+                    r[0, 2] - r[2, 0],
+                    r[1, 0] - r[0, 1],
+                    r[0, 0] + r[1, 1] + r[2, 2],
+                ],
+            ]
+        )
+        / 3.0
+    )
+    vals, vecs = np.linalg.eigh(k)
+    q = vecs[[3, 0, 1, 2], np.argmax(vals)]
+    return -q if q[0] < 0 else q
+
+
+def find_model(root: Path) -> Path | None:
+    """The folder holding ``cameras.{bin,txt}`` and ``images.{bin,txt}``: ``root/sparse/0``,
+    ``root/sparse`` or ``root`` itself (first found), else None."""
+    for d in (root / "sparse" / "0", root / "sparse", root):
+        for ext in (".bin", ".txt"):
+            if (d / f"cameras{ext}").is_file() and (d / f"images{ext}").is_file():
+                return d
+    return None
+
+
+class _Reader:
+    """Little-endian binary reader that turns a short file into a UserError naming it."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self.data = path.read_bytes()
+        except OSError as e:
+            raise UserError(f"{path}: cannot read ({e.strerror or e})") from None
+        self.pos = 0
+
+    def read(self, fmt: str):
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise UserError(f"{self.path}: truncated at byte {self.pos} (not a COLMAP model?)")
+        out = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return out
+
+    def array(self, dtype, count: int) -> np.ndarray:
+        size = np.dtype(dtype).itemsize * count
+        if self.pos + size > len(self.data):
+            raise UserError(f"{self.path}: truncated at byte {self.pos} (not a COLMAP model?)")
+        out = np.frombuffer(self.data, dtype=dtype, count=count, offset=self.pos)
+        self.pos += size
+        return out
+
+    def string(self) -> str:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise UserError(f"{self.path}: truncated image name at byte {self.pos}")
+        s = self.data[self.pos : end].decode("utf-8", errors="replace")
+        self.pos = end + 1
+        return s
+
+    def done(self):
+        if self.pos != len(self.data):
+            raise UserError(f"{self.path}: {len(self.data) - self.pos} unexpected trailing bytes")
+
+
+def _model(model_id_or_name, path, cam_id) -> tuple[str, int]:
+    if isinstance(model_id_or_name, str):
+        if model_id_or_name in _BY_NAME:
+            return model_id_or_name, _BY_NAME[model_id_or_name][1]
+        name = model_id_or_name
+    else:
+        if model_id_or_name in MODELS:
+            return MODELS[model_id_or_name]
+        name = _OTHER_MODELS.get(model_id_or_name, f"id {model_id_or_name}")
+    raise UserError(
+        f"{path}: camera {cam_id} uses model {name}; supported: {', '.join(_BY_NAME)} "
+        "(undistort the images with `colmap image_undistorter` for other models)"
+    )
+
+
+def _camera(cam_id, model, w, h, params, path) -> Camera:
+    params = np.asarray(params, dtype=np.float64)
+    if w < 1 or h < 1 or not np.isfinite(params).all():
+        raise UserError(f"{path}: camera {cam_id}: bad size {w}x{h} or non-finite parameters")
+    cam = Camera(int(cam_id), model, int(w), int(h), params)
+    k, _ = cam.pinhole()
+    if k[0] <= 0 or k[1] <= 0:
+        raise UserError(f"{path}: camera {cam_id}: focal length must be positive, got {k[:2]}")
+    return cam
+
+
+def _read_cameras_bin(path: Path) -> dict[int, Camera]:
+    r = _Reader(path)
+    (n,) = r.read("Q")
+    cams = {}
+    for _ in range(n):
+        cam_id, model_id, w, h = r.read("iiQQ")
+        model, n_params = _model(model_id, path, cam_id)
+        cams[cam_id] = _camera(cam_id, model, w, h, r.array("<f8", n_params), path)
+    r.done()
+    return cams
+
+
+def _read_images_bin(path: Path) -> dict[int, Image]:
+    r = _Reader(path)
+    (n,) = r.read("Q")
+    images = {}
+    for _ in range(n):
+        image_id, *pose, cam_id = r.read("i7di")
+        name = r.string()
+        (n_pts,) = r.read("Q")
+        pts = r.array(np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]), n_pts)
+        images[image_id] = Image(
+            image_id, np.array(pose[:4]), np.array(pose[4:]), cam_id, name, pts["id"].copy()
+        )
+    r.done()
+    return images
+
+
+def _read_points_bin(path: Path) -> np.ndarray:
+    r = _Reader(path)
+    (n,) = r.read("Q")
+    xyz, ids = np.empty((n, 3)), np.empty(n, dtype=np.int64)
+    for i in range(n):
+        ids[i], x, y, z, _, _, _, _, track = r.read("Q3d3BdQ")
+        r.array("<i4", 2 * track)
+        xyz[i] = (x, y, z)
+    r.done()
+    return {"ids": ids, "xyz": xyz}
+
+
+def _text_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, fields) of the non-comment lines; blank lines kept for images.txt."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise UserError(f"{path}: cannot read ({e})") from None
+    return [(i + 1, ln.split()) for i, ln in enumerate(text.splitlines()) if not ln.startswith("#")]
+
+
+def _parse(path, lineno, fields, types):
+    try:
+        return [t(f) for t, f in zip(types, fields, strict=True)]
+    except ValueError:
+        names = " ".join(t.__name__ for t in types)
+        raise UserError(f"{path}:{lineno}: expected {len(types)} values ({names})") from None
+
+
+def _read_cameras_txt(path: Path) -> dict[int, Camera]:
+    cams = {}
+    for lineno, f in _text_lines(path):
+        if not f:
+            continue
+        if len(f) < 4:
+            raise UserError(f"{path}:{lineno}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        model, n_params = _model(f[1], path, f[0])
+        if len(f) != 4 + n_params:
+            raise UserError(f"{path}:{lineno}: model {model} needs {n_params} parameters")
+        cam_id, w, h = _parse(path, lineno, [f[0], f[2], f[3]], [int, int, int])
+        params = _parse(path, lineno, f[4:], [float] * n_params)
+        cams[cam_id] = _camera(cam_id, model, w, h, params, path)
+    return cams
+
+
+def _read_images_txt(path: Path) -> dict[int, Image]:
+    lines = _text_lines(path)
+    images, i = {}, 0
+    while i < len(lines):
+        lineno, f = lines[i]
+        if not f:  # a blank line where an image line is expected
+            i += 1
+            continue
+        if len(f) < 10:
+            raise UserError(
+                f"{path}:{lineno}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"
+            )
+        vals = _parse(path, lineno, f[:9], [int] + [float] * 7 + [int])
+        name = " ".join(f[9:])
+        pts = lines[i + 1][1] if i + 1 < len(lines) else []
+        if len(pts) % 3:
+            raise UserError(f"{path}:{lines[i + 1][0]}: POINTS2D must be triples X Y POINT3D_ID")
+        ids = np.array([int(float(v)) for v in pts[2::3]], dtype=np.int64)
+        images[vals[0]] = Image(
+            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, ids
+        )
+        i += 2
+    return images
+
+
+def _read_points_txt(path: Path) -> np.ndarray:
+    xyz, ids = [], []
+    for lineno, f in _text_lines(path):
+        if f:
+            if len(f) < 8:
+                raise UserError(f"{path}:{lineno}: expected POINT3D_ID X Y Z R G B ERROR TRACK[]")
+            ids.append(_parse(path, lineno, f[:1], [int])[0])
+            xyz.append(_parse(path, lineno, f[1:4], [float] * 3))
+    return {"ids": np.asarray(ids, dtype=np.int64), "xyz": np.asarray(xyz).reshape(-1, 3)}
+
+
+def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None]:
+    """(cameras by id, images by id, points3D {"ids": [n], "xyz": [n, 3]} or None) of a
+    sparse-model folder, binary
+    preferred when both exist. Every image's camera must exist; qvec/tvec must be finite."""
+    folder = Path(folder)
+    ext = ".bin" if (folder / "cameras.bin").is_file() else ".txt"
+    read = {
+        ".bin": (_read_cameras_bin, _read_images_bin, _read_points_bin),
+        ".txt": (_read_cameras_txt, _read_images_txt, _read_points_txt),
+    }[ext]
+    cams = read[0](folder / f"cameras{ext}")
+    img_ext = ".bin" if (folder / "images.bin").is_file() else ".txt"
+    images = (read[1] if img_ext == ext else _read_images_txt)(folder / f"images{img_ext}")
+    pts = [folder / f"points3D{e}" for e in (ext, ".bin", ".txt")]
+    pts_path = next((p for p in pts if p.is_file()), None)
+    points = None
+    if pts_path is not None:
+        points = (_read_points_bin if pts_path.suffix == ".bin" else _read_points_txt)(pts_path)
+    for im in images.values():
+        if im.camera_id not in cams:
+            raise UserError(
+                f"{folder / f'images{img_ext}'}: image {im.name!r} refers to camera "
+                f"{im.camera_id}, which cameras{ext} does not define"
+            )
+        if not (np.isfinite(im.qvec).all() and np.isfinite(im.tvec).all()) or not np.linalg.norm(
+            im.qvec
+        ):
+            raise UserError(
+                f"{folder / f'images{img_ext}'}: image {im.name!r}: non-finite or zero pose"
+            )
+    return cams, images, points
+
+
+def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], points=None, text=False):
+    """Writes a sparse model (binary or text) as COLMAP does; used by tests and tools."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    points = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=np.float64)
+    # points3D ids are 1-based, in order
+    if text:
+        lines = [f"{c.id} {c.model} {c.width} {c.height} " + " ".join(map(repr, c.params.tolist()))
+                 for c in cams.values()]  # fmt: skip
+        (folder / "cameras.txt").write_text("# Camera list\n" + "\n".join(lines) + "\n")
+        lines = []
+        for im in images.values():
+            pose = " ".join(map(repr, [*im.qvec.tolist(), *im.tvec.tolist()]))
+            lines.append(f"{im.id} {pose} {im.camera_id} {im.name}")
+            lines.append(" ".join(f"0 0 {int(p)}" for p in im.point3d_ids))
+        (folder / "images.txt").write_text("# Image list\n" + "\n".join(lines) + "\n")
+        pts = enumerate(points.tolist())
+        lines = [f"{i + 1} {x!r} {y!r} {z!r} 128 128 128 0.5" for i, (x, y, z) in pts]
+        (folder / "points3D.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
+        return
+    out = [struct.pack("<Q", len(cams))]
+    for c in cams.values():
+        out.append(struct.pack("<iiQQ", c.id, _BY_NAME[c.model][0], c.width, c.height))
+        out.append(np.asarray(c.params, "<f8").tobytes())
+    (folder / "cameras.bin").write_bytes(b"".join(out))
+    out = [struct.pack("<Q", len(images))]
+    for im in images.values():
+        out.append(struct.pack("<i7di", im.id, *im.qvec, *im.tvec, im.camera_id))
+        out.append(im.name.encode() + b"\0" + struct.pack("<Q", len(im.point3d_ids)))
+        for p in im.point3d_ids:
+            out.append(struct.pack("<ddq", 0.0, 0.0, int(p)))
+    (folder / "images.bin").write_bytes(b"".join(out))
+    out = [struct.pack("<Q", len(points))]
+    for i, p in enumerate(points):
+        out.append(struct.pack("<Q3d3BdQ", i + 1, *p, 128, 128, 128, 0.5, 0))
+    (folder / "points3D.bin").write_bytes(b"".join(out))
