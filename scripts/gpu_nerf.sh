@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # NeRF figures on the lent GPU (see docs/PERFORMANCE.md).
-# Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash|lego_grid|lego_grid_more|sweep
+# Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash|lego_grid|lego_grid_more|sweep|capture
 # (lego_grid: hash field + occupancy grid for SECS seconds, then eval on all val images;
 #  lego_grid_more: resume that run for SECS more seconds and eval again; sweep: speed vs error)
 # Expects Warp importable and the package installed; data under .devdata/ (carried); writes $OUT.
@@ -53,6 +53,29 @@ lego_grid|lego_grid_more)
   cp $run/eval_val/metrics.json "$OUT/$1_metrics.json"
   cp $run/eval_val/val_000.png "$OUT/$1_val_000.png"
   cp $run/config.json "$OUT/$1_config.json"
+  ;;
+capture)
+  # A real capture (COLMAP/LLFF, DATA=folder, NAME=label): hash field + grid, trained in stages
+  # of STAGES seconds (cumulative), each followed by eval on the held-out images (every 8th).
+  run=/tmp/${NAME:-capture}
+  first=1
+  for secs in ${STAGES:-60 60 180}; do
+    if [ $first = 1 ]; then
+      python3 -m warpnerf.cli train nerf --data $DATA --out $run --device cuda --tf32 --field hash \
+        --batch 4096 --target-samples ${TARGET:-262144} ${EXTRA:-} --iters 100000 \
+        --max-seconds $secs --val-every 100000 --val-images 0 --quiet 2>&1 | tail -3 | tee -a "$OUT/log.txt"
+      first=0
+    else
+      python3 -m warpnerf.cli train nerf --out $run --resume --iters 100000 --max-seconds $secs \
+        --quiet 2>&1 | tail -3 | tee -a "$OUT/log.txt"
+    fi
+    python3 -m warpnerf.cli eval $run --split val --chunk 400000 2>&1 | tail -1 | tee -a "$OUT/log.txt"
+    step=$(python3 -c "import json; print(json.load(open('$run/history.json'))['step'][-1])")
+    cp $run/eval_val/metrics.json "$OUT/${NAME:-capture}_metrics_$step.json"
+  done
+  cp $run/history.json $run/config.json "$OUT/" 2>/dev/null
+  mv "$OUT/history.json" "$OUT/${NAME:-capture}_history.json"; mv "$OUT/config.json" "$OUT/${NAME:-capture}_config.json"
+  cp $run/eval_val/val_000.png "$OUT/${NAME:-capture}_val_000.png"
   ;;
 sweep)
   python3 scripts/speed_vs_error.py sweep /tmp/lego_grid "$OUT/speed_vs_error.json" --images ${EVAL_IMAGES:-5} \
