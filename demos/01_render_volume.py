@@ -36,6 +36,8 @@ def main(argv=None) -> int:
         p.error("--frames >= 1, --size >= 2, --samples >= 1 and --beta > 0 are required")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device available")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        p.error(f"--out {args.out} is a file")
 
     volume = SDFVolume(args.shape, **GT_BOX, beta=args.beta).to(args.device)
     cfg = BoxFitConfig(n_samples=args.samples, near=0.0, far=5.0)

@@ -72,6 +72,8 @@ def main(argv=None) -> int:
         p.error(f"--far ({args.far}) must be greater than --near ({args.near})")
     if args.device.startswith("cuda") and not torch.cuda.is_available():
         p.error("--device cuda: no CUDA device available")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        p.error(f"--out {args.out} is a file")
     cfg = BoxFitConfig(
         iters=args.iters,
         batch=args.batch,
@@ -80,8 +82,7 @@ def main(argv=None) -> int:
         far=args.far,
         lr=args.lr,
     )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)  # created by the writers, only once the data has loaded
     try:
         if args.data:
             res = run_box_fit_on_folder(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
 
 import torch
 
@@ -43,6 +45,10 @@ def config(args, **overrides) -> NeRFConfig:
         raise SystemExit("error: --downscale applies to --data folders, not the built-in scene")
     if args.eval_images < 0:
         raise SystemExit("error: --eval-images must be >= 0")
+    if Path(args.out).exists() and not Path(args.out).is_dir():
+        raise SystemExit(f"error: --out {args.out} is a file")
+    if not all(math.isfinite(v) for v in (args.near, args.far, args.lr, args.lr_final) if v):
+        raise SystemExit("error: --near, --far, --lr and --lr-final must be finite")
     kw = dict(
         data=args.data,
         iters=args.iters,

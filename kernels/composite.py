@@ -30,7 +30,11 @@ the exact derivatives are
 
 This equals the textbook delta_i (T_{i+1} c_i - sum_{j>i} w_j c_j - T_m bg) but never subtracts two
 large sums and never divides by 1 - alpha_i, so it stays exact for alpha_i -> 1, sigma * delta up to
-1e8 or inf, and 10^4 samples per ray. NaN inputs propagate (no clamping hides them).
+1e8 or inf, and 10^4 samples per ray. NaN inputs propagate (no clamping hides them), and so
+does an invalid sample: an interval whose length t_end - t_start is not finite and >= 0, a
+negative density or an opacity outside [0, 1] gives tau = alpha = NaN (``optical_depth``), so its
+ray's outputs and gradients are NaN instead of a plausible-looking value (T_i > 1, negative
+weights), at the cost of a few comparisons per sample and no host-side check.
 """
 
 from typing import Any
@@ -67,8 +71,15 @@ def log1p_(x: Any):
 
 @wp.func
 def optical_depth(use_alpha: int, value: Any, delta: Any):
-    """Returns (tau, alpha, 1 - alpha) of one sample from its density or its opacity."""
+    """Returns (tau, alpha, 1 - alpha) of one sample from its density or its opacity; all three
+    NaN for an invalid sample (delta not finite and >= 0, density < 0, opacity outside [0, 1])."""
     one = type(value)(1.0)
+    ok = wp.isfinite(delta) and delta >= type(value)(0.0) and value >= type(value)(0.0)
+    if use_alpha != 0:
+        ok = ok and value <= one
+    if not ok:
+        nan = type(value)(wp.nan)
+        return nan, nan, nan
     if use_alpha != 0:
         return -log1p_(-value), value, one - value
     tau = value * delta
@@ -255,6 +266,8 @@ def composite_bwd(
         diff = e - s
         if use_alpha != 0:
             v_values[i] = t * diff
+            if wp.isnan(alpha):  # an invalid opacity: T_i (e_i - S_i) alone would look fine
+                v_values[i] = alpha
         else:
             v_values[i] = delta * (t * keep) * diff
         v_rgbs[i, 0] = w * g0

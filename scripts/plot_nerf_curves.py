@@ -36,7 +36,10 @@ def main():
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(args.out)
+    from warpnerf.io import atomic_path
+
+    with atomic_path(args.out) as tmp:
+        fig.savefig(tmp)
 
 
 if __name__ == "__main__":

@@ -12,6 +12,8 @@ import argparse
 import json
 import math
 
+from warpnerf.io import atomic_path, write_json
+
 
 def sweep(run, out, images, chunk, divisors):
     from warpnerf.train.nerf_eval import evaluate_run
@@ -24,8 +26,7 @@ def sweep(run, out, images, chunk, divisors):
         rows.append({"steps_per_diagonal": div, "march_step": step, "psnr": m["psnr"],
                      "ssim": m["ssim"], "render_ms": m["render_ms_median"]})  # fmt: skip
         print(json.dumps(rows[-1]), flush=True)
-    with open(out, "w") as f:
-        json.dump({"run": str(run), "images": images, "rows": rows}, f, indent=1)
+    write_json(out, {"run": str(run), "images": images, "rows": rows})
 
 
 def plot(paths, png, curves=()):
@@ -69,7 +70,8 @@ def plot(paths, png, curves=()):
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(png, dpi=110)
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=110)
 
 
 def main():

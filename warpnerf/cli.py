@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import signal
 import sys
+import threading
+from pathlib import Path
+
+import numpy as np
 
 from .errors import Interrupted, UserError
 
@@ -43,9 +49,49 @@ def _nonnegative(text):
     return v
 
 
+def _finite(text):
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return v
+
+
+def _nonnegative_float(text):
+    v = _finite(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _check_out(path, flag: str = "--out", file: bool = False) -> None:
+    """UserError unless ``path`` can be written as a folder (or, with ``file``, as a file): it is
+    not an existing file (folder) and its nearest existing parent is a folder."""
+    p = Path(path)
+    if file and p.is_dir():
+        raise UserError(f"{flag} {path} is a folder, not a file")
+    for q in p.parents if file else (p, *p.parents):
+        if q.is_dir():
+            return
+        if q.exists():
+            raise UserError(f"{flag} {path}: {q} is a file, not a folder")
+
+
+def _saved_config(run) -> dict:
+    """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
+    try:
+        saved = json.loads((Path(run) / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return saved if isinstance(saved, dict) else {}
+
+
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
+    _check_out(args.out)
     m = run_demo(
         args.out,
         iters=args.iters,
@@ -77,22 +123,41 @@ def cmd_demo(args) -> int:
 def cmd_train_box(args) -> int:
     from .train.box_fit import BoxFitConfig, run_box_fit_on_folder
 
+    _check_out(args.out)
+    if args.resume:
+        device = _resume_device(args)
+        cfg = BoxFitConfig(iters=args.iters, max_seconds=args.max_seconds)
+        res = run_box_fit_on_folder(
+            None,
+            args.out,
+            cfg,
+            device=device,
+            frames=args.frames,
+            progress=not args.quiet,
+            resume=True,
+        )
+        print(json.dumps(res))
+        return 0
+    if args.data is None:
+        raise UserError("--data DIR is required (a Blender-format folder)")
     cfg = BoxFitConfig(
-        iters=args.iters,
+        iters=args.iters or 400,
         batch=args.batch,
         n_samples=args.samples,
         near=args.near,
         far=args.far,
         lr=args.lr,
         seed=args.seed,
+        ckpt_every=args.ckpt_every,
+        max_seconds=args.max_seconds,
     )
-    if not cfg.far > cfg.near:
-        raise UserError(f"--far ({cfg.far}) must be greater than --near ({cfg.near})")
+    if not cfg.far > cfg.near >= 0:
+        raise UserError(f"need 0 <= --near < --far, got --near {cfg.near} and --far {cfg.far}")
     res = run_box_fit_on_folder(
         args.data,
         args.out,
         cfg,
-        device=_device(args.device),
+        device=_device(args.device or "cpu"),
         frames=args.frames,
         progress=not args.quiet,
     )
@@ -111,6 +176,7 @@ _RESUME_FLAGS = {
     "func",
     "command",
     "model",
+    "frames",  # train box: the spiral video written at the end, not part of the fit
 }
 
 
@@ -139,8 +205,15 @@ def cmd_train_nerf(args) -> int:
 
     if args.model == "volsdf" and args.field != "volsdf":
         raise UserError("train volsdf trains the volsdf field; use train nerf for --field mlp|hash")
+    _check_out(args.out)
     if args.resume:
         device = _resume_device(args)
+        field = _saved_config(args.out).get("field", "volsdf")
+        if args.model == "volsdf" and field != "volsdf":
+            raise UserError(
+                f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
+                f"`warpnerf train nerf --out {args.out} --resume --iters N`"
+            )
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
         hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
     else:
@@ -148,6 +221,9 @@ def cmd_train_nerf(args) -> int:
             raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
         cfg = NeRFConfig(
             data=args.data,
+            data_format=args.format,
+            holdout=args.holdout,
+            ndc=args.ndc,
             iters=args.iters or 20000,
             batch=args.batch,
             field=args.field,
@@ -205,6 +281,7 @@ def cmd_train_nerf(args) -> int:
 def cmd_train_sdf(args) -> int:
     from .train.sdf import SDFConfig, train_sdf
 
+    _check_out(args.out)
     if args.resume:
         dev = _resume_device(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
@@ -240,6 +317,10 @@ def cmd_train_sdf(args) -> int:
 def cmd_eval(args) -> int:
     from .train.nerf_eval import evaluate_run
 
+    if args.out:
+        _check_out(args.out)
+    elif Path(args.run).is_dir():
+        _check_out(Path(args.run) / f"eval_{args.split}", "eval output")
     m = evaluate_run(
         args.run,
         args.split,
@@ -269,6 +350,8 @@ def _size(text):
 def cmd_render(args) -> int:
     from .train.nerf_eval import render_run
 
+    if Path(args.run).is_dir():
+        _check_out(Path(args.run) / f"render_{args.path}", "render output")
     res = render_run(
         args.run,
         args.path,
@@ -281,10 +364,8 @@ def cmd_render(args) -> int:
 
 
 def _mesh_source(args):
-    """(field_fn, lower, upper, marching-cubes level, user level, what, normalisation or None)
-    for `warpnerf mesh`."""
-    from pathlib import Path
-
+    """(field_fn, lower, upper, marching-cubes level, user level, what, map of the vertices back to
+    the data's units or None) for `warpnerf mesh`."""
     dev = _device(args.device or "cpu")
     if (args.run is None) == (args.sdf is None):
         raise UserError("give a run folder or --sdf SCENE (one of them)")
@@ -300,24 +381,29 @@ def _mesh_source(args):
     from .train.sdf import MODEL, load_sdf_run
 
     run = Path(args.run)
-    try:
-        saved = json.loads((run / "config.json").read_text())
-        kind = saved.get("model") if isinstance(saved, dict) else None
-    except (OSError, ValueError):
-        kind = None
-    if kind == MODEL:
+    if _saved_config(run).get("model") == MODEL:
         cfg, model, ckpt = load_sdf_run(run, dev if args.device else None)
         c, s = ckpt["normalisation"]["center"], ckpt["normalisation"]["scale"]
         b = args.bounds or 1.0  # in the normalised frame; vertices are mapped back below
         fn = lambda p: model(p.to(cfg.device))  # noqa: E731
-        return fn, [-b] * 3, [b] * 3, args.level or 0.0, args.level or 0.0, f"sdf run {run}", (c, s)
+        back = lambda v: v / s + np.asarray(c)  # noqa: E731  (the point cloud's units)
+        return fn, [-b] * 3, [b] * 3, args.level or 0.0, args.level or 0.0, f"sdf run {run}", back
     cfg, fields_, _ = load_run(run, dev if args.device else None)
     field = fields_["fine"] or fields_["coarse"]
     b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
+    back = None
+    if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units
+        from .data.capture import normalised_to_world
+
+        ndc = cfg.ndc_camera()
+        back = lambda v: normalised_to_world(v, cfg.scene["transform"], ndc)  # noqa: E731
+    lo, hi = [-b] * 3, [b] * 3
+    if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
+        lo[2], hi[2] = -1.0, 0.99
     if cfg.field == "volsdf":  # the SDF's zero level set
         level = args.level or 0.0
-        return (lambda p: field.sdf(p.to(cfg.device))), [-b] * 3, [b] * 3, level, level, \
-            f"volsdf {run}", None  # fmt: skip
+        return (lambda p: field.sdf(p.to(cfg.device))), lo, hi, level, level, \
+            f"volsdf {run}", back  # fmt: skip
     level = 10.0 if args.level is None else args.level
 
     def density(p):
@@ -325,7 +411,7 @@ def _mesh_source(args):
 
     # marching cubes of -density at -level: inside (dense) is negative like an SDF
     fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return fn, [-b] * 3, [b] * 3, -level, level, f"nerf {run}", None
+    return fn, lo, hi, -level, level, f"nerf {run}", back
 
 
 def cmd_mesh(args) -> int:
@@ -337,14 +423,8 @@ def cmd_mesh(args) -> int:
         raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
     if not args.out.endswith(".ply"):
         raise UserError(f"--out must be a .ply file, got {args.out}")
-    from pathlib import Path
-
-    if Path(args.out).is_dir():
-        raise UserError(f"--out {args.out} is a folder")
-    parent = Path(args.out).parent
-    if parent.exists() and not parent.is_dir():
-        raise UserError(f"--out {args.out}: {parent} is a file, not a folder")
-    fn, lo, hi, level, shown_level, what, norm = _mesh_source(args)
+    _check_out(args.out, file=True)
+    fn, lo, hi, level, shown_level, what, back = _mesh_source(args)
     t0 = time.perf_counter()
     dev = _device(args.device or "cpu")
     try:
@@ -353,11 +433,14 @@ def cmd_mesh(args) -> int:
         raise UserError(f"{what}: {e}") from None
     secs = time.perf_counter() - t0
     if len(f) == 0:
-        raise UserError(f"{what}: no surface at level {shown_level} inside [{lo[0]}, {hi[0]}]^3")
-    if norm is not None:  # neural-SDF runs: back to the point cloud's units
-        import numpy as np
-
-        v = (v / norm[1] + np.asarray(norm[0])).astype(np.float32)
+        raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}")
+    if back is not None:  # normalised frame -> the data's own units
+        v = back(v).astype(np.float32)
+        keep = np.isfinite(v).all(1)  # NDC vertices at infinity
+        if not keep.all():
+            remap = np.cumsum(keep) - 1
+            f = remap[f[keep[f].all(1)]]
+            v = v[keep]
     write_ply(args.out, v, f)
     png = str(Path(args.out).with_suffix(".png"))
     if args.no_screenshot:
@@ -387,14 +470,47 @@ def cmd_mesh(args) -> int:
 def cmd_bench(args) -> int:
     from .bench import run_bench
 
+    if args.json:
+        _check_out(args.json, "--json", file=True)
     run_bench(args.kernel, device=_device(args.device), json_path=args.json, quick=args.quick)
+    return 0
+
+
+def _data_format_flags(p) -> None:
+    """--format and --holdout (`data`, `train nerf`, `train volsdf`)."""
+    from .data.datasets import FORMATS
+
+    p.add_argument("--format", default="auto", choices=FORMATS, help="data format (auto: detect)")
+    p.add_argument(
+        "--holdout",
+        type=_nonnegative,
+        default=8,
+        help="COLMAP/LLFF: every Nth image (sorted names) is val/test; 0 = none (default 8)",
+    )
+
+
+def cmd_data(args) -> int:
+    from .data.datasets import data_summary
+
+    if args.holdout == 1:
+        raise UserError("--holdout must be 0 (none) or >= 2")
+    info = data_summary(args.dir, args.format, args.downscale, args.holdout)
+    print(json.dumps(info))
     return 0
 
 
 def _nerf_flags(tn) -> None:
     """The flags `train nerf` and `train volsdf` share."""
     tn.add_argument(
-        "--data", help="Blender or nerfstudio folder, or 'builtin' for the small built-in scene"
+        "--data",
+        help="Blender, nerfstudio, COLMAP or LLFF folder, or 'builtin' (the built-in scene)",
+    )
+    _data_format_flags(tn)
+    tn.add_argument(
+        "--ndc",
+        default="auto",
+        choices=["auto", "on", "off"],
+        help="COLMAP/LLFF: NDC rays (auto: on for forward-facing captures)",
     )
     tn.add_argument("--out", required=True, help="run folder (config, checkpoint, history)")
     tn.add_argument("--resume", action="store_true", help="continue the run in --out exactly")
@@ -432,8 +548,8 @@ def _nerf_flags(tn) -> None:
         default=None,
         help="hash field: half-size of the scene cube (default 1.5; the built-in scene's own)",
     )
-    tn.add_argument("--near", type=float, default=None, help="default 2 (1 for builtin)")
-    tn.add_argument("--far", type=float, default=None, help="default 6 (4 for builtin)")
+    tn.add_argument("--near", type=_finite, default=None, help="default 2 (1 for builtin)")
+    tn.add_argument("--far", type=_finite, default=None, help="default 6 (4 for builtin)")
     tn.add_argument("--downscale", type=_positive(int), default=1)
     tn.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all training images")
     tn.add_argument("--builtin-size", type=_positive(int), default=48)
@@ -443,14 +559,14 @@ def _nerf_flags(tn) -> None:
     tn.add_argument("--seed", type=int, default=0)
     tn.add_argument(
         "--max-seconds",
-        type=float,
+        type=_nonnegative_float,
         default=0.0,
         help="stop after this much training time (0: run all --iters)",
     )
     tn.add_argument("--tf32", action="store_true", help="TF32 matrix products on CUDA")
     tn.add_argument(
         "--t-threshold",
-        type=float,
+        type=_finite,
         default=1e-4,
         help="early ray termination below this transmittance (0: off)",
     )
@@ -516,17 +632,29 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
     tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
-    tb.add_argument("--data", required=True, help="folder with transforms*.json and PNG images")
-    tb.add_argument("--out", required=True, help="output folder")
-    tb.add_argument("--device", default="cpu")
-    tb.add_argument("--iters", type=_positive(int), default=400)
+    tb.add_argument("--data", help="folder with transforms*.json and PNG images")
+    tb.add_argument("--out", required=True, help="run folder (config, checkpoint, result)")
+    tb.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
+    tb.add_argument(
+        "--device",
+        default=None,
+        help="cpu (default for a new fit) or cuda; on --resume, default the run's own",
+    )
+    tb.add_argument("--iters", type=_positive(int), default=None, help="total steps (400)")
     tb.add_argument("--batch", type=_positive(int), default=4096)
     tb.add_argument("--samples", type=_positive(int), default=64)
-    tb.add_argument("--near", type=float, default=0.0)
-    tb.add_argument("--far", type=float, default=5.0)
+    tb.add_argument("--near", type=_finite, default=0.0)
+    tb.add_argument("--far", type=_finite, default=5.0)
     tb.add_argument("--lr", type=_positive(float), default=0.02)
+    tb.add_argument("--ckpt-every", type=_positive(int), default=100)
     tb.add_argument("--seed", type=int, default=0)
-    tb.add_argument("--frames", type=int, default=40, help="spiral video frames (0: none)")
+    tb.add_argument(
+        "--max-seconds",
+        type=float,
+        default=0.0,
+        help="stop after this much fitting time (0: run all --iters)",
+    )
+    tb.add_argument("--frames", type=_nonnegative, default=40, help="spiral video frames (0: none)")
     tb.add_argument("--quiet", action="store_true")
     tb.set_defaults(func=cmd_train_box)
 
@@ -543,7 +671,7 @@ def build_parser() -> argparse.ArgumentParser:
     tv.add_argument("--beta", type=_positive(float), default=0.1, help="initial Laplace scale")
     tv.add_argument("--beta-min", type=_positive(float), default=1e-4)
     tv.add_argument("--fixed-beta", action="store_true", help="keep beta at --beta")
-    tv.add_argument("--eikonal-weight", type=float, default=0.1)
+    tv.add_argument("--eikonal-weight", type=_finite, default=0.1)
     tv.set_defaults(func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True)
 
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
@@ -554,13 +682,13 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--iters", type=_positive(int), default=None, help="total steps (2000)")
     ts.add_argument("--batch", type=_positive(int), default=4096, help="points per step")
     ts.add_argument("--lr", type=_positive(float), default=1e-3)
-    ts.add_argument("--eikonal-weight", type=float, default=0.1)
-    ts.add_argument("--normal-weight", type=float, default=1.0, help="when normals are given")
+    ts.add_argument("--eikonal-weight", type=_finite, default=0.1)
+    ts.add_argument("--normal-weight", type=_finite, default=1.0, help="when normals are given")
     ts.add_argument("--layers", type=_positive(int), default=6)
     ts.add_argument("--width", type=_positive(int), default=128)
     ts.add_argument("--pos-freqs", type=_nonnegative, default=6)
     ts.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
-    ts.add_argument("--max-seconds", type=float, default=0.0)
+    ts.add_argument("--max-seconds", type=_nonnegative_float, default=0.0)
     ts.add_argument("--seed", type=int, default=0)
     ts.add_argument("--quiet", action="store_true")
     ts.set_defaults(func=cmd_train_sdf)
@@ -593,12 +721,20 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("run", nargs="?", help="a NeRF run folder (density level set)")
     m.add_argument("--sdf", help="SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
     m.add_argument("--resolution", type=int, default=256, help="grid nodes per axis")
-    m.add_argument("--level", type=float, default=None, help="0 for SDFs; density for runs (10)")
+    m.add_argument("--level", type=_finite, default=None, help="0 for SDFs; density for runs (10)")
     m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
     m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
     m.add_argument("--device", default=None)
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
+
+    dp = sub.add_parser(
+        "data", help="check a dataset folder and print a JSON summary (format, splits, cameras)"
+    )
+    dp.add_argument("dir", help="Blender, nerfstudio, COLMAP or LLFF folder")
+    _data_format_flags(dp)
+    dp.add_argument("--downscale", type=_positive(int), default=1)
+    dp.set_defaults(func=cmd_data)
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
     b.add_argument(
@@ -614,6 +750,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@contextlib.contextmanager
+def _sigterm_exits():
+    """SIGTERM outside a training loop (loading, meshing, rendering, writing) raises SystemExit(143)
+    instead of killing the process outright, so atomic writers remove their temporary files. The
+    training loops install their own handler while they run (finish the step, checkpoint)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -621,7 +776,8 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
     try:
-        return int(args.func(args) or 0)
+        with _sigterm_exits():
+            return int(args.func(args) or 0)
     except UserError as e:
         print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -1,5 +1,9 @@
-"""Atomic output writers: every file is written to a temporary name in its folder, then renamed,
-so an interrupted run never leaves a half-written image, video, checkpoint or metrics file."""
+"""Atomic output writers: every file is written to a temporary name in its folder, flushed to disk,
+then renamed onto its target, so an interrupted run (an exception, a signal, a killed process, a
+full disk) never leaves a half-written image, video, mesh, checkpoint or metrics file: the target
+is the previous complete file or the new complete one. A process killed outright in the middle of
+a write (SIGKILL, or a signal without a Python handler) can leave the hidden temporary file
+(``.NAME.XXXXXXXX.SUFFIX``) behind, never a partial target."""
 
 from __future__ import annotations
 
@@ -11,13 +15,22 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_path", "write_json", "write_image", "write_video", "to_uint8", "depth_to_uint8"]
+__all__ = [
+    "atomic_path",
+    "write_json",
+    "save_checkpoint",
+    "write_image",
+    "write_video",
+    "to_uint8",
+    "depth_to_uint8",
+]
 
 
 @contextlib.contextmanager
 def atomic_path(path):
-    """Yields a temporary path next to ``path`` (same suffix); renames it onto ``path`` on success,
-    removes it on failure."""
+    """Yields a temporary path next to ``path`` (same suffix); when the block succeeds the file is
+    fsynced and renamed onto ``path`` (then the folder is fsynced, so the rename survives a power
+    cut); when it raises (any exception, KeyboardInterrupt included) the file is removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
@@ -27,17 +40,42 @@ def atomic_path(path):
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
     try:
         yield tmp
+        _fsync(tmp)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+    _fsync(path.parent)
+
+
+def _fsync(path) -> None:
+    """Flushes a file's data to disk (best effort: a folder cannot be opened on every OS)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def write_json(path, obj) -> None:
     with atomic_path(path) as tmp, open(tmp, "w") as f:
         json.dump(obj, f, indent=2)
         f.write("\n")
+
+
+def save_checkpoint(path, state: dict) -> None:
+    """``torch.save(state)`` through :func:`atomic_path`: the previous checkpoint stays in place
+    until the new one is completely on disk."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
 
 
 def to_uint8(img) -> np.ndarray:
@@ -79,8 +117,16 @@ def write_video(path, frames, fps: int = 20) -> None:
             # Even sizes for yuv420p; macro_block_size=1 keeps small frames unpadded otherwise.
             h, w = frames[0].shape[:2]
             frames = [f[: h - h % 2, : w - w % 2] for f in frames]
-            with imageio.get_writer(
+            wr = imageio.get_writer(
                 tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1, format="FFMPEG"
-            ) as wr:
+            )
+            try:
                 for f in frames:
                     wr.append_data(f)
+            except BaseException:
+                # imageio's writer skips close() when its block raises: ffmpeg would then finish
+                # writing the temporary file after atomic_path removed it. Stop ffmpeg first.
+                with contextlib.suppress(Exception):
+                    wr.close()
+                raise
+            wr.close()

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import numbers
+import os
 from pathlib import Path
 
 import numpy as np
@@ -75,20 +76,33 @@ def _check_args(split, background, downscale, max_images) -> np.ndarray:
     return bg
 
 
-def _open_root(root, split, background, downscale, max_images) -> tuple[Path, np.ndarray]:
-    """(root as a Path, background [3]) after checking the arguments and that the folder exists."""
-    bg = _check_args(split, background, downscale, max_images)
+def _check_folder(root) -> Path:
+    """``root`` as a Path; UserError unless it is a folder whose files can be listed and read."""
     root = Path(root)
     if not root.is_dir():
         raise UserError(f"{root}: data folder not found")
-    return root, bg
+    if not os.access(root, os.R_OK | os.X_OK):
+        raise UserError(f"{root}: data folder not readable (permission denied)")
+    return root
+
+
+def _open_root(root, split, background, downscale, max_images) -> tuple[Path, np.ndarray]:
+    """(root as a Path, background [3]) after checking the arguments and the folder."""
+    bg = _check_args(split, background, downscale, max_images)
+    return _check_folder(root), bg
 
 
 def _read_json(path: Path) -> tuple[dict, list]:
     """Parses a transforms file: a JSON object whose 'frames' is a non-empty list of objects."""
     try:
-        js = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        text = path.read_text()
+    except OSError as e:  # permissions, a folder named like the file, I/O errors
+        raise UserError(f"{path}: cannot read the file ({e.strerror or e})") from None
+    except UnicodeDecodeError as e:
+        raise UserError(f"{path}: not valid JSON (not UTF-8 text: {e})") from None
+    try:
+        js = json.loads(text)
+    except json.JSONDecodeError as e:
         raise UserError(f"{path}: not valid JSON ({e})") from None
     if not isinstance(js, dict):
         raise UserError(f"{path}: expected a JSON object with 'frames'")

@@ -100,6 +100,17 @@ def undistort_points(xd: torch.Tensor, yd: torch.Tensor, dist, iters: int = 10):
         d = rad + y * drad * y + 6 * p1 * y + 2 * p2 * x  # d fy / dy
         det = a * d - b * c
         x, y = x - (d * fx - b * fy) / det, y - (a * fy - c * fx) / det
+    r2 = x * x + y * y
+    rad = 1 + k1 * r2 + k2 * r2 * r2
+    res = (x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd).abs() + (
+        y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+    ).abs()
+    if bool((~(res < 1e-6)).any()):  # past the model's invertible range (or NaN)
+        raise ValueError(
+            f"undistortion did not converge for {int((~(res < 1e-6)).sum())} pixel(s) "
+            f"(residual up to {float(res.nan_to_num(float('inf')).max()):.3g}): the distortion "
+            "model is not invertible there; undistort the images with COLMAP instead"
+        )
     return x.to(dt), y.to(dt)
 
 
@@ -168,3 +179,18 @@ def camera_rays(
     if ndc is not None:
         o, d = ndc_rays(o, d, ndc)
     return o, d
+
+
+def forward_facing_spiral(c2w, n_frames: int, focus: float = 4.0, rots: float = 2.0):
+    """[n_frames, 4, 4] cameras for a forward-facing capture normalised so that the mean camera
+    looks down -z from the origin (as the NeRF paper's render path): an ellipse through the 90th
+    percentile of the cameras' |x|, |y|, |z| offsets, ``rots`` turns, all looking at (0, 0,
+    -focus)."""
+    c2w = torch.as_tensor(c2w, dtype=torch.float64).cpu()
+    rads = c2w[:, :3, 3].abs().quantile(0.9, dim=0).clamp_min(1e-3)
+    mats = []
+    for i in range(n_frames):
+        th = 2 * math.pi * rots * i / max(n_frames, 1)
+        eye = torch.tensor([math.cos(th), -math.sin(th), -math.sin(0.5 * th)]) * rads
+        mats.append(look_at(eye, (0.0, 0.0, -focus), up=(0.0, 1.0, 0.0)))
+    return torch.stack(mats)

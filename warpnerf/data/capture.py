@@ -120,7 +120,7 @@ def _colmap(root: Path, downscale: int) -> dict:
         k.append(ki)
         dist.append(di)
         ids = im.point3d_ids[im.point3d_ids >= 0]
-        if points is not None and len(ids):
+        if points is not None and len(ids) and len(order_ids):
             rows = np.searchsorted(order_ids, ids).clip(0, len(order_ids) - 1)
             rows = order[rows[order_ids[rows] == ids]]
             z = (points["xyz"][rows] - m[:3, 3]) @ r[2]  # depth along the viewing axis (OpenCV +z)
@@ -225,9 +225,31 @@ def _llff(root: Path, downscale: int) -> dict:
 def _check_poses(c2w: np.ndarray, where: str):
     r = c2w[:, :3, :3]
     err = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    if not np.isfinite(c2w).all() or (err > 1e-3).any():
-        bad = int(np.argmax(~np.isfinite(err) | (err > 1e-3)))
-        raise UserError(f"{where}: pose {bad} is not a finite rotation (error {err[bad]:.2g})")
+    det = np.linalg.det(np.nan_to_num(r))
+    bad_pose = ~np.isfinite(err) | (err > 1e-3) | (det < 0)
+    if not np.isfinite(c2w).all() or bad_pose.any():
+        bad = int(np.argmax(bad_pose | ~np.isfinite(c2w).all(axis=(1, 2))))
+        raise UserError(
+            f"{where}: pose {bad} is not a finite rotation (orthonormality error {err[bad]:.2g}, "
+            f"determinant {det[bad]:.3g})"
+        )
+
+
+def _check_undistortion(sc: dict):
+    """Every border pixel of every distorted camera must undistort (the model must be invertible
+    over the whole image), else a UserError now rather than NaN rays in training."""
+    from .cameras import undistort_points
+
+    w, h = sc["size"]
+    u = torch.cat([torch.linspace(0, w, 64), torch.full((64,), float(w)), torch.zeros(64)])
+    v = torch.cat([torch.zeros(64), torch.linspace(0, h, 64), torch.linspace(0, h, 64)])
+    u, v = torch.cat([u, torch.linspace(0, w, 64)]), torch.cat([v, torch.full((64,), float(h))])
+    for i in np.flatnonzero(np.abs(sc["distortion"]).max(1) > 0):
+        k = sc["intrinsics"][i]
+        try:
+            undistort_points((u - k[2]) / k[0], (v - k[3]) / k[1], sc["distortion"][i])
+        except ValueError as e:
+            raise UserError(f"{sc['model']}: image {sc['names'][i]}: {e}") from None
 
 
 def _normalisation(c2w: np.ndarray, bounds) -> tuple[np.ndarray, bool, float]:
@@ -245,7 +267,7 @@ def _normalisation(c2w: np.ndarray, bounds) -> tuple[np.ndarray, bool, float]:
         x /= np.linalg.norm(x)
         rot = np.stack([x, np.cross(z, x), z])  # rows: world -> camera-aligned axes
         centre = centres.mean(0)
-        near = bounds[:, 0].min() if bounds is not None else None
+        near = np.nanmin(bounds[:, 0]) if bounds is not None else None
         if near is None:  # no bounds: the cameras' spread sets the scale
             near = max(np.linalg.norm(centres - centre, axis=1).max(), 1e-6) * 10
         scale = 1.0 / (0.75 * near)
@@ -288,15 +310,29 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
         raise UserError(f"{root}: --format llff, but no poses_bounds.npy found")
     sc = _colmap(root, downscale) if fmt == "colmap" else _llff(root, downscale)
     sc["format"] = fmt
+    _check_undistortion(sc)
     # --downscale d reads images_d when it exists, else area-averages the folder used by d.
-    sc["extra"] = 1 if sc["folder"].name == f"images_{downscale}" else downscale
+    name = sc["folder"].name
+    base = int(name[7:]) if name.startswith("images_") and name[7:].isdigit() else 1
+    if base > 1 and downscale > 1 and base != downscale:
+        raise UserError(
+            f"{root}: --downscale {downscale}: no images_{downscale}/ folder (found {name}/, "
+            f"which is already 1/{base}); use --downscale 1 for {name}/ as it is"
+        )
+    sc["extra"] = 1 if base > 1 else downscale
     _check_poses(sc["c2w"], sc["model"])
     transform, forward, scale = _normalisation(sc["c2w"], sc["bounds"])
     sc.update(transform=transform, forward_facing=forward, scale=scale)
     sc["c2w_norm"] = apply_transform(transform, sc["c2w"])
     # Scene-wide depth bounds in normalised units.
-    if sc["bounds"] is not None and np.isfinite(sc["bounds"]).all():
-        near, far = sc["bounds"][:, 0].min() * scale * 0.9, sc["bounds"][:, 1].max() * scale * 1.1
+    if sc["bounds"] is not None and np.isfinite(sc["bounds"]).any():
+        # bounds are depths along the viewing axis; the corner rays reach 1/cos further
+        k, (w, h) = sc["intrinsics"], sc["size"]
+        corner = np.sqrt(((np.maximum(k[:, 2], w - k[:, 2])) / k[:, 0]) ** 2
+                         + ((np.maximum(k[:, 3], h - k[:, 3])) / k[:, 1]) ** 2)  # fmt: skip
+        slant = float(np.sqrt(1 + corner.max() ** 2))
+        near = np.nanmin(sc["bounds"][:, 0]) * scale * 0.9
+        far = np.nanmax(sc["bounds"][:, 1]) * scale * 1.1 * slant
     else:
         near, far = 0.1 * CAMERA_RADIUS, 3.0 * CAMERA_RADIUS
     sc["near"], sc["far"] = float(near), float(far)
@@ -425,7 +461,7 @@ def load_capture(
 def normalised_to_world(points, transform, ndc=None, near: float = NDC_NEAR) -> np.ndarray:
     """Points [n, 3] of the normalised frame (or of NDC space when ``ndc`` = (fx, fy, W, H) is
     given) back in the capture's world units: the inverse of the loaders' mapping. NDC points
-    at z >= 1 (infinity) come back non-finite."""
+    at z = 1 (infinity) come back non-finite; z > 1 is behind the camera."""
     p = np.asarray(points, dtype=np.float64)
     if ndc is not None:
         fx, fy, w, h = ndc

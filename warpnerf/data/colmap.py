@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..io import atomic_path
 
 __all__ = ["Camera", "Image", "read_model", "find_model", "qvec_to_rotmat", "rotmat_to_qvec"]
 
@@ -220,7 +221,7 @@ def _read_images_bin(path: Path) -> dict[int, Image]:
     return images
 
 
-def _read_points_bin(path: Path) -> np.ndarray:
+def _read_points_bin(path: Path) -> dict:
     r = _Reader(path)
     (n,) = r.read("Q")
     xyz, ids = np.empty((n, 3)), np.empty(n, dtype=np.int64)
@@ -290,7 +291,7 @@ def _read_images_txt(path: Path) -> dict[int, Image]:
     return images
 
 
-def _read_points_txt(path: Path) -> np.ndarray:
+def _read_points_txt(path: Path) -> dict:
     xyz, ids = [], []
     for lineno, f in _text_lines(path):
         if f:
@@ -334,6 +335,11 @@ def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None
     return cams, images, points
 
 
+def _write(path: Path, data: bytes) -> None:
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(data)
+
+
 def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], points=None, text=False):
     """Writes a sparse model (binary or text) as COLMAP does; used by tests and tools."""
     folder = Path(folder)
@@ -343,30 +349,30 @@ def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], point
     if text:
         lines = [f"{c.id} {c.model} {c.width} {c.height} " + " ".join(map(repr, c.params.tolist()))
                  for c in cams.values()]  # fmt: skip
-        (folder / "cameras.txt").write_text("# Camera list\n" + "\n".join(lines) + "\n")
+        _write(folder / "cameras.txt", ("# Camera list\n" + "\n".join(lines) + "\n").encode())
         lines = []
         for im in images.values():
             pose = " ".join(map(repr, [*im.qvec.tolist(), *im.tvec.tolist()]))
             lines.append(f"{im.id} {pose} {im.camera_id} {im.name}")
             lines.append(" ".join(f"0 0 {int(p)}" for p in im.point3d_ids))
-        (folder / "images.txt").write_text("# Image list\n" + "\n".join(lines) + "\n")
+        _write(folder / "images.txt", ("# Image list\n" + "\n".join(lines) + "\n").encode())
         pts = enumerate(points.tolist())
         lines = [f"{i + 1} {x!r} {y!r} {z!r} 128 128 128 0.5" for i, (x, y, z) in pts]
-        (folder / "points3D.txt").write_text("\n".join(lines) + ("\n" if lines else ""))
+        _write(folder / "points3D.txt", ("\n".join(lines) + ("\n" if lines else "")).encode())
         return
     out = [struct.pack("<Q", len(cams))]
     for c in cams.values():
         out.append(struct.pack("<iiQQ", c.id, _BY_NAME[c.model][0], c.width, c.height))
         out.append(np.asarray(c.params, "<f8").tobytes())
-    (folder / "cameras.bin").write_bytes(b"".join(out))
+    _write(folder / "cameras.bin", b"".join(out))
     out = [struct.pack("<Q", len(images))]
     for im in images.values():
         out.append(struct.pack("<i7di", im.id, *im.qvec, *im.tvec, im.camera_id))
         out.append(im.name.encode() + b"\0" + struct.pack("<Q", len(im.point3d_ids)))
         for p in im.point3d_ids:
             out.append(struct.pack("<ddq", 0.0, 0.0, int(p)))
-    (folder / "images.bin").write_bytes(b"".join(out))
+    _write(folder / "images.bin", b"".join(out))
     out = [struct.pack("<Q", len(points))]
     for i, p in enumerate(points):
         out.append(struct.pack("<Q3d3BdQ", i + 1, *p, 128, 128, 128, 0.5, 0))
-    (folder / "points3D.bin").write_bytes(b"".join(out))
+    _write(folder / "points3D.bin", b"".join(out))

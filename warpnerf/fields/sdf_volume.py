@@ -22,23 +22,36 @@ def laplace_cdf(s: torch.Tensor, beta) -> torch.Tensor:
     return torch.where(s <= 0, e, 1.0 - e)
 
 
+def _norm(x: torch.Tensor) -> torch.Tensor:
+    """|x| over the last axis, with first and second derivatives 0 (finite) at x = 0.
+
+    torch's norm has gradient x / |x| masked to 0 at x = 0, but the derivative of that (needed
+    by an eikonal loss, a double backward) is NaN there: at a sphere's centre, on a torus' axis
+    and core ring, and on a box's faces, edges and corners (where the clamped outside vector is 0
+    but its gradient is live). Zero rows are swapped for ones before the norm and given 0 after.
+    """
+    zero = (x == 0).all(-1, keepdim=True)
+    n = torch.linalg.vector_norm(torch.where(zero, torch.ones_like(x), x), dim=-1)
+    return torch.where(zero.squeeze(-1), torch.zeros_like(n), n)
+
+
 def sdf_box(p: torch.Tensor, center: torch.Tensor, side_lengths: torch.Tensor) -> torch.Tensor:
     """Exact box SDF: |max(q, 0)| + min(max_k q_k, 0), q = |p - c| - s / 2. p [n, 3] -> [n]."""
     q = (p - center).abs() - 0.5 * side_lengths
-    outside = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1)
+    outside = _norm(q.clamp_min(0.0))
     inside = q.amax(-1).clamp_max(0.0)
     return outside + inside
 
 
 def sdf_sphere(p: torch.Tensor, center: torch.Tensor, radius) -> torch.Tensor:
-    return torch.linalg.vector_norm(p - center, dim=-1) - radius
+    return _norm(p - center) - radius
 
 
 def sdf_torus(p: torch.Tensor, center: torch.Tensor, major: float, minor: float) -> torch.Tensor:
     """Torus around the y axis: |(|q_xz| - R, q_y)| - r."""
     q = p - center
-    ring = torch.linalg.vector_norm(q[:, [0, 2]], dim=-1) - major
-    return torch.linalg.vector_norm(torch.stack([ring, q[:, 1]], -1), dim=-1) - minor
+    ring = _norm(q[:, [0, 2]]) - major
+    return _norm(torch.stack([ring, q[:, 1]], -1)) - minor
 
 
 class SDFVolume(nn.Module):

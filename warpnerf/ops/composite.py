@@ -172,7 +172,10 @@ def render_packed(
     (not normalised: divide by opacity for the depth of the visible surface),
     ``opacity = sum_i w_i``. A ray stops at the first sample with T_i < t_threshold (0 = never);
     forward and backward skip the same samples. Differentiable w.r.t. sigmas/alphas, rgbs and
-    background (not t_starts/t_ends) through a hand-written exact backward.
+    background (not t_starts/t_ends) through a hand-written exact backward. NaN inputs, and
+    invalid samples (t_end < t_start or a non-finite length, sigma < 0, alpha outside [0, 1]),
+    make their ray's outputs and gradients NaN rather than a plausible value (checked in the
+    kernel: no host sync); other rays are unaffected. See docs/NUMERICS.md.
 
     Returns:
         rgb [n_rays, 3], depth [n_rays], opacity [n_rays] (and weights [n] if return_weights).

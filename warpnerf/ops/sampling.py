@@ -113,8 +113,9 @@ def importance_samples(
     [n_rays, n_c + n_fine], or packed with ``packed_info`` counts n_c + n_fine (0 stays 0).
 
     Raises ValueError for bad shapes/dtypes/devices, n_fine < 1, weights that are negative or not
-    finite (a NaN weight would silently skew every sample of its ray) and samples that are not
-    finite, ordered and contiguous along each ray.
+    finite (a NaN weight would silently skew every sample of its ray) or whose sum is within a
+    factor 8 of the dtype's overflow (an infinite total would put every new position at far),
+    and samples that are not finite, ordered and contiguous along each ray.
     """
     from warpnerf.kernels import sampling as K
 
@@ -153,12 +154,15 @@ def importance_samples(
             in_range.all(),
             torch.isfinite(w).all(),
             (w >= 0).all(),
+            # the kernel sums each ray's masses: a total within 8x of overflow is refused (the
+            # inverse CDF of an infinite total puts every new position at far)
+            torch.isfinite(w.sum() * 8),
             torch.isfinite(ts).all() & torch.isfinite(te).all(),
             (te >= ts).all(),
             joined.all(),
         ]
     )
-    ok_range, finite_w, pos_w, finite_t, ordered, contiguous, n_out = [
+    ok_range, finite_w, pos_w, small_w, finite_t, ordered, contiguous, n_out = [
         int(x) for x in torch.cat([flags.long(), n_out.reshape(1).long()]).tolist()
     ]  # one device sync for all the checks
     if not ok_range:
@@ -167,6 +171,11 @@ def importance_samples(
         raise ValueError("weights must be finite (a NaN/Inf weight would skew its ray's PDF)")
     if not pos_w:
         raise ValueError("weights must be >= 0")
+    if not small_w:
+        raise ValueError(
+            f"weights are too large: their sum overflows {dt} (compositing weights sum to <= 1"
+            " per ray; rescale them)"
+        )
     if not finite_t:
         raise ValueError("samples must have finite t_starts and t_ends")
     if not ordered:

@@ -15,10 +15,17 @@ __all__ = ["render_dense", "render_packed"]
 
 
 def _alpha_tau(values, deltas, use_alpha):
+    """(alpha, tau) per sample; NaN for an invalid sample (delta not finite and >= 0, density
+    < 0, opacity outside [0, 1]), as in the kernel, so its ray comes out NaN."""
+    ok = torch.isfinite(deltas) & (deltas >= 0) & (values >= 0)
     if use_alpha:
-        return values, -torch.log1p(-values)
-    tau = values * deltas
-    return -torch.expm1(-tau), tau
+        ok = ok & (values <= 1)
+        alpha, tau = values, -torch.log1p(-values)
+    else:
+        tau = values * deltas
+        alpha = -torch.expm1(-tau)
+    nan = torch.full_like(tau, float("nan"))
+    return torch.where(ok, alpha, nan), torch.where(ok, tau, nan)
 
 
 def render_dense(

@@ -1,18 +1,44 @@
 """Fit an analytic box (center, side lengths) to images by gradient descent through the Warp
-compositing path: random ray batches across all images, MSE, Adam."""
+compositing path: random ray batches across all images, MSE, Adam with exponential decay.
+
+In a run folder (:func:`run_box_fit_on_folder`, ``warpnerf train box``) the fit is checkpointed
+atomically (box, optimiser, learning-rate schedule, batch RNG, history) every ``ckpt_every``
+steps, at the end, at ``max_seconds`` and on SIGINT/SIGTERM (the step finishes, is checkpointed,
+and :class:`~warpnerf.errors.Interrupted` is raised); ``resume`` then continues exactly as if the
+fit had never stopped (the per-step jitter is seeded by the step, the batches come from the saved
+generator).
+"""
 
 from __future__ import annotations
 
+import contextlib
+import json
+import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
 
 import torch
 
+from ..errors import Interrupted, UserError
 from ..fields.sdf_volume import SDFVolume
+from ..io import save_checkpoint, write_json
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
+from ._signals import stop_requests
 
-__all__ = ["BoxFitConfig", "fit_box", "render_box_views"]
+__all__ = [
+    "BoxFitConfig",
+    "fit_box",
+    "render_box_views",
+    "run_box_fit_on_folder",
+    "load_box_run",
+    "MODEL",
+]
+
+MODEL = "box"  # config.json's "model" of a box run folder
+CHECKPOINT = "checkpoint.pt"
+_RUN_KEYS = ("data", "device", "model")  # saved in config.json beside the BoxFitConfig fields
 
 
 @dataclass
@@ -22,15 +48,38 @@ class BoxFitConfig:
     n_samples: int = 64  # stratified samples per ray (jittered while fitting)
     near: float = 0.0
     far: float = 5.0
-    lr: float = 0.02  # Adam, decayed exponentially to lr * lr_final_ratio
+    lr: float = 0.02  # Adam, decayed exponentially to lr * lr_final_ratio at lr_decay_steps
     lr_final_ratio: float = 0.1
+    lr_decay_steps: int = 0  # 0: iters (a run folder saves its first invocation's value)
     beta: float = 0.05
     alpha: float = 1.0
     background: float = 0.0  # black, as the seed's box task
+    ckpt_every: int = 100  # run folders: steps between checkpoints
+    max_seconds: float = 0.0  # stop (a run folder checkpoints) after this much fitting time in
+    # this call; a resume gets a fresh budget; 0 = no limit
     seed: int = 0
 
     def to_dict(self):
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
+        return cls(**d)
+
+    def validate(self):
+        for name in ("iters", "batch", "n_samples", "ckpt_every"):
+            if getattr(self, name) < 1:
+                raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+        if not self.far > self.near:
+            raise UserError(f"--far ({self.far}) must be greater than --near ({self.near})")
+        if not all(math.isfinite(v) and v > 0 for v in (self.lr, self.lr_final_ratio)):
+            raise UserError("--lr and the final lr ratio must be positive and finite")
+        if not (math.isfinite(self.max_seconds) and self.max_seconds >= 0):
+            raise UserError(f"--max-seconds must be finite and >= 0, got {self.max_seconds}")
+        return self
 
     def render_kwargs(self) -> dict:
         """The box task's compositing settings for render_rays / render_views."""
@@ -54,16 +103,26 @@ def fit_box(
     init_sides=(1.0, 1.0, 1.0),
     progress: bool = False,
     log_every: int = 0,
+    *,
+    run=None,
+    state: dict | None = None,
+    log=print,
 ):
     """Optimises a rainbow box's center and side lengths so its renders match ``images``.
 
     Args:
         images: [N, H, W, 3] ground-truth colours in [0, 1].
         c2w: [N, 4, 4] camera-to-world (OpenGL); intrinsics: [N, 4] (fx, fy, cx, cy).
+        run: a folder to checkpoint into (``checkpoint.pt`` and ``history.json``, atomically)
+            every ``cfg.ckpt_every`` steps, at the end, at ``cfg.max_seconds`` and on
+            SIGINT/SIGTERM, which finish the current step, checkpoint it and raise
+            :class:`~warpnerf.errors.Interrupted`. None: no files, signals keep their handlers.
+        state: a checkpoint (:func:`load_box_run`) to continue from, up to ``cfg.iters`` steps
+            in all; the continuation equals an uninterrupted fit.
 
     Returns:
-        dict with center, side_lengths, final_loss (mean of the last 10 steps), losses, seconds,
-        and the fitted ``volume``.
+        dict with center, side_lengths, final_loss (mean of the last 10 steps), losses, step,
+        seconds, and the fitted ``volume``.
     """
     n_img, h, w, _ = images.shape
     volume = SDFVolume(
@@ -74,83 +133,195 @@ def fit_box(
         beta=cfg.beta,
     ).to(images.device)
     opt = torch.optim.Adam(volume.parameters(), lr=cfg.lr)
-    gamma = cfg.lr_final_ratio ** (1.0 / max(cfg.iters, 1))
+    decay = cfg.lr_decay_steps if cfg.lr_decay_steps > 0 else cfg.iters
+    gamma = cfg.lr_final_ratio ** (1.0 / max(decay, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
     gen = torch.Generator().manual_seed(cfg.seed)
+    history = {"step": [], "loss": [], "seconds": []}
+    start = 0
+    if state is not None:
+        volume.load_state_dict(state["volume"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        gen.set_state(state["generator"].cpu())  # map_location may have moved it
+        history, start = state["history"], state["step"]
+    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
     flat_images = images.reshape(-1, 3)
-    losses = []
     t0 = time.perf_counter()
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=cfg.iters, desc="fit box", unit="step", leave=False, disable=None)
-    for step in range(cfg.iters):
-        cam, px, py, flat = random_pixels(
-            n_img, w, h, cfg.batch, generator=gen, device=images.device
-        )
-        o, d = generate_rays(c2w, intrinsics, cam_idx=cam, px=px, py=py)
-        out = render_rays(
-            o,
-            d,
-            cfg.near,
-            cfg.far,
-            volume,
-            perturb=True,
-            seed=cfg.seed * 100003 + step,
-            **cfg.render_kwargs(),
-        )
-        loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        sched.step()
-        with torch.no_grad():
-            volume.side_lengths.clamp_(min=1e-3)
-        losses.append(loss.item())
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(loss=f"{losses[-1]:.2e}")
-        if log_every and (step % log_every == 0 or step == cfg.iters - 1):
-            c = [round(v, 4) for v in volume.center.tolist()]
-            s = [round(v, 4) for v in volume.side_lengths.tolist()]
-            print(f"step {step:5d} loss {losses[-1]:.3e} center {c} sides {s}")
+        bar = tqdm(total=cfg.iters, initial=start, desc="fit box", unit="step", leave=False,
+                   disable=None)  # fmt: skip
+    no_signals = contextlib.nullcontext({"signum": None})
+    with stop_requests() if run is not None else no_signals as stop:
+        for step in range(start, cfg.iters):
+            cam, px, py, flat = random_pixels(
+                n_img, w, h, cfg.batch, generator=gen, device=images.device
+            )
+            o, d = generate_rays(c2w, intrinsics, cam_idx=cam, px=px, py=py)
+            out = render_rays(
+                o,
+                d,
+                cfg.near,
+                cfg.far,
+                volume,
+                perturb=True,
+                seed=cfg.seed * 100003 + step,
+                **cfg.render_kwargs(),
+            )
+            loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            with torch.no_grad():
+                volume.side_lengths.clamp_(min=1e-3)
+            done = step + 1
+            seconds = elapsed0 + time.perf_counter() - t0
+            history["step"].append(done)
+            history["loss"].append(loss.item())
+            history["seconds"].append(seconds)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{history['loss'][-1]:.2e}")
+            if log_every and (step % log_every == 0 or step == cfg.iters - 1):
+                c = [round(v, 4) for v in volume.center.tolist()]
+                s = [round(v, 4) for v in volume.side_lengths.tolist()]
+                print(f"step {step:5d} loss {history['loss'][-1]:.3e} center {c} sides {s}")
+            out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
+            stopping = out_of_time or stop["signum"] is not None
+            if run is not None and (done % cfg.ckpt_every == 0 or done == cfg.iters or stopping):
+                _save(Path(run), done, volume, opt, sched, gen, history, cfg)
+            if out_of_time:
+                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
+                break
+            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
+                break
     if bar is not None:
         bar.close()
+    if stop["signum"] is not None:
+        raise Interrupted(stop["signum"], history["step"][-1], run)
+    losses = history["loss"]
     return {
         "center": volume.center.detach().tolist(),
         "side_lengths": volume.side_lengths.detach().tolist(),
         "final_loss": float(sum(losses[-10:]) / len(losses[-10:])) if losses else float("nan"),
         "losses": losses,
-        "seconds": time.perf_counter() - t0,
+        "step": history["step"][-1] if history["step"] else 0,
+        "seconds": history["seconds"][-1] if history["seconds"] else 0.0,
         "volume": volume,
     }
 
 
+def _save(run: Path, step, volume, opt, sched, gen, history, cfg):
+    state = {
+        "step": step,
+        "volume": volume.state_dict(),
+        "optimizer": opt.state_dict(),
+        "scheduler": sched.state_dict(),
+        "generator": gen.get_state(),
+        "history": history,
+        "config": cfg.to_dict(),
+    }
+    save_checkpoint(run / CHECKPOINT, state)
+    write_json(run / "history.json", history)
+
+
+def _read_config(run: Path):
+    """config.json of a run folder as a dict, or None when there is none or it is unreadable."""
+    try:
+        d = json.loads((run / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def load_box_run(run, device: str | None = None):
+    """(cfg, data, device, checkpoint) of a box run folder; ``device`` overrides the saved one."""
+    run = Path(run)
+    d = _read_config(run)
+    if d is None or not (run / CHECKPOINT).is_file():
+        raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
+    if d.get("model") != MODEL:
+        raise UserError(f"{run}: not a box run (config model {d.get('model')!r})")
+    data, saved_device = d.get("data"), d.get("device", "cpu")
+    cfg = BoxFitConfig.from_dict({k: v for k, v in d.items() if k not in _RUN_KEYS})
+    device = device or saved_device
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"{run}: device {device} is not available here; pass --device cpu")
+    ckpt = torch.load(run / CHECKPOINT, map_location=device, weights_only=False)
+    return cfg, data, device, ckpt
+
+
 def run_box_fit_on_folder(
-    data, out, cfg: BoxFitConfig, device: str = "cpu", frames: int = 40, progress: bool = False
+    data,
+    out,
+    cfg: BoxFitConfig,
+    device: str | None = None,
+    frames: int = 40,
+    progress: bool = False,
+    resume: bool = False,
+    log=print,
 ):
     """The seed's box task on a Blender-format folder: images alpha-composited on black, fits the
-    rainbow box, writes ``result.json``, ``config.json`` and (frames > 0) a spiral video of the fit.
+    rainbow box in run folder ``out`` (``config.json``, atomic ``checkpoint.pt`` and
+    ``history.json`` as it goes), then writes ``result.json`` and (frames > 0) a spiral video of
+    the fit. A new fit in a folder that holds an earlier box fit starts over (a folder holding
+    another kind of run is refused). SIGINT/SIGTERM: see :func:`fit_box`.
+
+    ``resume=True`` continues the fit in ``out`` up to ``cfg.iters`` steps in all; only
+    ``cfg.iters`` and ``cfg.max_seconds`` are taken from ``cfg`` (``data`` may be None): the data
+    and every other setting come from the run's config.json, and ``device`` (if given) moves it.
+    ``device`` None: cpu for a new fit.
 
     Returns {"center": [x, y, z], "side_lengths": [a, b, c], "final_loss": float}.
     """
-    from pathlib import Path
-
     from ..data.blender import load_blender
-    from ..io import write_json
 
+    out = Path(out)
+    state = None
+    if resume:
+        saved, data, device, state = load_box_run(out, device)
+        if cfg.iters <= state["step"]:
+            raise UserError(
+                f"{out}: the checkpoint is at step {state['step']}; --iters must be larger to "
+                f"continue, got {cfg.iters}"
+            )
+        saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
+        cfg = saved
+    else:
+        device = device or "cpu"
+        old = _read_config(out)
+        if (out / CHECKPOINT).exists() and (old is None or old.get("model") != MODEL):
+            raise UserError(f"{out}: holds another kind of run; choose another --out")
+    cfg.validate()
+    if cfg.lr_decay_steps <= 0:
+        cfg.lr_decay_steps = cfg.iters
+    # Data first: a bad folder stops the fit before anything is written.
     ds = load_blender(data, split="train", background=(cfg.background,) * 3)
     dev = torch.device(device)
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device})
+    if not resume:  # an earlier fit's files would not match this one's
+        for name in (CHECKPOINT, "history.json", "result.json"):
+            (out / name).unlink(missing_ok=True)
+    write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device,
+                                                     "model": MODEL})  # fmt: skip
     fit = fit_box(
-        ds["images"].to(dev), ds["c2w"].to(dev), ds["intrinsics"].to(dev), cfg, progress=progress
+        ds["images"].to(dev),
+        ds["c2w"].to(dev),
+        ds["intrinsics"].to(dev),
+        cfg,
+        progress=progress,
+        run=out,
+        state=state,
+        log=log,
     )
     volume = fit.pop("volume")
     result = {k: fit[k] for k in ("center", "side_lengths", "final_loss")}
-    write_json(out / "result.json", result | {"seconds": fit["seconds"], "losses": fit["losses"]})
+    extra = {"step": fit["step"], "seconds": fit["seconds"], "losses": fit["losses"]}
+    write_json(out / "result.json", result | extra)
     if frames > 0:
         from ..demo import write_spiral
 

@@ -15,7 +15,7 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.nerf import NeRFField
-from ..io import atomic_path, write_json
+from ..io import save_checkpoint, write_json
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
 from ._signals import stop_requests
@@ -152,6 +152,11 @@ class NeRFConfig:
             return
         info = capture_info(self.data, fmt, self.downscale, self.holdout)
         ndc = info["forward_facing"] if self.ndc == "auto" else self.ndc == "on"
+        if ndc and not info["forward_facing"]:  # NDC needs the forward-facing normalisation
+            raise UserError(
+                f"{self.data}: --ndc on needs a forward-facing capture (every viewing axis within "
+                "45 degrees of their mean); this one is not"
+            )
         self.scene = {
             "format": fmt,
             "transform": info["transform"],
@@ -452,8 +457,7 @@ def _save(run: Path, step, fields_, opt, gen, history, cfg, extra=None):
         "history": history,
         "config": cfg.to_dict(),
     }
-    with atomic_path(run / CHECKPOINT) as tmp:
-        torch.save(state, tmp)
+    save_checkpoint(run / CHECKPOINT, state)
 
 
 def load_run(run, device: str | None = None):

@@ -9,11 +9,10 @@ from pathlib import Path
 
 import torch
 
-from ..data.cameras import look_at
+from ..data.cameras import camera_rays, look_at
 from ..errors import UserError
 from ..io import depth_to_uint8, to_uint8, write_image, write_json, write_video
 from ..metrics import psnr, ssim
-from ..ops import generate_rays
 from .nerf import load_data, load_run, render_dataset_image, render_rays_of
 
 __all__ = ["evaluate_run", "render_run", "camera_path", "train_and_evaluate"]
@@ -148,11 +147,16 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     k = train["intrinsics"][0].clone()
     k[[0, 2]] *= w / w0
     k[[1, 3]] *= h / h0
-    cams = camera_path(train["c2w"], path, frames).to(cfg.device)
+    if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
+        from ..data.cameras import forward_facing_spiral
+
+        cams = forward_facing_spiral(train["c2w"], frames).float().to(cfg.device)
+    else:
+        cams = camera_path(train["c2w"], path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
     rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
     for f in range(frames):
-        o, d = generate_rays(cams[f], k, w, h)
+        o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
         out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep = _depth_image(

@@ -1,6 +1,7 @@
 """Neural SDF from a point cloud: |f| on the points + eikonal (|grad f| - 1)^2 on random points
 and the surface points (+ an optional normal term), Adam with exponential decay, atomic
-checkpoints, exact resume; at the end a marching-cubes mesh in the input's units, Chamfer
+checkpoints, exact resume (SIGINT/SIGTERM finish the step, checkpoint it and raise
+``Interrupted``); at the end a marching-cubes mesh in the input's units, Chamfer
 distance to the points and eikonal statistics.
 
 Points are normalised once (centre of their bounding box to the origin, largest half extent to
@@ -20,9 +21,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import UserError
+from ..errors import Interrupted, UserError
 from ..fields.neural_sdf import NeuralSDF
-from ..io import atomic_path, write_json
+from ..io import save_checkpoint, write_json
+from ._signals import stop_requests
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
@@ -192,7 +194,11 @@ def sdf_loss(model, surf, normals, rand, cfg):
 
 
 def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None):
-    """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict."""
+    """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict.
+
+    SIGINT/SIGTERM during training finish the current step, checkpoint it and raise
+    :class:`~warpnerf.errors.Interrupted` (no mesh or metrics); ``resume=True`` then continues
+    exactly (bit-identical on CPU with the same seed)."""
     run = Path(run)
     ckpt = None
     if resume:
@@ -235,47 +241,54 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
         from tqdm import tqdm
 
         bar = tqdm(total=cfg.iters, initial=start, desc="train sdf", unit="step", disable=None)
-    for step in range(start, cfg.iters):
-        for gr in opt.param_groups:
-            gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
-        idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
-        half = cfg.n_random // 2
-        near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
-        noise = torch.randn(cfg.n_random - half, 3, generator=gen).to(dev) * sigma
-        uni = (torch.rand(half, 3, generator=gen) * 2 - 1).to(dev)
-        rand = torch.cat([uni, pts[near_idx] + noise])
-        loss, parts = sdf_loss(model, pts[idx], nrm[idx] if nrm is not None else None, rand, cfg)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        done = step + 1
-        seconds = elapsed0 + time.perf_counter() - t0
-        history["step"].append(done)
-        history["loss"].append(loss.item())
-        history["surface"].append(parts["surface"])
-        history["eikonal"].append(parts["eikonal"])
-        history["seconds"].append(seconds)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(surface=f"{parts['surface']:.4f}", eikonal=f"{parts['eikonal']:.4f}")
-        out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
-        if done % cfg.ckpt_every == 0 or done == cfg.iters or out_of_time:
-            state = {
-                "step": done,
-                "model": model.state_dict(),
-                "optimizer": opt.state_dict(),
-                "generator": gen.get_state(),
-                "history": history,
-                "normalisation": {"center": center.tolist(), "scale": scale},
-            }
-            with atomic_path(run / CHECKPOINT) as tmp:
-                torch.save(state, tmp)
-            write_json(run / "history.json", history)
-        if out_of_time:
-            log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
-            break
+    with stop_requests() as stop:
+        for step in range(start, cfg.iters):
+            for gr in opt.param_groups:
+                gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
+            idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
+            half = cfg.n_random // 2
+            near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
+            noise = torch.randn(cfg.n_random - half, 3, generator=gen).to(dev) * sigma
+            uni = (torch.rand(half, 3, generator=gen) * 2 - 1).to(dev)
+            rand = torch.cat([uni, pts[near_idx] + noise])
+            surf_nrm = nrm[idx] if nrm is not None else None
+            loss, parts = sdf_loss(model, pts[idx], surf_nrm, rand, cfg)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            done = step + 1
+            seconds = elapsed0 + time.perf_counter() - t0
+            history["step"].append(done)
+            history["loss"].append(loss.item())
+            history["surface"].append(parts["surface"])
+            history["eikonal"].append(parts["eikonal"])
+            history["seconds"].append(seconds)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(surface=f"{parts['surface']:.4f}",
+                                eikonal=f"{parts['eikonal']:.4f}")  # fmt: skip
+            out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
+            stopping = out_of_time or stop["signum"] is not None
+            if done % cfg.ckpt_every == 0 or done == cfg.iters or stopping:
+                state = {
+                    "step": done,
+                    "model": model.state_dict(),
+                    "optimizer": opt.state_dict(),
+                    "generator": gen.get_state(),
+                    "history": history,
+                    "normalisation": {"center": center.tolist(), "scale": scale},
+                }
+                save_checkpoint(run / CHECKPOINT, state)
+                write_json(run / "history.json", history)
+            if out_of_time:
+                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
+                break
+            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
+                break
     if bar is not None:
         bar.close()
+    if stop["signum"] is not None:  # no mesh: the run continues with --resume
+        raise Interrupted(stop["signum"], history["step"][-1], run)
     metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
     metrics.update(step=history["step"][-1] if history["step"] else 0,
                    seconds=history["seconds"][-1] if history["seconds"] else 0.0)  # fmt: skip
