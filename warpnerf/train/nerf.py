@@ -135,8 +135,8 @@ class NeRFConfig:
 
     def _resolve_scene(self):
         """Reads a COLMAP/LLFF folder's poses once (no pixels) into ``scene``."""
-        if self.scene is not None or self.data == "builtin":
-            return
+        if self.scene is not None or self.data == "builtin" or not Path(self.data).is_dir():
+            return  # (a missing folder is reported by the loader)
         from ..data.capture import capture_info
         from ..data.datasets import FORMATS, detect_format
 
