@@ -4,8 +4,8 @@ nothing.
 
 Most cases run in-process (``warpnerf.cli.main``, the demos' ``main``) against one module-wide
 folder of tiny broken inputs (``world``); one test runs four commands as subprocesses to check the
-exit status and stderr end to end. A case that needs a fix in a file outside this change is a
-strict xfail whose reason names the fix.
+exit status and stderr end to end. Cases that need an unreadable file (chmod 000) emulate
+the denial when the tests run as root.
 """
 
 # AUDIT MATRIX: command or loader x bad-input case.
@@ -17,21 +17,21 @@ strict xfail whose reason names the fix.
 #   Of --out (--json) is a file, or lies under one   Nu bad numbers (<= 0, NaN, Inf, malformed)
 # Cells: covered before this file by D = test_datasets, I = test_data_io, C = test_cli_demos;
 #   h = tested here, was already clean;  F = failed (traceback, misleading message or silently
-#   accepted), fixed with this file, tested here;  X = fails, the fix is in a file outside this
-#   change (strict xfail here, diff in the report);  r = chmod cases, skipped as root;  . = n/a.
+#   accepted), fixed and tested here;  r = a chmod case (as root the denial is emulated by
+#   _deny_reads: chmod 000 does not stop root);  . = n/a.
 #
 #                         Mi    Ur    Js    Sh    Nf    Sz    Em    Op    Rk    Of    Nu
 # load_blender            DIh   Fr    DIh   DIh   Dh    Dh    Dh    .     .     .     D
 # load_nerfstudio         Dh    Fr    Dh    D     Dh    Dh    Dh    .     .     .     D
-# load_dataset (detect)   Dh    Xr    D     D     D     D     Dh    .     .     .     D
-# train box (box-fit      Ch    hFr   h     h     h     h     h     h     hX    F     CF
+# load_dataset (detect)   Dh    Fr    D     D     D     D     Dh    .     .     .     D
+# train box (box-fit      Ch    hFr   h     h     h     h     h     h     hF    F     CF
 #   folder loader, load_box_run)
-# train nerf              Ch    hXr   h     h     h     h     h     h     ChX   F     CF
+# train nerf              Ch    hFr   h     h     h     h     h     h     ChF   F     CF
 # train volsdf            h     .     .     h     .     .     .     h     F     F     CF
-# train sdf (load_points) Ch    hr    .     .     h     .     hX    h     ChXr  F     ChF
-# eval (load_run)         Ch    Xr    h     .     .     .     .     h     ChX   F     Ch
-# render (load_run)       Ch    .     .     .     .     .     .     h     ChX   F     Ch
-# mesh (load_run,         Ch    hXr   h     .     h     .     h     h     hX    Ch    CF
+# train sdf (load_points) Ch    hr    .     .     h     .     hF    h     ChFr  F     ChF
+# eval (load_run)         Ch    Fr    h     .     .     .     .     h     ChF   F     Ch
+# render (load_run)       Ch    .     .     .     .     .     .     h     ChF   F     Ch
+# mesh (load_run,         Ch    hFr   h     .     h     .     h     h     hF    Ch    CF
 #   load_sdf_run, SDFScene.load)
 # demo                    .     .     .     .     .     .     .     h     .     F     Ch
 # bench                   .     .     .     .     .     .     .     h     .     F     .
@@ -46,12 +46,12 @@ strict xfail whose reason names the fix.
 #   (ValueError traceback); --max-seconds nan was ignored; mesh --level nan said "no surface";
 #   train box --frames -1 / --near -1 were accepted; an unreadable transforms file said "not
 #   valid JSON"; an unreadable data folder gave a PermissionError traceback (box loader).
-# What X is (tracebacks or unclear messages, fixes proposed for train/nerf.py load_run,
-#   train/sdf.py load_sdf_run, train/box_fit.py load_box_run, io.py, data/datasets.py
-#   detect_format, mesh.py read_ply_points): a corrupt / truncated / other-model / resized
-#   checkpoint.pt (torch.load, ckpt[...] and load_state_dict unguarded), an unreadable
-#   config.json or checkpoint.pt, a box run given to eval/render/mesh/train nerf ("config:
-#   unknown field(s)"), an unreadable data folder (detect_format), an ASCII PLY with 0 vertices.
+# Fixed in a second pass (io.load_checkpoint / io.load_weights in load_run, load_sdf_run,
+#   load_box_run; datasets.detect_format; mesh.read_ply_points): a corrupt / truncated /
+#   other-model / resized checkpoint.pt (unpickling errors, KeyError, load_state_dict size
+#   mismatches), an unreadable config.json or checkpoint.pt, a box run given to eval / render /
+#   mesh / train nerf ("config: unknown field(s)", not naming the run), an unreadable data folder
+#   (detect_format), an ASCII PLY with 0 vertices (IndexError).
 
 from __future__ import annotations
 
@@ -73,11 +73,6 @@ from .test_datasets import _pattern, _png, make_blender, make_nerfstudio
 
 ROOT = Path(__file__).resolve().parents[1]
 IS_ROOT = hasattr(os, "geteuid") and os.geteuid() == 0
-BOX_FIX = "load_run: a box run's config.json gives 'unknown field(s)' (see the report)"
-CKPT_FIX = (
-    "load_run / load_sdf_run / load_box_run: torch.load, ckpt[...] and load_state_dict are "
-    "unguarded; needs warpnerf.io.load_checkpoint / load_weights (see the report)"
-)
 # train nerf flags for a tiny, fast run (only reached by cases that should fail before training)
 TN = ["--iters", "2", "--batch", "32", "--samples", "4", "--layers", "2", "--width", "16"]
 TN += ["--pos-freqs", "1", "--dir-freqs", "1", "--builtin-size", "8", "--val-images", "0"]
@@ -229,10 +224,6 @@ def _fails_cleanly(argv, capsys, needles, status=2) -> str:
     return lines[0]
 
 
-def _xfail(*values, reason=CKPT_FIX):
-    return pytest.param(*values, marks=pytest.mark.xfail(strict=True, reason=reason))
-
-
 # ------------------------------------------------------------------- user errors (exit 2)
 
 # (argv with OUT = a fresh path that must stay absent, substrings of the error line)
@@ -274,10 +265,9 @@ CASES = [
     (["train", "sdf", "--points", "nope.npz", "--out", "OUT"], ["nope.npz", "no such"]),
     (["train", "sdf", "--points", "emptydir", "--out", "OUT"], ["emptydir", "no such"]),
     (["train", "sdf", "--points", "p0.npz", "--out", "OUT"], ["p0.npz", "[N >= 16, 3]", "[0, 3]"]),
-    _xfail(
+    (
         ["train", "sdf", "--points", "p0.ply", "--out", "OUT"],
         ["p0.ply", "[0, 3]"],
-        reason="mesh.py read_ply_points: an ASCII PLY with 0 vertices raises IndexError",
     ),
     (["train", "sdf", "--points", "p2d.npz", "--out", "OUT"], ["p2d.npz", "[100, 2]"]),
     (["train", "sdf", "--points", "pnan.npz", "--out", "OUT"], ["pnan.npz", "NaN"]),
@@ -298,48 +288,42 @@ CASES = [
     (["eval", "nerf_nocfg"], ["nerf_nocfg", "config.json"]),
     (["eval", "nerf_badcfg"], ["nerf_badcfg/config.json"]),
     (["eval", "sdf_run"], ["sdf_run", "neural-SDF run"]),
-    _xfail(["eval", "nerf_corrupt"], ["nerf_corrupt/checkpoint.pt"]),
-    _xfail(["eval", "nerf_truncated"], ["nerf_truncated/checkpoint.pt"]),
-    _xfail(["eval", "nerf_otherckpt"], ["nerf_otherckpt/checkpoint.pt"]),
-    _xfail(["eval", "nerf_resized"], ["nerf_resized/checkpoint.pt", "config.json"]),
+    (["eval", "nerf_corrupt"], ["nerf_corrupt/checkpoint.pt"]),
+    (["eval", "nerf_truncated"], ["nerf_truncated/checkpoint.pt"]),
+    (["eval", "nerf_otherckpt"], ["nerf_otherckpt/checkpoint.pt"]),
+    (["eval", "nerf_resized"], ["nerf_resized/checkpoint.pt", "config.json"]),
     (["render", "nope"], ["nope", "not a training run"]),
     (["render", "nerf_nockpt"], ["nerf_nockpt", "checkpoint.pt"]),
     (["render", "sdf_run"], ["sdf_run", "neural-SDF run"]),
-    _xfail(["render", "nerf_corrupt"], ["nerf_corrupt/checkpoint.pt"]),
+    (["render", "nerf_corrupt"], ["nerf_corrupt/checkpoint.pt"]),
     (["mesh", "nope", "--out", "OUT/m.ply"], ["nope", "not a training run"]),
     (["mesh", "nerf_nockpt", "--out", "OUT/m.ply"], ["nerf_nockpt", "checkpoint.pt"]),
     (["mesh", "nerf_badcfg", "--out", "OUT/m.ply"], ["nerf_badcfg/config.json"]),
     (["mesh", "sdf_nockpt", "--out", "OUT/m.ply"], ["sdf_nockpt", "checkpoint.pt"]),
     (["mesh", "sdf_nocfg", "--out", "OUT/m.ply"], ["sdf_nocfg", "not a training run"]),
     (["mesh", "sdf_badcfg", "--out", "OUT/m.ply"], ["sdf_badcfg/config.json"]),
-    _xfail(["mesh", "nerf_corrupt", "--out", "OUT/m.ply"], ["nerf_corrupt/checkpoint.pt"]),
-    _xfail(["mesh", "sdf_corrupt", "--out", "OUT/m.ply"], ["sdf_corrupt/checkpoint.pt"]),
-    _xfail(["mesh", "sdf_truncated", "--out", "OUT/m.ply"], ["sdf_truncated/checkpoint.pt"]),
-    _xfail(["mesh", "sdf_otherckpt", "--out", "OUT/m.ply"], ["sdf_otherckpt/checkpoint.pt"]),
+    (["mesh", "nerf_corrupt", "--out", "OUT/m.ply"], ["nerf_corrupt/checkpoint.pt"]),
+    (["mesh", "sdf_corrupt", "--out", "OUT/m.ply"], ["sdf_corrupt/checkpoint.pt"]),
+    (["mesh", "sdf_truncated", "--out", "OUT/m.ply"], ["sdf_truncated/checkpoint.pt"]),
+    (["mesh", "sdf_otherckpt", "--out", "OUT/m.ply"], ["sdf_otherckpt/checkpoint.pt"]),
     (["train", "nerf", "--out", "sdf_run", "--resume", "--iters", "9"], ["neural-SDF run"]),
     (["train", "nerf", "--out", "nerf_nocfg", "--resume", "--iters", "9"], ["config.json"]),
     (["train", "volsdf", "--out", "nerf_run", "--resume", "--iters", "9"], ["not a VolSDF run"]),
     (["train", "sdf", "--out", "nerf_run", "--resume", "--iters", "9"], ["not a neural-SDF run"]),
     (["train", "sdf", "--out", "sdf_nockpt", "--resume", "--iters", "9"], ["checkpoint.pt"]),
     (["train", "sdf", "--out", "sdf_badcfg", "--resume", "--iters", "9"], ["config.json"]),
-    _xfail(
-        ["train", "nerf", "--out", "nerf_corrupt", "--resume", "--iters", "9"], ["nerf_corrupt/"]
-    ),
+    (["train", "nerf", "--out", "nerf_corrupt", "--resume", "--iters", "9"], ["nerf_corrupt/"]),
     # box runs (train box) where a NeRF / neural-SDF run is expected, and the other way round
-    _xfail(["eval", "box_run"], ["box_run", "box"], reason=BOX_FIX),
-    _xfail(["render", "box_run"], ["box_run", "box"], reason=BOX_FIX),
-    _xfail(["mesh", "box_run", "--out", "OUT/m.ply"], ["box_run", "box"], reason=BOX_FIX),
-    _xfail(
-        ["train", "nerf", "--out", "box_run", "--resume", "--iters", "9"],
-        ["box_run", "box"],
-        reason=BOX_FIX,
-    ),
+    (["eval", "box_run"], ["box_run", "box"]),
+    (["render", "box_run"], ["box_run", "box"]),
+    (["mesh", "box_run", "--out", "OUT/m.ply"], ["box_run", "box"]),
+    (["train", "nerf", "--out", "box_run", "--resume", "--iters", "9"], ["box_run", "box"]),
     (["train", "sdf", "--out", "box_run", "--resume", "--iters", "9"], ["not a neural-SDF run"]),
     (["train", "box", "--out", "nerf_run", "--resume", "--iters", "9"], ["not a box run"]),
     (["train", "box", "--out", "sdf_run", "--resume", "--iters", "9"], ["not a box run"]),
     (["train", "box", "--out", "nope", "--resume", "--iters", "9"], ["nope", "not a training"]),
-    _xfail(["train", "box", "--out", "box_corrupt", "--resume", "--iters", "9"], ["box_corrupt/"]),
-    _xfail(["train", "sdf", "--out", "sdf_corrupt", "--resume", "--iters", "9"], ["sdf_corrupt"]),
+    (["train", "box", "--out", "box_corrupt", "--resume", "--iters", "9"], ["box_corrupt/"]),
+    (["train", "sdf", "--out", "sdf_corrupt", "--resume", "--iters", "9"], ["sdf_corrupt"]),
     # an output path that is a file, or lies under a file
     (["demo", "--out", "afile", "--quiet"], ["--out afile", "is a file"]),
     (["train", "box", "--data", "bl", "--out", "afile"], ["--out afile", "is a file"]),
@@ -371,8 +355,7 @@ CASES = [
 
 
 def _case_id(case) -> str:
-    argv = case.values[0] if hasattr(case, "values") else case[0]
-    return " ".join(a for a in argv if a not in TN)[:60]
+    return " ".join(a for a in case[0] if a not in TN)[:60]
 
 
 @pytest.mark.parametrize("argv, needles", CASES, ids=[_case_id(c) for c in CASES])
@@ -460,12 +443,10 @@ def test_bad_option_exits_2_before_doing_anything(world, monkeypatch, capsys, ar
 
 # ------------------------------------------------------------- unreadable files (chmod 000)
 
-_CFG_FIX = "load_run: config.json's read_text OSError is not caught (see the report)"
-_DIR_FIX = "datasets.py detect_format: stat of a file in an unreadable folder (see the report)"
 # (argv with SRC = a copy of the world's ``source``, the file (. = SRC) made unreadable, needles)
 UNREADABLE = [
     (["train", "box", "--data", "SRC", "--out", "OUT"], "bl", ".", ["src", "not readable"]),
-    _xfail(_train("SRC"), "bl", ".", ["src", "not readable"], reason=_DIR_FIX),
+    (_train("SRC"), "bl", ".", ["src", "not readable"]),
     (_train("SRC"), "bl", "transforms_train.json", ["transforms_train.json", "cannot read"]),
     (["train", "box", "--data", "SRC", "--out", "OUT"], "bl", "train/r_1.png",
      ["r_1.png", "cannot read image"]),
@@ -475,21 +456,51 @@ UNREADABLE = [
      ["nan_scene.json", "not a readable"]),
     (["train", "sdf", "--out", "SRC", "--resume", "--iters", "9"], "sdf_run", "config.json",
      ["config.json"]),
-    _xfail(["mesh", "SRC", "--out", "OUT/m.ply"], "sdf_run", "config.json", ["config.json"],
-           reason=_CFG_FIX),
-    _xfail(["eval", "SRC"], "nerf_run", "config.json", ["config.json"], reason=_CFG_FIX),
-    _xfail(["eval", "SRC"], "nerf_run", "checkpoint.pt", ["checkpoint.pt"]),
-    _xfail(["mesh", "SRC", "--out", "OUT/m.ply"], "sdf_run", "checkpoint.pt", ["checkpoint.pt"]),
+    (["mesh", "SRC", "--out", "OUT/m.ply"], "sdf_run", "config.json", ["config.json"]),
+    (["eval", "SRC"], "nerf_run", "config.json", ["config.json"]),
+    (["eval", "SRC"], "nerf_run", "checkpoint.pt", ["checkpoint.pt"]),
+    (["mesh", "SRC", "--out", "OUT/m.ply"], "sdf_run", "checkpoint.pt", ["checkpoint.pt"]),
 ]  # fmt: skip
 
 
-@pytest.mark.skipif(IS_ROOT, reason="chmod 000 does not stop root from reading")
+def _deny_reads(monkeypatch, victim: Path) -> None:
+    """What ``chmod 000 victim`` does to a non-root process, for tests that run as root (CI):
+    opening, listing or ``os.access``-checking ``victim`` (or anything under it, when it is a
+    folder) fails with EACCES."""
+    import builtins
+    import io
+
+    victim = victim.resolve()
+
+    def denied(path) -> bool:
+        try:
+            p = Path(os.fsdecode(path)).resolve()
+        except (TypeError, ValueError):
+            return False  # a file descriptor or a file object
+        return p == victim or victim in p.parents
+
+    def guard(fn):
+        def wrapped(path, *args, **kwargs):
+            if denied(path):
+                raise PermissionError(13, "Permission denied", os.fsdecode(path))
+            return fn(path, *args, **kwargs)
+
+        return wrapped
+
+    for mod, name in [(builtins, "open"), (io, "open"), (os, "open"), (os, "scandir"),
+                      (os, "listdir")]:  # fmt: skip
+        monkeypatch.setattr(mod, name, guard(getattr(mod, name)))
+    access = os.access
+    monkeypatch.setattr(os, "access", lambda p, m, **kw: not denied(p) and access(p, m, **kw))
+
+
 @pytest.mark.parametrize(
     "argv, source, victim, needles",
     UNREADABLE,
-    ids=[f"{_case_id(c)} ({c.values[2] if hasattr(c, 'values') else c[2]})" for c in UNREADABLE],
+    ids=[f"{_case_id(c)} ({c[2]})" for c in UNREADABLE],
 )
 def test_unreadable_file(world, tmp_path, monkeypatch, capsys, argv, source, victim, needles):
+    """chmod 000 on a file or folder; as root (which reads it anyway) the denial is emulated."""
     src = tmp_path / "src"
     if source == ".":
         src.mkdir()
@@ -499,10 +510,13 @@ def test_unreadable_file(world, tmp_path, monkeypatch, capsys, argv, source, vic
     out = tmp_path / "out"
     argv = [a.replace("SRC", str(src)).replace("OUT", str(out)) for a in argv]
     mode = 0o755 if (src / victim).is_dir() else 0o644
+    if IS_ROOT:
+        _deny_reads(monkeypatch, src / victim)
     (src / victim).chmod(0)
     try:
         _fails_cleanly(argv, capsys, needles)
     finally:
+        monkeypatch.undo()
         (src / victim).chmod(mode)
     assert not out.exists()
 

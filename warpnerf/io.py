@@ -19,6 +19,8 @@ __all__ = [
     "atomic_path",
     "write_json",
     "save_checkpoint",
+    "load_checkpoint",
+    "load_weights",
     "write_image",
     "write_video",
     "to_uint8",
@@ -76,6 +78,58 @@ def save_checkpoint(path, state: dict) -> None:
 
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
+
+
+def load_checkpoint(path, map_location=None, keys=()) -> dict:
+    """``torch.load`` of a checkpoint written by :func:`save_checkpoint`, with user errors instead
+    of unpickling tracebacks: an unreadable, corrupt or truncated file, or one that is not a dict
+    holding ``keys`` (another kind of run's checkpoint), raises a :class:`UserError` naming
+    ``path``."""
+    import pickle
+    import zipfile
+
+    import torch
+
+    from .errors import UserError
+
+    path = Path(path)
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except (PermissionError, FileNotFoundError, IsADirectoryError) as e:
+        raise UserError(f"{path}: cannot read the checkpoint ({e.strerror or e})") from None
+    except (pickle.UnpicklingError, zipfile.BadZipFile, EOFError, OSError, RuntimeError,
+            ValueError, AttributeError, ImportError, IndexError, KeyError,
+            TypeError) as e:  # fmt: skip
+        raise UserError(
+            f"{path}: not a readable checkpoint, corrupt or truncated ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else 'no detail'})"
+        ) from None
+    if not isinstance(ckpt, dict):
+        raise UserError(f"{path}: not a warpnerf checkpoint (a {type(ckpt).__name__})")
+    missing = [k for k in keys if k not in ckpt]
+    if missing:
+        raise UserError(
+            f"{path}: not this kind of run's checkpoint (missing {', '.join(map(repr, missing))}; "
+            "another model's run, or written by another version)"
+        )
+    return ckpt
+
+
+def load_weights(module, state, path, what: str = "weights") -> None:
+    """``module.load_state_dict(state)`` (a torch module, optimiser or scheduler) with a
+    :class:`UserError` naming checkpoint ``path`` when the saved tensors do not fit: the run's
+    config.json and its checkpoint disagree (a resized model, another run's checkpoint)."""
+    from .errors import UserError
+
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as e:
+        detail = " ".join(str(e).split())
+        detail = detail if len(detail) <= 300 else detail[:297] + "..."
+        raise UserError(
+            f"{path}: its {what} do not match the run's config.json (was the config edited, or "
+            f"the checkpoint copied from another run?): {detail}"
+        ) from None
 
 
 def to_uint8(img) -> np.ndarray:

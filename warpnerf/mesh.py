@@ -149,6 +149,7 @@ def read_ply_points(path):
     if fmt == "ascii":
         rows = data[end:].decode().split("\n")[:n]
         arr = np.array([[float(x) for x in r.split()[: len(names)]] for r in rows])
+        arr = arr.reshape(len(rows), len(names))  # 0 vertices: [0, k], not [0]
         col = {k: arr[:, i] for i, k in enumerate(names)}
     elif fmt == "binary_little_endian":
         dt = np.dtype([(k, types[t]) for k, t in props])

@@ -20,7 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import UserError
-from .blender import _check_args, _read_json, load_blender
+from .blender import _check_args, _check_folder, _read_json, load_blender
 from .capture import HOLDOUT, detect_capture, load_capture
 from .nerfstudio import load_nerfstudio
 
@@ -34,9 +34,7 @@ _NERFSTUDIO_KEYS = ("fl_x", "w", "h", "camera_model")
 def detect_format(root, split: str = "train") -> str:
     """The format of the folder ``root``: "blender", "nerfstudio", "colmap" or "llff" (see the
     module docstring)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise UserError(f"{root}: data folder not found")
+    root = _check_folder(root)
     if (root / f"transforms_{split}.json").is_file():
         return "blender"
     path = root / "transforms.json"

@@ -22,7 +22,7 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.sdf_volume import SDFVolume
-from ..io import save_checkpoint, write_json
+from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
 from ._signals import stop_requests
@@ -140,9 +140,10 @@ def fit_box(
     history = {"step": [], "loss": [], "seconds": []}
     start = 0
     if state is not None:
-        volume.load_state_dict(state["volume"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
+        where = Path(run) / CHECKPOINT if run is not None else "the checkpoint"
+        load_weights(volume, state["volume"], where, "box parameters")
+        load_weights(opt, state["optimizer"], where, "optimizer state")
+        load_weights(sched, state["scheduler"], where, "learning-rate schedule")
         gen.set_state(state["generator"].cpu())  # map_location may have moved it
         history, start = state["history"], state["step"]
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
@@ -251,7 +252,8 @@ def load_box_run(run, device: str | None = None):
     device = device or saved_device
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"{run}: device {device} is not available here; pass --device cpu")
-    ckpt = torch.load(run / CHECKPOINT, map_location=device, weights_only=False)
+    keys = ("step", "volume", "optimizer", "scheduler", "generator", "history")
+    ckpt = load_checkpoint(run / CHECKPOINT, device, keys)
     return cfg, data, device, ckpt
 
 

@@ -15,7 +15,7 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.nerf import NeRFField
-from ..io import save_checkpoint, write_json
+from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
 from ._signals import stop_requests
@@ -463,19 +463,35 @@ def _save(run: Path, step, fields_, opt, gen, history, cfg, extra=None):
 def load_run(run, device: str | None = None):
     """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one."""
     run = Path(run)
-    if not (run / "config.json").is_file() or not (run / CHECKPOINT).is_file():
+    cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
+    if not cfg_path.is_file() or not ckpt_path.is_file():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     try:
-        saved = json.loads((run / "config.json").read_text())
-        if isinstance(saved, dict) and saved.get("field") and "grid_res" not in saved:
-            saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
-        if isinstance(saved, dict) and saved.get("model") == "neural_sdf":
-            raise UserError(
-                f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
-            )
+        saved = json.loads(cfg_path.read_text())
+    except OSError as e:
+        raise UserError(f"{cfg_path}: cannot read ({e.strerror or e})") from None
+    except ValueError as e:  # JSONDecodeError, bad UTF-8
+        raise UserError(f"{cfg_path}: unreadable ({e})") from None
+    if not isinstance(saved, dict):
+        raise UserError(f"{cfg_path}: unreadable (expected a JSON object)")
+    model = saved.get("model")
+    if model == "neural_sdf":
+        raise UserError(
+            f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
+        )
+    if model is not None:
+        raise UserError(
+            f"{run}: a {model} run, not a NeRF run (config.json's model is {model!r}; "
+            f"use `warpnerf train {model} --resume`)"
+        )
+    if saved.get("field") and "grid_res" not in saved:
+        saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
+    try:
         cfg = NeRFConfig.from_dict(saved)
-    except (json.JSONDecodeError, TypeError) as e:
-        raise UserError(f"{run / 'config.json'}: unreadable ({e})") from None
+    except TypeError as e:
+        raise UserError(f"{cfg_path}: unreadable ({e})") from None
+    except UserError as e:
+        raise UserError(f"{cfg_path}: {str(e).removeprefix('config: ')}") from None
     if device:
         cfg.device = device
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
@@ -485,10 +501,13 @@ def load_run(run, device: str | None = None):
     if cfg.device.startswith("cuda"):  # matrix products as in training
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     fields_ = build_fields(cfg)
-    ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
+    keys = ("step", "fields", "optimizer", "generator", "history")
+    ckpt = load_checkpoint(ckpt_path, cfg.device, keys)
+    if not isinstance(ckpt["fields"], dict):
+        raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
     for k, f in _unique(fields_).items():
         if f is not None and k in ckpt["fields"]:  # (runs before the grid existed have none)
-            f.load_state_dict(ckpt["fields"][k])
+            load_weights(f, ckpt["fields"][k], ckpt_path, f"{k} field's weights")
     return cfg, fields_, ckpt
 
 
@@ -545,7 +564,7 @@ def train_nerf(
     history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
     start, batch = 0, cfg.batch
     if ckpt is not None:
-        opt.load_state_dict(ckpt["optimizer"])
+        load_weights(opt, ckpt["optimizer"], run / CHECKPOINT, "optimizer state")
         gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
         history, start = ckpt["history"], ckpt["step"]
         batch = ckpt.get("batch", cfg.batch)

@@ -23,7 +23,7 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.neural_sdf import NeuralSDF
-from ..io import save_checkpoint, write_json
+from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
 from ._signals import stop_requests
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
@@ -158,7 +158,11 @@ def load_sdf_run(run, device=None):
     run = Path(run)
     try:
         d = json.loads((run / "config.json").read_text())
-    except (OSError, json.JSONDecodeError):
+    except (FileNotFoundError, NotADirectoryError):
+        raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
+    except OSError as e:
+        raise UserError(f"{run / 'config.json'}: cannot read ({e.strerror or e})") from None
+    except ValueError:
         raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
     if not isinstance(d, dict) or d.get("model") != MODEL:
         model = d.get("model") if isinstance(d, dict) else None
@@ -171,8 +175,9 @@ def load_sdf_run(run, device=None):
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"{run}: trained on {cfg.device}, not available here; pass --device cpu")
     model = _build(cfg)
-    ckpt = torch.load(run / CHECKPOINT, map_location=cfg.device, weights_only=False)
-    model.load_state_dict(ckpt["model"])
+    keys = ("step", "model", "optimizer", "generator", "history", "normalisation")
+    ckpt = load_checkpoint(run / CHECKPOINT, cfg.device, keys)
+    load_weights(model, ckpt["model"], run / CHECKPOINT, "network weights")
     return cfg, model, ckpt
 
 
@@ -231,7 +236,7 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
     history = {"step": [], "loss": [], "surface": [], "eikonal": [], "seconds": []}
     start = 0
     if ckpt is not None:
-        opt.load_state_dict(ckpt["optimizer"])
+        load_weights(opt, ckpt["optimizer"], run / CHECKPOINT, "optimizer state")
         gen.set_state(ckpt["generator"].cpu())
         history, start = ckpt["history"], ckpt["step"]
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0

@@ -1,0 +1,128 @@
+"""Shared pieces of the command line: argparse types, output-path checks, the saved run config,
+shared flags and the SIGTERM guard."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import signal
+import threading
+from pathlib import Path
+
+from ..errors import UserError
+
+
+def _device(name: str) -> str:
+    import torch
+
+    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
+        raise UserError(f"--device must be cpu or cuda, got {name!r}")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError("--device cuda: no CUDA device is available to PyTorch here")
+    return name
+
+
+def _positive(kind):
+    def parse(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
+        if not (v > 0 and math.isfinite(v)):
+            raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
+        return v
+
+    return parse
+
+
+def _nonnegative(text):
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _finite(text):
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
+    return v
+
+
+def _nonnegative_float(text):
+    v = _finite(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return v
+
+
+def _check_out(path, flag: str = "--out", file: bool = False) -> None:
+    """UserError unless ``path`` can be written as a folder (or, with ``file``, as a file): it is
+    not an existing file (folder) and its nearest existing parent is a folder."""
+    p = Path(path)
+    if file and p.is_dir():
+        raise UserError(f"{flag} {path} is a folder, not a file")
+    for q in p.parents if file else (p, *p.parents):
+        if q.is_dir():
+            return
+        if q.exists():
+            raise UserError(f"{flag} {path}: {q} is a file, not a folder")
+
+
+def _saved_config(run) -> dict:
+    """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
+    try:
+        saved = json.loads((Path(run) / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return saved if isinstance(saved, dict) else {}
+
+
+def _size(text):
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 400x400, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return w, h
+
+
+def _data_format_flags(p) -> None:
+    """--format and --holdout (`data`, `train nerf`, `train volsdf`)."""
+    from ..data.datasets import FORMATS
+
+    p.add_argument("--format", default="auto", choices=FORMATS, help="data format (auto: detect)")
+    p.add_argument(
+        "--holdout",
+        type=_nonnegative,
+        default=8,
+        help="COLMAP/LLFF: every Nth image (sorted names) is val/test; 0 = none (default 8)",
+    )
+
+
+@contextlib.contextmanager
+def _sigterm_exits():
+    """SIGTERM outside a training loop (loading, meshing, rendering, writing) raises SystemExit(143)
+    instead of killing the process outright, so atomic writers remove their temporary files. The
+    training loops install their own handler while they run (finish the step, checkpoint)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise SystemExit(128 + signum)
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)

@@ -1,0 +1,59 @@
+"""`warpnerf demo`, `bench` and `data`."""
+
+from __future__ import annotations
+
+import json
+
+from ..errors import UserError
+from ._common import _check_out, _device
+
+
+def cmd_demo(args) -> int:
+    from ..demo import run_demo
+
+    _check_out(args.out)
+    m = run_demo(
+        args.out,
+        iters=args.iters,
+        size=args.size,
+        frames=args.frames,
+        video_size=args.video_size,
+        device=_device(args.device),
+        progress=not args.quiet,
+    )
+    print(f"wrote {args.out}/metrics.json, videos and images")
+    print(
+        json.dumps(
+            {
+                k: m[k]
+                for k in (
+                    "center",
+                    "side_lengths",
+                    "center_max_abs_error",
+                    "side_max_abs_error",
+                    "val_psnr",
+                    "total_seconds",
+                )
+            }
+        )
+    )
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from ..bench import run_bench
+
+    if args.json:
+        _check_out(args.json, "--json", file=True)
+    run_bench(args.kernel, device=_device(args.device), json_path=args.json, quick=args.quick)
+    return 0
+
+
+def cmd_data(args) -> int:
+    from ..data.datasets import data_summary
+
+    if args.holdout == 1:
+        raise UserError("--holdout must be 0 (none) or >= 2")
+    info = data_summary(args.dir, args.format, args.downscale, args.holdout)
+    print(json.dumps(info))
+    return 0

@@ -1,0 +1,182 @@
+"""The argument parser of the ``warpnerf`` command and ``main``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..errors import Interrupted, UserError
+from ._common import (
+    _data_format_flags,
+    _finite,
+    _nonnegative,
+    _nonnegative_float,
+    _positive,
+    _sigterm_exits,
+    _size,
+)
+from .misc import cmd_bench, cmd_data, cmd_demo
+from .run_tools import cmd_eval, cmd_mesh, cmd_render
+from .train import _grid_flags, _nerf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="warpnerf",
+        description="Differentiable volume rendering with NVIDIA Warp kernels and PyTorch.",
+    )
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    d = sub.add_parser(
+        "demo",
+        help="main job: fit an analytic box to rendered views, write a "
+        "spiral video, images and metrics.json (built-in scene, no data needed)",
+    )
+    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    d.add_argument("--device", default="cpu", help="cpu or cuda")
+    d.add_argument("--iters", type=_positive(int), default=300)
+    d.add_argument("--size", type=_positive(int), default=64, help="training image size")
+    d.add_argument("--frames", type=_positive(int), default=40, help="spiral video frames")
+    d.add_argument("--video-size", type=_positive(int), default=128)
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=cmd_demo)
+
+    t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
+    tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
+    tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
+    tb.add_argument("--data", help="folder with transforms*.json and PNG images")
+    tb.add_argument("--out", required=True, help="run folder (config, checkpoint, result)")
+    tb.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
+    tb.add_argument(
+        "--device",
+        default=None,
+        help="cpu (default for a new fit) or cuda; on --resume, default the run's own",
+    )
+    tb.add_argument("--iters", type=_positive(int), default=None, help="total steps (400)")
+    tb.add_argument("--batch", type=_positive(int), default=4096)
+    tb.add_argument("--samples", type=_positive(int), default=64)
+    tb.add_argument("--near", type=_finite, default=0.0)
+    tb.add_argument("--far", type=_finite, default=5.0)
+    tb.add_argument("--lr", type=_positive(float), default=0.02)
+    tb.add_argument("--ckpt-every", type=_positive(int), default=100)
+    tb.add_argument("--seed", type=int, default=0)
+    tb.add_argument(
+        "--max-seconds",
+        type=float,
+        default=0.0,
+        help="stop after this much fitting time (0: run all --iters)",
+    )
+    tb.add_argument("--frames", type=_nonnegative, default=40, help="spiral video frames (0: none)")
+    tb.add_argument("--quiet", action="store_true")
+    tb.set_defaults(func=cmd_train_box)
+
+    tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
+    _nerf_flags(tn)
+    _grid_flags(tn)
+    tn.set_defaults(func=cmd_train_nerf)
+
+    tv = tsub.add_parser(
+        "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
+        "--field volsdf with VolSDF's defaults"
+    )  # fmt: skip
+    _nerf_flags(tv)
+    tv.add_argument("--beta", type=_positive(float), default=0.1, help="initial Laplace scale")
+    tv.add_argument("--beta-min", type=_positive(float), default=1e-4)
+    tv.add_argument("--fixed-beta", action="store_true", help="keep beta at --beta")
+    tv.add_argument("--eikonal-weight", type=_finite, default=0.1)
+    tv.set_defaults(func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True)
+
+    ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
+    ts.add_argument("--points", help="FILE.npz (verts|points [, normals]) or FILE.ply, or builtin")
+    ts.add_argument("--out", required=True, help="run folder")
+    ts.add_argument("--resume", action="store_true")
+    ts.add_argument("--device", default=None)
+    ts.add_argument("--iters", type=_positive(int), default=None, help="total steps (2000)")
+    ts.add_argument("--batch", type=_positive(int), default=4096, help="points per step")
+    ts.add_argument("--lr", type=_positive(float), default=1e-3)
+    ts.add_argument("--eikonal-weight", type=_finite, default=0.1)
+    ts.add_argument("--normal-weight", type=_finite, default=1.0, help="when normals are given")
+    ts.add_argument("--layers", type=_positive(int), default=6)
+    ts.add_argument("--width", type=_positive(int), default=128)
+    ts.add_argument("--pos-freqs", type=_nonnegative, default=6)
+    ts.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
+    ts.add_argument("--max-seconds", type=_nonnegative_float, default=0.0)
+    ts.add_argument("--seed", type=int, default=0)
+    ts.add_argument("--quiet", action="store_true")
+    ts.set_defaults(func=cmd_train_sdf)
+
+    e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
+    e.add_argument("run", help="run folder written by 'warpnerf train nerf'")
+    e.add_argument("--split", default="val", choices=["train", "val", "test"])
+    e.add_argument("--device", default=None, help="default: the run's device")
+    e.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all images of the split")
+    e.add_argument(
+        "--chunk", type=_positive(int), default=None, help="rays rendered at once (run's own)"
+    )
+    e.add_argument(
+        "--march-step", type=_positive(float), default=None, help="grid runs: another step"
+    )
+    e.add_argument("--round-samples", type=_nonnegative, default=None, help="grid runs: another")
+    e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
+    e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
+    e.set_defaults(func=cmd_eval)
+
+    r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
+    r.add_argument("run")
+    r.add_argument("--path", default="spiral", choices=["spiral", "orbit"])
+    r.add_argument("--frames", type=_positive(int), default=40)
+    r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
+    r.add_argument("--device", default=None)
+    r.set_defaults(func=cmd_render)
+
+    m = sub.add_parser("mesh", help="marching cubes of an SDF scene or a trained run -> PLY + PNG")
+    m.add_argument("run", nargs="?", help="a NeRF run folder (density level set)")
+    m.add_argument("--sdf", help="SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
+    m.add_argument("--resolution", type=int, default=256, help="grid nodes per axis")
+    m.add_argument("--level", type=_finite, default=None, help="0 for SDFs; density for runs (10)")
+    m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
+    m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
+    m.add_argument("--device", default=None)
+    m.add_argument("--no-screenshot", action="store_true")
+    m.set_defaults(func=cmd_mesh)
+
+    dp = sub.add_parser(
+        "data", help="check a dataset folder and print a JSON summary (format, splits, cameras)"
+    )
+    dp.add_argument("dir", help="Blender, nerfstudio, COLMAP or LLFF folder")
+    _data_format_flags(dp)
+    dp.add_argument("--downscale", type=_positive(int), default=1)
+    dp.set_defaults(func=cmd_data)
+
+    b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
+    b.add_argument(
+        "kernel",
+        nargs="?",
+        default="composite",
+        choices=["composite", "march", "encoding", "sphere-trace", "all"],
+    )
+    b.add_argument("--device", default="cpu")
+    b.add_argument("--json", default=None, help="write the results as JSON here")
+    b.add_argument("--quick", action="store_true", help="smallest sizes only")
+    b.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    try:
+        with _sigterm_exits():
+            return int(args.func(args) or 0)
+    except UserError as e:
+        print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except Interrupted as e:  # training checkpointed its last step before stopping
+        print(f"warpnerf {args.command}: interrupted by {e}", file=sys.stderr)
+        return 128 + e.signum
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,155 @@
+"""`warpnerf eval`, `render` and `mesh`: tools on a trained run (mesh also on an SDF scene)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ._common import _check_out, _device, _saved_config
+
+
+def cmd_eval(args) -> int:
+    from ..train.nerf_eval import evaluate_run
+
+    if args.out:
+        _check_out(args.out)
+    elif Path(args.run).is_dir():
+        _check_out(Path(args.run) / f"eval_{args.split}", "eval output")
+    m = evaluate_run(
+        args.run,
+        args.split,
+        device=_device(args.device) if args.device else None,
+        max_images=args.max_images,
+        out_dir=args.out,
+        chunk=args.chunk,
+        march_step=args.march_step,
+        round_samples=args.round_samples,
+        render_half=True if args.half else None,
+    )
+    keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
+    print(json.dumps({k: m[k] for k in keys}))
+    return 0
+
+
+def cmd_render(args) -> int:
+    from ..train.nerf_eval import render_run
+
+    if Path(args.run).is_dir():
+        _check_out(Path(args.run) / f"render_{args.path}", "render output")
+    res = render_run(
+        args.run,
+        args.path,
+        args.frames,
+        args.size,
+        device=_device(args.device) if args.device else None,
+    )
+    print(json.dumps(res))
+    return 0
+
+
+def _mesh_source(args):
+    """(field_fn, lower, upper, marching-cubes level, user level, what, map of the vertices back to
+    the data's units or None) for `warpnerf mesh`."""
+    dev = _device(args.device or "cpu")
+    if (args.run is None) == (args.sdf is None):
+        raise UserError("give a run folder or --sdf SCENE (one of them)")
+    if args.sdf is not None:
+        from ..fields.sdf_scene import SDFScene, many_primitives_scene, torus_scene
+
+        builtin = {"torus": torus_scene, "scene": many_primitives_scene}
+        scene = builtin[args.sdf]() if args.sdf in builtin else SDFScene.load(args.sdf)
+        b = args.bounds or 2.0
+        level = args.level or 0.0
+        return (lambda p: scene.sdf(p)), [-b] * 3, [b] * 3, level, level, f"sdf {args.sdf}", None
+    from ..train.nerf import load_run
+    from ..train.sdf import MODEL, load_sdf_run
+
+    run = Path(args.run)
+    if _saved_config(run).get("model") == MODEL:
+        cfg, model, ckpt = load_sdf_run(run, dev if args.device else None)
+        c, s = ckpt["normalisation"]["center"], ckpt["normalisation"]["scale"]
+        b = args.bounds or 1.0  # in the normalised frame; vertices are mapped back below
+        fn = lambda p: model(p.to(cfg.device))  # noqa: E731
+        back = lambda v: v / s + np.asarray(c)  # noqa: E731  (the point cloud's units)
+        return fn, [-b] * 3, [b] * 3, args.level or 0.0, args.level or 0.0, f"sdf run {run}", back
+    cfg, fields_, _ = load_run(run, dev if args.device else None)
+    field = fields_["fine"] or fields_["coarse"]
+    b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
+    back = None
+    if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units
+        from ..data.capture import normalised_to_world
+
+        ndc = cfg.ndc_camera()
+        back = lambda v: normalised_to_world(v, cfg.scene["transform"], ndc)  # noqa: E731
+    lo, hi = [-b] * 3, [b] * 3
+    if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
+        lo[2], hi[2] = -1.0, 0.99
+    if cfg.field == "volsdf":  # the SDF's zero level set
+        level = args.level or 0.0
+        return (lambda p: field.sdf(p.to(cfg.device))), lo, hi, level, level, \
+            f"volsdf {run}", back  # fmt: skip
+    level = 10.0 if args.level is None else args.level
+
+    def density(p):
+        return field.density(p)[0]
+
+    # marching cubes of -density at -level: inside (dense) is negative like an SDF
+    fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
+    return fn, lo, hi, -level, level, f"nerf {run}", back
+
+
+def cmd_mesh(args) -> int:
+    import time
+
+    from ..mesh import extract_mesh, screenshot, write_ply
+
+    if args.resolution < 8 or args.resolution > 1024:
+        raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
+    if not args.out.endswith(".ply"):
+        raise UserError(f"--out must be a .ply file, got {args.out}")
+    _check_out(args.out, file=True)
+    fn, lo, hi, level, shown_level, what, back = _mesh_source(args)
+    t0 = time.perf_counter()
+    dev = _device(args.device or "cpu")
+    try:
+        v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
+    except ValueError as e:
+        raise UserError(f"{what}: {e}") from None
+    secs = time.perf_counter() - t0
+    if len(f) == 0:
+        raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}")
+    if back is not None:  # normalised frame -> the data's own units
+        v = back(v).astype(np.float32)
+        keep = np.isfinite(v).all(1)  # NDC vertices at infinity
+        if not keep.all():
+            remap = np.cumsum(keep) - 1
+            f = remap[f[keep[f].all(1)]]
+            v = v[keep]
+    write_ply(args.out, v, f)
+    png = str(Path(args.out).with_suffix(".png"))
+    if args.no_screenshot:
+        Path(png).unlink(missing_ok=True)  # never leave a screenshot of an older mesh beside it
+    else:
+        try:
+            screenshot(png, v, f)
+        except ImportError as e:  # pyvista is a dependency; tolerate machines without it
+            print(f"warning: no screenshot ({e})", file=sys.stderr)
+            png = None
+    res = {
+        "source": what,
+        "out": args.out,
+        "screenshot": None if args.no_screenshot else png,  # None also when pyvista is missing
+        "vertices": len(v),
+        "faces": len(f),
+        "bounds_min": v.min(0).tolist(),
+        "bounds_max": v.max(0).tolist(),
+        "resolution": args.resolution,
+        "level": shown_level,
+        "seconds": secs,
+    }
+    print(json.dumps(res))
+    return 0
