@@ -136,7 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--level", type=_finite, default=None, help="0 for SDFs; density for runs (10)")
     m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
     m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
-    m.add_argument("--device", default=None)
+    m.add_argument(
+        "--device", default=None, help="where to evaluate and march (default: the run's; cpu)"
+    )
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
 

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -51,9 +53,20 @@ def cmd_render(args) -> int:
     return 0
 
 
-def _mesh_source(args):
-    """(field_fn, lower, upper, marching-cubes level, user level, what, map of the vertices back to
-    the data's units or None) for `warpnerf mesh`."""
+class _MeshSource(NamedTuple):
+    fn: Callable  # points [n, 3] on ``device`` -> field values [n]
+    lower: list
+    upper: list
+    level: float  # marching cubes' level of ``fn``
+    shown_level: float  # the level the user asked for (NeRF: a density)
+    what: str
+    back: Callable | None  # vertices -> the data's own units
+    device: str  # where the grid is evaluated and marched: --device, else the run's device
+
+
+def _mesh_source(args) -> _MeshSource:
+    """What `warpnerf mesh` extracts: an SDF scene (on --device, default cpu) or a run (on its
+    own device unless --device moves it)."""
     dev = _device(args.device or "cpu")
     if (args.run is None) == (args.sdf is None):
         raise UserError("give a run folder or --sdf SCENE (one of them)")
@@ -64,7 +77,8 @@ def _mesh_source(args):
         scene = builtin[args.sdf]() if args.sdf in builtin else SDFScene.load(args.sdf)
         b = args.bounds or 2.0
         level = args.level or 0.0
-        return (lambda p: scene.sdf(p)), [-b] * 3, [b] * 3, level, level, f"sdf {args.sdf}", None
+        return _MeshSource(lambda p: scene.sdf(p), [-b] * 3, [b] * 3, level, level,
+                           f"sdf {args.sdf}", None, dev)  # fmt: skip
     from ..train.nerf import load_run
     from ..train.sdf import MODEL, load_sdf_run
 
@@ -75,7 +89,8 @@ def _mesh_source(args):
         b = args.bounds or 1.0  # in the normalised frame; vertices are mapped back below
         fn = lambda p: model(p.to(cfg.device))  # noqa: E731
         back = lambda v: v / s + np.asarray(c)  # noqa: E731  (the point cloud's units)
-        return fn, [-b] * 3, [b] * 3, args.level or 0.0, args.level or 0.0, f"sdf run {run}", back
+        level = args.level or 0.0
+        return _MeshSource(fn, [-b] * 3, [b] * 3, level, level, f"sdf run {run}", back, cfg.device)
     cfg, fields_, _ = load_run(run, dev if args.device else None)
     field = fields_["fine"] or fields_["coarse"]
     b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
@@ -90,8 +105,8 @@ def _mesh_source(args):
         lo[2], hi[2] = -1.0, 0.99
     if cfg.field == "volsdf":  # the SDF's zero level set
         level = args.level or 0.0
-        return (lambda p: field.sdf(p.to(cfg.device))), lo, hi, level, level, \
-            f"volsdf {run}", back  # fmt: skip
+        return _MeshSource(lambda p: field.sdf(p.to(cfg.device)), lo, hi, level, level,
+                           f"volsdf {run}", back, cfg.device)  # fmt: skip
     level = 10.0 if args.level is None else args.level
 
     def density(p):
@@ -99,7 +114,7 @@ def _mesh_source(args):
 
     # marching cubes of -density at -level: inside (dense) is negative like an SDF
     fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return fn, lo, hi, -level, level, f"nerf {run}", back
+    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device)
 
 
 def cmd_mesh(args) -> int:
@@ -112,9 +127,8 @@ def cmd_mesh(args) -> int:
     if not args.out.endswith(".ply"):
         raise UserError(f"--out must be a .ply file, got {args.out}")
     _check_out(args.out, file=True)
-    fn, lo, hi, level, shown_level, what, back = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, back, dev = _mesh_source(args)
     t0 = time.perf_counter()
-    dev = _device(args.device or "cpu")
     try:
         v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
     except ValueError as e:
