@@ -1,4 +1,6 @@
-"""Smoke tests: every demo and CLI command runs as a subprocess with tiny settings."""
+"""Smoke tests: every demo and CLI command runs as a subprocess with tiny settings; user errors
+run in-process (``warpnerf.cli.main``: the subprocess start-up, importing torch and warp, would
+dominate), end-to-end exit codes are checked here and in test_bad_input.py."""
 
 import json
 import os
@@ -21,6 +23,18 @@ def run(args, cwd, check=True):
     if check and p.returncode != 0:
         raise AssertionError(f"{args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
+
+
+def cli_error(argv, cwd, monkeypatch, capsys) -> tuple[int, str]:
+    """(exit status, stderr) of ``warpnerf argv`` run in-process in folder ``cwd``."""
+    from warpnerf.cli import main
+
+    monkeypatch.chdir(cwd)
+    try:
+        rc = main(argv)
+    except SystemExit as e:  # argparse
+        rc = e.code
+    return rc, capsys.readouterr().err
 
 
 def last_json(stdout):
@@ -325,10 +339,10 @@ def test_cli_train_eval_render_nerf(tmp_path):
         ),
     ],
 )
-def test_cli_nerf_user_errors(tmp_path, args, needle):
-    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
-    assert p.returncode == 2, p.stderr
-    assert needle in p.stderr and "Traceback" not in p.stderr
+def test_cli_nerf_user_errors(tmp_path, monkeypatch, capsys, args, needle):
+    rc, err = cli_error(args, tmp_path, monkeypatch, capsys)
+    assert rc == 2, err
+    assert needle in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
 
 
@@ -396,10 +410,10 @@ def test_cli_mesh_sdf_scene(tmp_path):
         (["mesh", "--sdf", "torus", "--out", "afile/x.ply"], "is a file"),
     ],
 )
-def test_cli_mesh_user_errors(tmp_path, args, needle):
+def test_cli_mesh_user_errors(tmp_path, monkeypatch, capsys, args, needle):
     (tmp_path / "afile").write_text("not a folder")
-    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
-    assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
+    rc, err = cli_error(args, tmp_path, monkeypatch, capsys)
+    assert rc == 2 and needle in err and "Traceback" not in err
     assert not list(tmp_path.glob("x.*"))
 
 
@@ -448,9 +462,9 @@ def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path):
         (["train", "sdf", "--out", "o", "--resume", "--iters", "4"], "not a training run"),
     ],
 )
-def test_cli_sdf_user_errors(tmp_path, args, needle):
-    p = run(["-m", "warpnerf.cli", *args], tmp_path, check=False)
-    assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr
+def test_cli_sdf_user_errors(tmp_path, monkeypatch, capsys, args, needle):
+    rc, err = cli_error(args, tmp_path, monkeypatch, capsys)
+    assert rc == 2 and needle in err and "Traceback" not in err
     assert not (tmp_path / "o").exists()
 
 

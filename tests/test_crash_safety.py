@@ -157,16 +157,22 @@ def test_box_run_folder_guards(tmp_path, box_scene, points):
     assert torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)["step"] == 1
 
 
-@pytest.mark.parametrize("model", ["sdf", "box"])
+@pytest.mark.parametrize("model", ["sdf", "box", "nerf"])
 def test_cli_sigterm_exits_143_with_the_last_checkpoint(tmp_path, box_scene, points, model):
-    """`warpnerf train sdf|box` under SIGTERM: exit 143, one line naming the step, a checkpoint
-    equal to history.json, no temporary files, no final outputs."""
+    """`warpnerf train sdf|box|nerf` under SIGTERM: exit 143, one line naming the step, a
+    checkpoint equal to history.json, no temporary files, no final outputs."""
     cmd = [sys.executable, "-m", "warpnerf.cli", "train", model, "--out", "r", "--quiet"]
     cmd += ["--iters", "1000000", "--batch", "32"]
     if model == "sdf":  # first checkpoint at step 500 (the default --ckpt-every)
         cmd += ["--points", points, "--layers", "1", "--width", "8", "--pos-freqs", "0"]
-    else:  # first checkpoint at step 100
+        first = 500
+    elif model == "box":  # first checkpoint at step 100
         cmd += ["--data", str(box_scene), "--samples", "4", "--frames", "0"]
+        first = 100
+    else:
+        cmd += ["--data", "builtin", "--samples", "4", "--layers", "1", "--width", "8"]
+        cmd += ["--builtin-size", "8", "--ckpt-every", "2", "--val-images", "0"]
+        first = 2
     p = subprocess.Popen(cmd, cwd=tmp_path, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (tmp_path / "r" / "checkpoint.pt").exists() and time.time() < deadline:
@@ -177,7 +183,7 @@ def test_cli_sigterm_exits_143_with_the_last_checkpoint(tmp_path, box_scene, poi
     assert "SIGTERM at step" in err and "Traceback" not in err
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
     hist = json.loads((tmp_path / "r" / "history.json").read_text())
-    assert ckpt["step"] == hist["step"][-1] >= 100 and ckpt["history"] == hist
+    assert ckpt["step"] == hist["step"][-1] >= first and ckpt["history"] == hist
     assert _hidden(tmp_path / "r") == []
     assert not {"mesh.ply", "metrics.json", "result.json"} & set(os.listdir(tmp_path / "r"))
 

@@ -1,10 +1,13 @@
-"""SIGINT/SIGTERM during training: finish the current step, checkpoint, then stop."""
+"""SIGINT/SIGTERM during training: finish the current step, checkpoint, then stop; and the check
+every ``--resume`` makes before continuing."""
 
 from __future__ import annotations
 
 import contextlib
 import signal
 import threading
+
+from ..errors import UserError
 
 
 @contextlib.contextmanager
@@ -27,3 +30,12 @@ def stop_requests():
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def check_resume_iters(run, step: int, iters: int) -> None:
+    """UserError unless ``iters`` (the total to reach) is beyond the checkpoint's ``step``."""
+    if iters <= step:
+        raise UserError(
+            f"{run}: the checkpoint is at step {step}; --iters must be larger to continue, "
+            f"got {iters}"
+        )

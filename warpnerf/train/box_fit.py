@@ -25,7 +25,7 @@ from ..fields.sdf_volume import SDFVolume
 from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
-from ._signals import stop_requests
+from ._signals import check_resume_iters, stop_requests
 
 __all__ = [
     "BoxFitConfig",
@@ -286,11 +286,7 @@ def run_box_fit_on_folder(
     state = None
     if resume:
         saved, data, device, state = load_box_run(out, device)
-        if cfg.iters <= state["step"]:
-            raise UserError(
-                f"{out}: the checkpoint is at step {state['step']}; --iters must be larger to "
-                f"continue, got {cfg.iters}"
-            )
+        check_resume_iters(out, state["step"], cfg.iters)
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved
     else:

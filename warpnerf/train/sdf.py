@@ -24,7 +24,7 @@ import torch
 from ..errors import Interrupted, UserError
 from ..fields.neural_sdf import NeuralSDF
 from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
-from ._signals import stop_requests
+from ._signals import check_resume_iters, stop_requests
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
@@ -208,8 +208,7 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
     ckpt = None
     if resume:
         saved, model, ckpt = load_sdf_run(run, device)
-        if cfg.iters <= ckpt["step"]:
-            raise UserError(f"{run}: checkpoint at step {ckpt['step']}; --iters must be larger")
+        check_resume_iters(run, ckpt["step"], cfg.iters)
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved.validate()
     else:
