@@ -60,7 +60,9 @@ def measure(device: str) -> list:
 
 def main() -> None:
     wp.init()
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    devices = (["cpu"] if wp.is_cpu_available() else []) + (
+        ["cuda"] if torch.cuda.is_available() else []
+    )
     rows = [r for d in devices for r in measure(d)]
     print(
         "| device | tau | mean rel err (ulp) | max rel err (ulp) | product of 16384: mean / max |"
