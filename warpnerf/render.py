@@ -177,6 +177,7 @@ def render_marched(
     max_samples: int = 1024,
     round_samples: int = 0,
     half: bool = False,
+    sample_budget: int = 1 << 23,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -198,7 +199,10 @@ def render_marched(
     (a round is composited whole); 0 marches everything in one round (on the H100 one round
     was faster on lego: every round costs host syncs and launches). ``half`` (rendering on
     CUDA only) runs the field's MLPs under float16 autocast; densities, weights and compositing
-    stay float32.
+    stay float32. ``sample_budget`` bounds the samples one rendering round marches (and so its
+    memory, whatever the number of rays): rounds then hold at most ``sample_budget // live rays``
+    samples per ray (at least 1), growing as rays finish. The default, 2^23, is 8192 rays of
+    1024 samples.
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
@@ -209,7 +213,7 @@ def render_marched(
     if not torch.is_grad_enabled():
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
-            round_samples or max_samples, max_samples, half,
+            round_samples or max_samples, max_samples, half, sample_budget,
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     jitter = None
@@ -252,8 +256,9 @@ COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipp
 
 
 def _render_rounds(
-    grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False
-):
+    grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
+    sample_budget=1 << 23,
+):  # fmt: skip
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     use_half = half and dev.type == "cuda"
     rgb = torch.zeros(n_rays, 3, device=dev, dtype=dt)
@@ -266,6 +271,7 @@ def _render_rounds(
     n_marched, budget = 0, round_samples * n_rays
     while alive.numel():
         per_ray = min(max(round_samples, budget // alive.numel()), cap)
+        per_ray = max(1, min(per_ray, sample_budget // alive.numel()))  # memory bound
         oa, da = o[alive], d[alive]
         smp, k_next = grid.march(
             oa, da, near[alive], far[alive], k_begin=k[alive], max_samples=per_ray
