@@ -199,10 +199,11 @@ def render_marched(
     (a round is composited whole); 0 marches everything in one round (on the H100 one round
     was faster on lego: every round costs host syncs and launches). ``half`` (rendering on
     CUDA only) runs the field's MLPs under float16 autocast; densities, weights and compositing
-    stay float32. ``sample_budget`` bounds the samples one rendering round marches (and so its
-    memory, whatever the number of rays): rounds then hold at most ``sample_budget // live rays``
-    samples per ray (at least 1), growing as rays finish. The default, 2^23, is 8192 rays of
-    1024 samples.
+    stay float32. ``sample_budget`` bounds the samples the field sees in one call while
+    rendering (its activations are most of the memory, whatever the number of rays): a round
+    that marched more samples evaluates densities in slices of that size, then recomputes the
+    features of the samples whose colour is needed (the default, 2^23 = 8192 rays x 1024
+    samples, is never reached by the default rendering chunk).
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
@@ -271,15 +272,21 @@ def _render_rounds(
     n_marched, budget = 0, round_samples * n_rays
     while alive.numel():
         per_ray = min(max(round_samples, budget // alive.numel()), cap)
-        per_ray = max(1, min(per_ray, sample_budget // alive.numel()))  # memory bound
         oa, da = o[alive], d[alive]
         smp, k_next = grid.march(
             oa, da, near[alive], far[alive], k_begin=k[alive], max_samples=per_ray
         )
         ri = smp.ray_indices
         n_marched += smp.t_starts.shape[0]
+        pos = oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1)
+        n = pos.shape[0]
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
-            sig, feats = field.density(oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1))
+            if n <= sample_budget:  # one call; the colour head reuses its features
+                sig, feats = field.density(pos)
+            else:  # bounded memory: densities in slices, features recomputed where needed
+                sig = torch.cat([field.density(pos[s : s + sample_budget])[0]
+                                 for s in range(0, n, sample_budget)])  # fmt: skip
+                feats = None
         sig = sig.to(dt)
         # Weights first (no colours): the colour MLP runs only where a sample's weight in the
         # image, T_ray * w, reaches COLOR_WEIGHT_EPS; the rest add at most their weight's sum.
@@ -298,7 +305,13 @@ def _render_rounds(
         rs = ri[seen]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
-            col = field.color(feats[seen], da[rs])
+            if feats is not None:
+                col = field.color(feats[seen], da[rs])
+            else:
+                col = torch.cat([
+                    field.color(field.density(pos[sl])[1], da[ri[sl]])
+                    for sl in seen.split(sample_budget)
+                ])  # fmt: skip
         c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))
         rgb[alive] += t_a.unsqueeze(-1) * c
         depth[alive] += t_a * z
