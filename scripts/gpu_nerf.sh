@@ -69,7 +69,7 @@ capture)
       python3 -m warpnerf.cli train nerf --out $run --resume --iters 100000 --max-seconds $secs \
         --quiet 2>&1 | tail -3 | tee -a "$OUT/log.txt"
     fi
-    # CHUNK: rays per rendering chunk; a large unbounded box (beer) needs ~32768 on 80 GB
+    # CHUNK: rays per rendering chunk (the field sees at most 2^23 samples per call anyway)
     python3 -m warpnerf.cli eval $run --split val --chunk ${CHUNK:-400000} 2>&1 | tail -1 | tee -a "$OUT/log.txt"
     step=$(python3 -c "import json; print(json.load(open('$run/history.json'))['step'][-1])")
     cp $run/eval_val/metrics.json "$OUT/${NAME:-capture}_metrics_$step.json"
