@@ -14,6 +14,9 @@ from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_sa
 __all__ = ["render_rays", "render_image", "render_views", "render_nerf", "render_marched"]
 
 
+SAMPLE_BUDGET = 1 << 23  # rendering: most samples the field sees in one call (memory bound)
+
+
 def render_rays(
     origins: torch.Tensor,  # [n_rays, 3]
     directions: torch.Tensor,  # [n_rays, 3]
@@ -177,7 +180,7 @@ def render_marched(
     max_samples: int = 1024,
     round_samples: int = 0,
     half: bool = False,
-    sample_budget: int = 1 << 23,
+    sample_budget: int = SAMPLE_BUDGET,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -258,7 +261,7 @@ COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipp
 
 def _render_rounds(
     grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
-    sample_budget=1 << 23,
+    sample_budget=SAMPLE_BUDGET,
 ):  # fmt: skip
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     use_half = half and dev.type == "cuda"

@@ -24,44 +24,30 @@ def _device(name: str) -> str:
     return name
 
 
-def _positive(kind):
+def _number(kind, ok, rule: str):
+    """An argparse type: ``kind(text)`` (int or float) that must satisfy ``ok`` (``rule`` says
+    how, in the error)."""
+    noun = "an integer" if kind is int else "a number"
+
     def parse(text):
         try:
             v = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a {kind.__name__}, got {text!r}") from None
-        if not (v > 0 and math.isfinite(v)):
-            raise argparse.ArgumentTypeError(f"must be positive and finite, got {text}")
+            raise argparse.ArgumentTypeError(f"expected {noun}, got {text!r}") from None
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
         return v
 
     return parse
 
 
-def _nonnegative(text):
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
+def _positive(kind):
+    return _number(kind, lambda v: v > 0 and math.isfinite(v), "positive and finite")
 
 
-def _finite(text):
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be finite, got {text}")
-    return v
-
-
-def _nonnegative_float(text):
-    v = _finite(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return v
+_nonnegative = _number(int, lambda v: v >= 0, ">= 0")
+_finite = _number(float, math.isfinite, "finite")
+_nonnegative_float = _number(float, lambda v: v >= 0 and math.isfinite(v), "finite and >= 0")
 
 
 def _check_out(path, flag: str = "--out", file: bool = False) -> None:

@@ -253,11 +253,9 @@ def load_run(run, device: str | None = None):
     if saved.get("field") and "grid_res" not in saved:
         saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
     try:
-        cfg = NeRFConfig.from_dict(saved)
+        cfg = NeRFConfig.from_dict(saved, where=str(cfg_path))
     except TypeError as e:
         raise UserError(f"{cfg_path}: unreadable ({e})") from None
-    except UserError as e:
-        raise UserError(f"{cfg_path}: {str(e).removeprefix('config: ')}") from None
     if device:
         cfg.device = device
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():

@@ -84,11 +84,11 @@ class NeRFConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict):
+    def from_dict(cls, d: dict, where: str = "config"):
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
+            raise UserError(f"{where}: unknown field(s) {sorted(unknown)}")
         return cls(**d)
 
     def resolve(self):

@@ -158,12 +158,10 @@ def load_sdf_run(run, device=None):
     run = Path(run)
     try:
         d = json.loads((run / "config.json").read_text())
-    except (FileNotFoundError, NotADirectoryError):
+    except (FileNotFoundError, NotADirectoryError, ValueError):  # missing, or not JSON
         raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
     except OSError as e:
         raise UserError(f"{run / 'config.json'}: cannot read ({e.strerror or e})") from None
-    except ValueError:
-        raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
     if not isinstance(d, dict) or d.get("model") != MODEL:
         model = d.get("model") if isinstance(d, dict) else None
         raise UserError(f"{run}: not a neural-SDF run (config model {model!r})")
