@@ -45,8 +45,12 @@ def _signal_on_call(monkeypatch, module, name, sig, call):
 
 
 def _hidden(folder):
-    """Temporary files atomic_path would leave (names starting with a dot)."""
-    return sorted(f.name for f in folder.iterdir() if f.name.startswith("."))
+    """Temporary files atomic_path would leave (names starting with a dot; the folder's manifest
+    and lock file are not temporary)."""
+    from warpnerf.io import LOCK, MANIFEST
+
+    keep = (MANIFEST, LOCK)
+    return sorted(f.name for f in folder.iterdir() if f.name.startswith(".") and f.name not in keep)
 
 
 def _assert_last_good_checkpoint(run, step, loader):
@@ -102,8 +106,8 @@ def test_sdf_two_runs_and_interrupt_resume_are_bit_identical(tmp_path, monkeypat
     assert not (tmp_path / "c" / "metrics.json").exists()
     monkeypatch.undo()
     train_sdf(SDFConfig(iters=6), tmp_path / "c", resume=True, progress=False)
-    ca = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    cc = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)
+    ca = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)
+    cc = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=True)
     assert cc["history"]["loss"] == ha["loss"]
     assert all(torch.equal(v, cc["model"][k]) for k, v in ca["model"].items())
     assert _hidden(tmp_path / "c") == []
@@ -132,8 +136,8 @@ def test_box_two_runs_and_interrupt_resume_are_bit_identical(tmp_path, monkeypat
     rc = run_box_fit_on_folder(None, tmp_path / "c", BoxFitConfig(iters=6), resume=True, frames=0)
     assert rc == ra
     assert _box_result(tmp_path / "c")["losses"] == _box_result(tmp_path / "a")["losses"]
-    va = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)["volume"]
-    vc = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=False)["volume"]
+    va = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)["volume"]
+    vc = torch.load(tmp_path / "c" / "checkpoint.pt", weights_only=True)["volume"]
     assert all(torch.equal(v, vc[k]) for k, v in va.items())
     saved = json.loads((tmp_path / "c" / "config.json").read_text())
     assert saved["iters"] == 6 and saved["lr_decay_steps"] == 6 and saved["model"] == "box"
@@ -154,7 +158,7 @@ def test_box_run_folder_guards(tmp_path, box_scene, points):
     cfg = BoxFitConfig(iters=2, **BOX_TINY)
     run_box_fit_on_folder(box_scene, tmp_path / "r", cfg, frames=0)
     run_box_fit_on_folder(box_scene, tmp_path / "r", BoxFitConfig(iters=1, **BOX_TINY), frames=0)
-    assert torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)["step"] == 1
+    assert torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)["step"] == 1
 
 
 @pytest.mark.parametrize("model", ["sdf", "box", "nerf"])
@@ -181,7 +185,7 @@ def test_cli_sigterm_exits_143_with_the_last_checkpoint(tmp_path, box_scene, poi
     _, err = p.communicate(timeout=120)
     assert p.returncode == 143, err
     assert "SIGTERM at step" in err and "Traceback" not in err
-    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     hist = json.loads((tmp_path / "r" / "history.json").read_text())
     assert ckpt["step"] == hist["step"][-1] >= first and ckpt["history"] == hist
     assert _hidden(tmp_path / "r") == []
@@ -272,4 +276,4 @@ def test_mesh_video_and_image_writers_failing_midway_leave_nothing(tmp_path, mon
     monkeypatch.setattr(pv.Plotter, "screenshot", broken_screenshot)
     with pytest.raises(RuntimeError, match="render window"):
         mesh_mod.screenshot(tmp_path / "m.png", v, f)
-    assert sorted(os.listdir(tmp_path)) == ["m.ply"]
+    assert sorted(os.listdir(tmp_path)) == [".warpnerf-files.json", "m.ply"]  # + the manifest

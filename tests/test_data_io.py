@@ -103,4 +103,4 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
                 f.write("half")
             raise RuntimeError("crash mid-write")
     assert json.loads(target.read_text()) == {"a": 1}
-    assert os.listdir(tmp_path) == ["m.json"]
+    assert sorted(os.listdir(tmp_path)) == [".warpnerf-files.json", "m.json"]  # + the manifest

@@ -98,8 +98,8 @@ def test_resume_continues_exactly(tmp_path, n_fine, field):
         tiny(iters=6), tmp_path / "b", resume=True, progress=False, log=lambda *a: 0
     )
     assert resumed["loss"] == straight["loss"]  # same batches, same jitter, same optimiser state
-    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)
     assert a.get("batch") == b.get("batch")
     for level in ("coarse", "fine", "grid"):
         if a["fields"].get(level) is None:
@@ -262,13 +262,13 @@ def test_signal_checkpoints_the_step_and_resume_is_exact(tmp_path, sig):
     with pytest.raises(Interrupted, match=f"{sig} at step 3") as info:
         train_nerf(tiny(iters=6), tmp_path / "b", progress=False, log=log)
     assert info.value.step == 3 and signal.getsignal(signal.SIGINT) is before
-    ckpt = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)
     assert ckpt["step"] == 3
     resumed = train_nerf(
         tiny(iters=6), tmp_path / "b", resume=True, progress=False, log=lambda *a: 0
     )
     assert resumed["loss"] == straight["loss"]
-    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)
     for k, v in a["fields"]["coarse"].items():
         assert torch.equal(v, b["fields"]["coarse"][k]), k

@@ -71,8 +71,8 @@ def test_resume_is_exact(tmp_path):
     train_sdf(SDFConfig(iters=6, **kw), tmp_path / "a", progress=False)
     train_sdf(SDFConfig(iters=3, lr_decay_steps=6, **kw), tmp_path / "b", progress=False)
     train_sdf(SDFConfig(iters=6), tmp_path / "b", resume=True, progress=False)
-    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
-    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=False)
+    a = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)
+    b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)
     assert a["history"]["loss"][3:] == b["history"]["loss"][3:]
     assert all(torch.equal(v, b["model"][k]) for k, v in a["model"].items())
 

@@ -371,7 +371,7 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
     }
     print(markdown_table(result))
     if json_path:
-        write_json(json_path, result)
+        write_json(json_path, result, replace_foreign=True)  # the file the user named
     return result
 
 

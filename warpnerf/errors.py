@@ -18,3 +18,100 @@ class Interrupted(Exception):
             f"{name} at step {step}: checkpoint saved in {run}; continue with "
             f"`warpnerf train ... --out {run} --resume --iters N`"
         )
+
+
+class Diverged(Exception):
+    """Training met a non-finite loss or gradient at ``step``; nothing of that step was applied or
+    saved (the run's checkpoint is the last good one). The CLI exits with status 3."""
+
+    def __init__(self, step: int, what: str, run, lr: float | None = None):
+        self.step, self.run = step, run
+        hint = f" (learning rate {lr:g})" if lr is not None else ""
+        super().__init__(
+            f"training diverged at step {step}: {what} is not finite{hint}. Nothing of this step "
+            f"was saved; {run} keeps its last good checkpoint. Start a new run with a lower "
+            "learning rate (--lr)"
+        )
+
+
+_OS_HINTS = {
+    "ENAMETOOLONG": "the file name is too long for the file system",
+    "ENOSPC": "no space left on the device",
+    "EDQUOT": "disk quota exceeded",
+    "EROFS": "the file system is read-only",
+    "EACCES": "permission denied",
+    "EPERM": "operation not permitted",
+    "ENOTDIR": "a part of the path is a file, not a folder",
+    "EISDIR": "it is a folder",
+    "ENOENT": "no such file or folder",
+    "EEXIST": "it already exists",
+    "EMFILE": "too many open files",
+    "EIO": "input/output error",
+}
+
+
+def describe_failure(exc: BaseException) -> str | None:
+    """One line for a failure of the machine rather than of the program: an OS error (naming the
+    path), or memory that cannot be had (naming the size asked for); None for anything else (a
+    bug, which keeps its traceback)."""
+    import errno
+
+    if isinstance(exc, OSError) and not isinstance(exc, (BlockingIOError,)):
+        name = errno.errorcode.get(exc.errno or -1, "")
+        why = _OS_HINTS.get(name) or exc.strerror or str(exc)
+        where = exc.filename if exc.filename is not None else ""
+        if exc.filename2 is not None:
+            where = f"{where} -> {exc.filename2}"
+        return f"{where}: {why}" + (f" ({name})" if name else "") if where else f"{why} ({name})"
+    if isinstance(exc, MemoryError):
+        return f"out of memory{': ' + str(exc) if str(exc) else ''}; use smaller sizes"
+    text = str(exc)
+    low = text.lower()
+    if isinstance(exc, RuntimeError) and (
+        "out of memory" in low or "can't allocate memory" in low or "failed to allocate" in low
+    ):
+        import re
+
+        first = next((ln for ln in text.splitlines() if ln.strip()), text)
+        m = re.search(r"allocate (memory: you tried to allocate )?([\d.]+ ?[KMGT]?i?B|\d+ bytes)",
+                      text)  # fmt: skip
+        size = f" (tried to allocate {m.group(2)})" if m else ""
+        return (
+            f"out of memory{size}: {first.strip()[:200]}; lower the sizes "
+            "(--batch, --chunk, --size, --resolution)"
+        )
+    return None
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if n < 1024 or unit == "PiB":
+            return f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} PiB"
+
+
+def available_memory(device: str = "cpu") -> int:
+    """Bytes the device has in all (CUDA: the GPU's total; CPU: physical memory)."""
+    import os
+
+    if str(device).startswith("cuda"):
+        import torch
+
+        return int(torch.cuda.mem_get_info(torch.device(device))[1])
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 1 << 62  # unknown: let the allocator decide
+
+
+def check_fits(nbytes: float, device: str, what: str) -> None:
+    """:class:`UserError` before allocating when ``nbytes`` cannot fit on ``device`` at all (more
+    than its whole memory): an absurd --size, --batch or --chunk fails at once with the size
+    asked for instead of after minutes, or with the allocator's traceback."""
+    total = available_memory(device)
+    if nbytes > total:
+        raise UserError(
+            f"{what} needs about {_human(nbytes)}, more than the {_human(total)} of {device}; "
+            "choose smaller sizes"
+        )

@@ -62,7 +62,7 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
     return v, f
 
 
-def write_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
+def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False) -> None:
     """Binary little-endian PLY (float32 xyz, int32 triangle indices), written atomically."""
     v = np.ascontiguousarray(vertices, dtype="<f4")
     f = np.ascontiguousarray(faces, dtype="<i4")
@@ -73,7 +73,7 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray) -> None:
     ).encode()
     body = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     body["n"], body["i"] = 3, f
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+    with atomic_path(path, replace_foreign) as tmp, open(tmp, "wb") as fh:
         fh.write(head)
         fh.write(v.tobytes())
         fh.write(body.tobytes())

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import json
-
 from ..errors import UserError
+from ..io import json_dumps
 from ._common import _check_out, _device
 
 
@@ -23,7 +22,7 @@ def cmd_demo(args) -> int:
     )
     print(f"wrote {args.out}/metrics.json, videos and images")
     print(
-        json.dumps(
+        json_dumps(
             {
                 k: m[k]
                 for k in (
@@ -55,5 +54,5 @@ def cmd_data(args) -> int:
     if args.holdout == 1:
         raise UserError("--holdout must be 0 (none) or >= 2")
     info = data_summary(args.dir, args.format, args.downscale, args.holdout)
-    print(json.dumps(info))
+    print(json_dumps(info))
     return 0

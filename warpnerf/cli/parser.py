@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..errors import Interrupted, UserError
+from ..errors import Diverged, Interrupted, UserError, describe_failure
 from ._common import (
     _data_format_flags,
     _finite,
@@ -182,3 +182,17 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except Diverged as e:
+        print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
+        return 3
+    except RecursionError:
+        print(f"warpnerf {args.command}: error: input nested too deeply", file=sys.stderr)
+        return 2
+    except (OSError, MemoryError, RuntimeError) as e:
+        # The machine refused (a path, the disk, memory): one line, status 2. Anything else is
+        # a bug and keeps its traceback.
+        line = describe_failure(e)
+        if line is None:
+            raise
+        print(f"warpnerf {args.command}: error: {line}", file=sys.stderr)
+        return 2

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import UserError
+from ..io import check_foreign, json_dumps, remove_own
 from ._common import _check_out, _device, _saved_config
 
 
@@ -33,7 +33,7 @@ def cmd_eval(args) -> int:
         render_half=True if args.half else None,
     )
     keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
-    print(json.dumps({k: m[k] for k in keys}))
+    print(json_dumps({k: m[k] for k in keys}))
     return 0
 
 
@@ -49,7 +49,7 @@ def cmd_render(args) -> int:
         args.size,
         device=_device(args.device) if args.device else None,
     )
-    print(json.dumps(res))
+    print(json_dumps(res))
     return 0
 
 
@@ -127,6 +127,9 @@ def cmd_mesh(args) -> int:
     if not args.out.endswith(".ply"):
         raise UserError(f"--out must be a .ply file, got {args.out}")
     _check_out(args.out, file=True)
+    png = str(Path(args.out).with_suffix(".png"))
+    if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
+        check_foreign([png])
     fn, lo, hi, level, shown_level, what, back, dev = _mesh_source(args)
     t0 = time.perf_counter()
     try:
@@ -143,10 +146,9 @@ def cmd_mesh(args) -> int:
             remap = np.cumsum(keep) - 1
             f = remap[f[keep[f].all(1)]]
             v = v[keep]
-    write_ply(args.out, v, f)
-    png = str(Path(args.out).with_suffix(".png"))
-    if args.no_screenshot:
-        Path(png).unlink(missing_ok=True)  # never leave a screenshot of an older mesh beside it
+    write_ply(args.out, v, f, replace_foreign=True)  # the file the user named
+    if args.no_screenshot:  # never leave a screenshot of an older mesh (one warpnerf wrote)
+        remove_own(Path(png).parent, [Path(png).name])
     else:
         try:
             screenshot(png, v, f)
@@ -165,5 +167,5 @@ def cmd_mesh(args) -> int:
         "level": shown_level,
         "seconds": secs,
     }
-    print(json.dumps(res))
+    print(json_dumps(res))
     return 0

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from ..errors import UserError
+from ..io import json_dumps
 from ._common import (
     _check_out,
     _data_format_flags,
@@ -34,7 +34,7 @@ def cmd_train_box(args) -> int:
             progress=not args.quiet,
             resume=True,
         )
-        print(json.dumps(res))
+        print(json_dumps(res))
         return 0
     if args.data is None:
         raise UserError("--data DIR is required (a Blender-format folder)")
@@ -59,7 +59,7 @@ def cmd_train_box(args) -> int:
         frames=args.frames,
         progress=not args.quiet,
     )
-    print(json.dumps(res))
+    print(json_dumps(res))
     return 0
 
 
@@ -174,7 +174,7 @@ def cmd_train_nerf(args) -> int:
         "val_psnr": hist["val_psnr"][-1] if hist["val_psnr"] else None,
         "seconds": hist["seconds"][-1] if hist["seconds"] else 0.0,
     }
-    print(json.dumps(last))
+    print(json_dumps(last))
     return 0
 
 
@@ -210,7 +210,7 @@ def cmd_train_sdf(args) -> int:
     keys = ("step", "seconds", "chamfer", "vertices", "faces")
     out = {k: m[k] for k in keys}
     out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
-    print(json.dumps(out))
+    print(json_dumps(out))
     return 0
 
 

@@ -39,3 +39,26 @@ def check_resume_iters(run, step: int, iters: int) -> None:
             f"{run}: the checkpoint is at step {step}; --iters must be larger to continue, "
             f"got {iters}"
         )
+
+
+def check_finite(step: int, loss, params, run, lr: float | None = None) -> None:
+    """:class:`Diverged` unless the loss and every gradient of ``params`` are finite; called after
+    ``backward()`` and before the optimiser step, so a diverging step changes nothing and is
+    never checkpointed. One fused norm per gradient list and one host sync (the loops
+    synchronise every step anyway to log the loss)."""
+    import torch
+
+    from ..errors import Diverged
+
+    grads = [p.grad for p in params if p.grad is not None]
+    bad_loss = ~torch.isfinite(loss.detach())
+    if grads:
+        norms = torch.stack([n.float() for n in torch._foreach_norm(grads, float("inf"))])
+        bad_grad = ~torch.isfinite(norms).all()
+        flags = torch.stack([bad_loss.reshape(()), bad_grad.reshape(())]).tolist()
+    else:
+        flags = [bool(bad_loss), False]
+    if flags[0]:
+        raise Diverged(step, f"the loss ({loss.item()})", run, lr)
+    if flags[1]:
+        raise Diverged(step, "a gradient", run, lr)

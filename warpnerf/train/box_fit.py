@@ -22,10 +22,19 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.sdf_volume import SDFVolume
-from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
+from ..io import (
+    adopt,
+    check_foreign,
+    load_checkpoint,
+    load_weights,
+    output_lock,
+    remove_own,
+    save_checkpoint,
+    write_json,
+)
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
-from ._signals import check_resume_iters, stop_requests
+from ._signals import check_finite, check_resume_iters, stop_requests
 
 __all__ = [
     "BoxFitConfig",
@@ -38,6 +47,9 @@ __all__ = [
 
 MODEL = "box"  # config.json's "model" of a box run folder
 CHECKPOINT = "checkpoint.pt"
+# what a box run writes in its folder (the spiral video's files with frames > 0)
+OUTPUTS = ("config.json", CHECKPOINT, "history.json", "result.json", "spiral_rgb.mp4",
+           "spiral_rgb.gif", "spiral_depth.gif", "spiral_depth_000.png")  # fmt: skip
 _RUN_KEYS = ("data", "device", "model")  # saved in config.json beside the BoxFitConfig fields
 
 
@@ -175,6 +187,8 @@ def fit_box(
             loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            where = run if run is not None else "the fit"
+            check_finite(step + 1, loss, list(volume.parameters()), where, sched.get_last_lr()[0])
             opt.step()
             sched.step()
             with torch.no_grad():
@@ -280,13 +294,20 @@ def run_box_fit_on_folder(
 
     Returns {"center": [x, y, z], "side_lengths": [a, b, c], "final_loss": float}.
     """
+    with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
+        return _run_box_fit(data, Path(out), cfg, device, frames, progress, resume, log, locks)
+
+
+def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, locks):
     from ..data.blender import load_blender
 
-    out = Path(out)
     state = None
     if resume:
+        if out.is_dir():  # (a missing folder: the loader says it is not a run)
+            locks.enter_context(output_lock(out, "run folder"))
         saved, data, device, state = load_box_run(out, device)
         check_resume_iters(out, state["step"], cfg.iters)
+        adopt(out, OUTPUTS)  # a run from before manifests: its files are the run's own
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved
     else:
@@ -300,10 +321,14 @@ def run_box_fit_on_folder(
     # Data first: a bad folder stops the fit before anything is written.
     ds = load_blender(data, split="train", background=(cfg.background,) * 3)
     dev = torch.device(device)
-    out.mkdir(parents=True, exist_ok=True)
-    if not resume:  # an earlier fit's files would not match this one's
-        for name in (CHECKPOINT, "history.json", "result.json"):
-            (out / name).unlink(missing_ok=True)
+    if not resume:
+        locks.enter_context(output_lock(out, "run folder"))
+        old = _read_config(out)  # again, under the lock
+        if (out / CHECKPOINT).exists() and (old is None or old.get("model") != MODEL):
+            raise UserError(f"{out}: holds another kind of run; choose another --out")
+        check_foreign([out / n for n in OUTPUTS])
+        # an earlier fit's files would not match this one's (only files warpnerf wrote go)
+        remove_own(out, (CHECKPOINT, "history.json", "result.json"))
     write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device,
                                                      "model": MODEL})  # fmt: skip
     fit = fit_box(

@@ -5,6 +5,7 @@ restored)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -14,15 +15,24 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.nerf import NeRFField
-from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
+from ..io import (
+    adopt,
+    check_foreign,
+    load_checkpoint,
+    load_weights,
+    output_lock,
+    save_checkpoint,
+    write_json,
+)
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
-from ._signals import check_resume_iters, stop_requests
+from ._signals import check_finite, check_resume_iters, stop_requests
 from .nerf_config import NeRFConfig
 
 __all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
 
 CHECKPOINT = "checkpoint.pt"
+OUTPUTS = ("config.json", CHECKPOINT, "history.json")  # what a NeRF run writes in its folder
 
 
 def build_fields(cfg: NeRFConfig) -> dict:
@@ -288,10 +298,17 @@ def train_nerf(
     On resume only ``cfg.iters`` (the total to reach) and ``cfg.max_seconds`` are taken from
     ``cfg``; everything else comes from the run's config.json, and ``device`` (if given) moves it.
     """
-    run = Path(run)
+    with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
+        return _train_nerf(cfg, Path(run), resume, progress, log, device, locks)
+
+
+def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     if resume:
+        if run.is_dir():  # (a missing folder: the loader says it is not a run)
+            locks.enter_context(output_lock(run, "run folder"))
         saved_cfg, fields_, ckpt = load_run(run, device)
         check_resume_iters(run, ckpt["step"], cfg.iters)
+        adopt(run, OUTPUTS)  # a run from before manifests: its files are the run's own
         saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved_cfg
         cfg.validate()
@@ -307,7 +324,11 @@ def train_nerf(
     # Data first: a bad dataset stops the run before anything is written.
     train = load_data(cfg, "train")
     val = load_data(cfg, "val") if cfg.val_images > 0 else None
-    run.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        locks.enter_context(output_lock(run, "run folder"))
+        if (run / CHECKPOINT).exists():  # another process started a run here meanwhile
+            raise UserError(f"{run}: already holds a run; choose another --out")
+        check_foreign([run / n for n in OUTPUTS])
     write_json(run / "config.json", cfg.to_dict())
     n_img, h, w = train["images"].shape[:3]
     flat = train["images"].reshape(-1, 3)
@@ -375,6 +396,7 @@ def train_nerf(
                 history.setdefault("beta", []).append(float(f.beta.detach()))
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            check_finite(step + 1, loss, params, run, lr)
             opt.step()
             done = step + 1
             if cfg.device.startswith("cuda"):

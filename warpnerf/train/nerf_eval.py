@@ -10,8 +10,17 @@ from pathlib import Path
 import torch
 
 from ..data.cameras import camera_rays, look_at
-from ..errors import UserError
-from ..io import depth_to_uint8, to_uint8, write_image, write_json, write_video
+from ..errors import UserError, check_fits
+from ..io import (
+    check_foreign,
+    depth_to_uint8,
+    output_lock,
+    remove_own,
+    to_uint8,
+    write_image,
+    write_json,
+    write_video,
+)
 from ..metrics import psnr, ssim
 from .nerf import load_data, load_run, render_dataset_image, render_rays_of
 
@@ -60,9 +69,16 @@ def evaluate_run(
         grid.dt = cfg.march_step
     ds = load_data(cfg, split)
     out_dir = Path(out_dir) if out_dir else Path(run) / f"eval_{split}"
-    for stale in out_dir.glob(f"{split}_*.png"):  # a previous, possibly larger, evaluation
-        stale.unlink()
     n = ds["images"].shape[0] if not max_images else min(max_images, ds["images"].shape[0])
+    with output_lock(out_dir, "evaluation folder"):
+        names = ["metrics.json"] + [f"{split}_{i:03d}.png" for i in range(n)]
+        check_foreign([out_dir / x for x in names])  # another program's files stay untouched
+        # a previous, possibly larger, evaluation's images (only those warpnerf wrote)
+        remove_own(out_dir, sorted({p.name for p in out_dir.glob(f"{split}_*.png")} - set(names)))
+        return _evaluate(cfg, fields_, ckpt, grid, ds, split, n, out_dir)
+
+
+def _evaluate(cfg, fields_, ckpt, grid, ds, split, n, out_dir):
     with_ssim = min(ds["height"], ds["width"]) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
@@ -154,6 +170,18 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     else:
         cams = camera_path(train["c2w"], path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
+    kinds = ("rgb", "depth", "geometry") if cfg.field == "volsdf" else ("rgb", "depth")
+    # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
+    check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
+    check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
+    names = [f"{kind}_{f:03d}.png" for kind in kinds for f in range(frames)]
+    names += [f"{kind}.{x}" for kind in kinds for x in ("gif", "mp4")]
+    with output_lock(out_dir, "render folder"):
+        check_foreign([out_dir / x for x in names])
+        return _render_frames(cfg, fields_, cams, k, w, h, frames, fps, out_dir)
+
+
+def _render_frames(cfg, fields_, cams, k, w, h, frames, fps, out_dir):
     rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
     for f in range(frames):
         o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())

@@ -11,6 +11,7 @@ back in the original units.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -23,13 +24,23 @@ import torch
 
 from ..errors import Interrupted, UserError
 from ..fields.neural_sdf import NeuralSDF
-from ..io import load_checkpoint, load_weights, save_checkpoint, write_json
-from ._signals import check_resume_iters, stop_requests
+from ..io import (
+    adopt,
+    check_foreign,
+    load_checkpoint,
+    load_weights,
+    output_lock,
+    save_checkpoint,
+    write_json,
+)
+from ._signals import check_finite, check_resume_iters, stop_requests
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
 MODEL = "neural_sdf"
 CHECKPOINT = "checkpoint.pt"
+# what a neural-SDF run writes in its folder
+OUTPUTS = ("config.json", CHECKPOINT, "history.json", "metrics.json", "mesh.ply", "mesh.png")
 
 
 @dataclass
@@ -202,11 +213,18 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
     SIGINT/SIGTERM during training finish the current step, checkpoint it and raise
     :class:`~warpnerf.errors.Interrupted` (no mesh or metrics); ``resume=True`` then continues
     exactly (bit-identical on CPU with the same seed)."""
-    run = Path(run)
+    with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
+        return _train_sdf(cfg, Path(run), resume, progress, log, device, locks)
+
+
+def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     ckpt = None
     if resume:
+        if run.is_dir():  # (a missing folder: the loader says it is not a run)
+            locks.enter_context(output_lock(run, "run folder"))
         saved, model, ckpt = load_sdf_run(run, device)
         check_resume_iters(run, ckpt["step"], cfg.iters)
+        adopt(run, OUTPUTS)  # a run from before manifests: its files are the run's own
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved.validate()
     else:
@@ -220,7 +238,11 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
     center, scale = normalisation(pts_np)
     if model is None:
         model = _build(cfg)
-    run.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        locks.enter_context(output_lock(run, "run folder"))
+        if (run / CHECKPOINT).exists():  # another process started a run here meanwhile
+            raise UserError(f"{run}: already holds a run; choose another --out")
+        check_foreign([run / n for n in OUTPUTS])
     write_json(run / "config.json", cfg.to_dict())
     dev = cfg.device
     pts = torch.as_tensor((pts_np - center) * scale, dtype=torch.float32, device=dev)
@@ -257,6 +279,7 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
             loss, parts = sdf_loss(model, pts[idx], surf_nrm, rand, cfg)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            check_finite(step + 1, loss, list(model.parameters()), run, opt.param_groups[0]["lr"])
             opt.step()
             done = step + 1
             seconds = elapsed0 + time.perf_counter() - t0
