@@ -457,7 +457,7 @@ def test_impossible_sizes_are_refused_before_allocating(runs, tmp_path, capsys):
 def test_allocator_failures_are_described():
     e = RuntimeError("[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't "
                      "allocate memory: you tried to allocate 4000000000000 bytes. Error code 12")
-    assert "tried to allocate 4000000000000 bytes" in describe_failure(e)
+    assert "tried to allocate 3.6 TiB" in describe_failure(e)
     cuda = RuntimeError("CUDA out of memory. Tried to allocate 20.00 GiB (GPU 0; 79.1 GiB)")
     assert "out of memory" in describe_failure(cuda)
     assert "20.00 GiB" in describe_failure(cuda)
@@ -465,3 +465,12 @@ def test_allocator_failures_are_described():
     assert describe_failure(RuntimeError("a bug")) is None
     oserr = OSError(errno.ENOTDIR, "Not a directory", "a/b")
     assert describe_failure(oserr) == "a/b: a part of the path is a file, not a folder (ENOTDIR)"
+
+
+def test_seeds_beyond_31_bits_are_refused(tmp_path, capsys):
+    for seed in ("100000000000000000000000", "-1", str(2**31)):
+        with pytest.raises(SystemExit) as e:
+            main(["train", "nerf", "--data", "builtin", "--out", str(tmp_path / "r"), "--seed", seed])
+        assert e.value.code == 2
+        assert "--seed" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

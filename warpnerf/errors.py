@@ -75,11 +75,12 @@ def describe_failure(exc: BaseException) -> str | None:
         first = next((ln for ln in text.splitlines() if ln.strip()), text)
         m = re.search(r"allocate (memory: you tried to allocate )?([\d.]+ ?[KMGT]?i?B|\d+ bytes)",
                       text)  # fmt: skip
-        size = f" (tried to allocate {m.group(2)})" if m else ""
-        return (
-            f"out of memory{size}: {first.strip()[:200]}; lower the sizes "
-            "(--batch, --chunk, --size, --resolution)"
-        )
+        if m and m.group(2).endswith(" bytes"):
+            asked = _human(float(m.group(2).split()[0]))
+        else:
+            asked = m.group(2) if m else None
+        what = f"tried to allocate {asked}" if asked else first.strip()[:200]
+        return f"out of memory ({what}); lower the sizes (--batch, --chunk, --size, --resolution)"
     return None
 
 

@@ -46,6 +46,8 @@ def _positive(kind):
 
 
 _nonnegative = _number(int, lambda v: v >= 0, ">= 0")
+# Seeds feed torch generators (64-bit) after offsets and multiplications per step: 31 bits.
+_seed = _number(int, lambda v: 0 <= v < 2**31, "an integer in [0, 2^31)")
 _finite = _number(float, math.isfinite, "finite")
 _nonnegative_float = _number(float, lambda v: v >= 0 and math.isfinite(v), "finite and >= 0")
 

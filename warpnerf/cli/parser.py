@@ -12,6 +12,7 @@ from ._common import (
     _nonnegative,
     _nonnegative_float,
     _positive,
+    _seed,
     _sigterm_exits,
     _size,
 )
@@ -59,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--far", type=_finite, default=5.0)
     tb.add_argument("--lr", type=_positive(float), default=0.02)
     tb.add_argument("--ckpt-every", type=_positive(int), default=100)
-    tb.add_argument("--seed", type=int, default=0)
+    tb.add_argument("--seed", type=_seed, default=0)
     tb.add_argument(
         "--max-seconds",
         type=float,
@@ -101,7 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--pos-freqs", type=_nonnegative, default=6)
     ts.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
     ts.add_argument("--max-seconds", type=_nonnegative_float, default=0.0)
-    ts.add_argument("--seed", type=int, default=0)
+    ts.add_argument("--seed", type=_seed, default=0)
     ts.add_argument("--quiet", action="store_true")
     ts.set_defaults(func=cmd_train_sdf)
 

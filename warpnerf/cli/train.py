@@ -15,6 +15,7 @@ from ._common import (
     _nonnegative_float,
     _positive,
     _saved_config,
+    _seed,
 )
 
 
@@ -271,7 +272,7 @@ def _nerf_flags(tn) -> None:
     tn.add_argument("--val-every", type=_positive(int), default=1000)
     tn.add_argument("--val-images", type=_nonnegative, default=2)
     tn.add_argument("--ckpt-every", type=_positive(int), default=1000)
-    tn.add_argument("--seed", type=int, default=0)
+    tn.add_argument("--seed", type=_seed, default=0)
     tn.add_argument(
         "--max-seconds",
         type=_nonnegative_float,
