@@ -295,7 +295,6 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
     holding ``keys`` (another kind of run's checkpoint), raises a :class:`UserError` naming
     ``path``."""
     import pickle
-    import zipfile
 
     import torch
 
@@ -315,9 +314,9 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
                 "plain data (loading it could run code); warpnerf checkpoints never do"
             ) from None
         raise UserError(f"{path}: not a readable checkpoint, corrupt or truncated ({e})") from None
-    except (zipfile.BadZipFile, EOFError, OSError, RuntimeError,
-            ValueError, AttributeError, ImportError, IndexError, KeyError,
-            TypeError) as e:  # fmt: skip
+    except MemoryError:
+        raise
+    except Exception as e:  # any parse failure of an untrusted file (struct.error, zip, EOF...)
         raise UserError(
             f"{path}: not a readable checkpoint, corrupt or truncated ({type(e).__name__}: "
             f"{str(e).splitlines()[0] if str(e) else 'no detail'})"
