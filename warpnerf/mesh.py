@@ -122,41 +122,120 @@ def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a") -> None:
         plotter.close()
 
 
-def read_ply_points(path):
-    """(points [N, 3], normals [N, 3] or None) of a PLY file's vertices (ascii or binary LE)."""
-    data = open(path, "rb").read()
-    end = data.index(b"end_header") + len(b"end_header")
-    end = data.index(b"\n", end) + 1
-    head = data[:end].decode("ascii", "replace").splitlines()
-    fmt = next((x.split()[1] for x in head if x.startswith("format")), "")
-    props, n, in_vertex = [], 0, False
-    for line in head:
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",
+              "int16": "i2", "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4",
+              "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4", "double": "f8",
+              "float64": "f8"}  # fmt: skip
+_PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+_PLY_MAX_HEADER = 1 << 20
+
+
+def _ply_header(data: bytes, bad):
+    """(format, elements [(name, count, [(prop, type or None for lists)])], body offset)."""
+    if not (data.startswith(b"ply\n") or data.startswith(b"ply\r\n")):
+        raise bad("it does not start with 'ply'")
+    end = data.find(b"end_header", 0, _PLY_MAX_HEADER)
+    nl = data.find(b"\n", end) if end >= 0 else -1
+    if nl < 0 or data[end + len(b"end_header") : nl].strip():
+        raise bad(f"no 'end_header' line in the first {_PLY_MAX_HEADER} bytes")
+    try:
+        head = data[:end].decode("ascii").splitlines()[1:]
+    except UnicodeDecodeError:
+        raise bad("the header is not ASCII text") from None
+    fmt, elements = None, []
+    for lineno, line in enumerate(head, 2):
         w = line.split()
-        if not w:
+        if not w or w[0] in ("comment", "obj_info"):
             continue
-        if w[:2] == ["element", "vertex"]:
-            n, in_vertex = int(w[2]), True
-        elif w and w[0] == "element":
-            in_vertex = False
-        elif in_vertex and w[0] == "property" and w[1] != "list":
-            props.append((w[2], w[1]))
+        if w[0] == "format" and len(w) == 3 and w[1] in _PLY_FORMATS and fmt is None:
+            fmt = w[1]
+        elif w[0] == "element" and len(w) == 3:
+            if not (w[2].isdigit() and len(w[2]) < 19):
+                raise bad(f"header line {lineno}: element count {w[2]!r} is not a count")
+            elements.append((w[1], int(w[2]), []))
+        elif w[0] == "property" and elements and len(w) == 3 and w[1] in _PLY_TYPES:
+            elements[-1][2].append((w[2], _PLY_TYPES[w[1]]))
+        elif (w[0] == "property" and elements and len(w) == 5 and w[1] == "list"
+              and w[2] in _PLY_TYPES and w[3] in _PLY_TYPES):  # fmt: skip
+            elements[-1][2].append((w[4], None))
+        else:
+            raise bad(f"header line {lineno} not understood: {line[:60]!r}")
+    if fmt is None:
+        raise bad("no 'format ascii|binary_little_endian|binary_big_endian 1.0' line")
+    return fmt, elements, nl + 1
+
+
+def read_ply_points(path):
+    """(points [N, 3] float64, normals [N, 3] or None) of a PLY file's vertices (ascii, binary
+    little- or big-endian; properties ``x, y, z`` and optionally ``nx, ny, nz``).
+
+    The file is untrusted: a malformed header (no ``ply`` magic, unknown format, type or line,
+    non-numeric or negative counts), a vertex count larger than the file holds (checked against
+    its size before anything is allocated), list properties in the vertex element (or, in a
+    binary file, before it), unparsable ASCII rows and non-finite coordinates or normals are a
+    :class:`~warpnerf.errors.UserError` naming the file."""
+    from pathlib import Path
+
+    from .errors import UserError
+
+    path = Path(path)
+
+    def bad(msg):
+        return UserError(f"{path}: unreadable PLY file ({msg})")
+
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as e:
+        raise bad(f"cannot read: {e.strerror or e}") from None
+    fmt, elements, start = _ply_header(data, bad)
+    vi = next((i for i, e in enumerate(elements) if e[0] == "vertex"), None)
+    if vi is None:
+        raise bad("no 'element vertex' in the header")
+    _, n, props = elements[vi]
     names = [p for p, _ in props]
-    if not {"x", "y", "z"} <= set(names):
-        raise ValueError("the vertex element has no x, y, z properties")
-    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
-             "uint8": "u1", "int": "<i4", "int32": "<i4", "uint": "<u4", "short": "<i2",
-             "ushort": "<u2", "char": "i1"}  # fmt: skip
+    if not {"x", "y", "z"} <= set(names) or len(set(names)) != len(names):
+        raise bad("the vertex element needs x, y, z properties, each once")
+    if any(t is None for _, t in props):
+        raise bad("list properties in the vertex element are not supported")
     if fmt == "ascii":
-        rows = data[end:].decode().split("\n")[:n]
-        arr = np.array([[float(x) for x in r.split()[: len(names)]] for r in rows])
-        arr = arr.reshape(len(rows), len(names))  # 0 vertices: [0, k], not [0]
+        lines = [ln for ln in data[start:].split(b"\n") if ln.strip()]
+        skip = sum(c for _, c, _ in elements[:vi])  # one line per row of the earlier elements
+        if skip + n > len(lines):
+            raise bad(f"{n} vertices declared, but the file has {max(len(lines) - skip, 0)} rows")
+        rows = lines[skip : skip + n]
+        tokens = []
+        for i, row in enumerate(rows):
+            vals = row.split()
+            if len(vals) != len(names):
+                raise bad(f"vertex {i} has {len(vals)} values, expected {len(names)}")
+            tokens += vals
+        try:
+            arr = np.array([float(t) for t in tokens], dtype=np.float64)
+        except ValueError:
+            raise bad("a vertex value is not a number") from None
+        arr = arr.reshape(n, len(names))  # 0 vertices: [0, k], not [0]
         col = {k: arr[:, i] for i, k in enumerate(names)}
-    elif fmt == "binary_little_endian":
-        dt = np.dtype([(k, types[t]) for k, t in props])
-        rec = np.frombuffer(data, dt, n, end)
-        col = {k: rec[k].astype(np.float64) for k in names}
     else:
-        raise ValueError(f"unsupported PLY format {fmt!r}")
+        order = _PLY_FORMATS[fmt]
+        offset = start
+        for name, count, eprops in elements[:vi]:
+            if any(t is None for _, t in eprops):
+                raise bad(f"element {name!r} with list properties before the vertices")
+            offset += count * sum(np.dtype(t).itemsize for _, t in eprops)
+        dt = np.dtype([(k, order + t) for k, t in props])
+        if offset + n * dt.itemsize > len(data):
+            raise bad(
+                f"{n} vertices of {dt.itemsize} bytes declared, but the file has "
+                f"{max(len(data) - offset, 0)} bytes for them (truncated?)"
+            )
+        rec = np.frombuffer(data, dt, n, offset) if n else np.zeros(0, dt)
+        col = {k: rec[k].astype(np.float64) for k in names}
     pts = np.stack([col["x"], col["y"], col["z"]], 1)
-    nrm = np.stack([col["nx"], col["ny"], col["nz"]], 1) if "nx" in col else None
+    has_n = {"nx", "ny", "nz"} <= set(col)
+    nrm = np.stack([col["nx"], col["ny"], col["nz"]], 1) if has_n else None
+    for what, a in (("coordinates", pts), ("normals", nrm)):
+        if a is not None and not np.isfinite(a).all():
+            i = int(np.argmin(np.isfinite(a).all(axis=1)))
+            raise bad(f"vertex {i} has non-finite {what} {a[i].tolist()}")
     return pts, nrm

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from .ops import occupancy as ops
+from .ops._bridge import check_int
 
 __all__ = ["OccupancyGrid"]
 
@@ -36,8 +37,9 @@ class OccupancyGrid(nn.Module):
         super().__init__()
         box = ops._box(aabb)
         ops._check_res(resolution)
-        if not (dt > 0 and 0 < occ_threshold < 1 and 0 <= decay <= 1 and warmup >= 0):
-            raise ValueError("need dt > 0, 0 < occ_threshold < 1, 0 <= decay <= 1, warmup >= 0")
+        if not (0 < dt < math.inf and 0 < occ_threshold < 1 and 0 <= decay <= 1):
+            raise ValueError("need finite dt > 0, 0 < occ_threshold < 1 and 0 <= decay <= 1")
+        warmup = check_int("warmup", warmup)
         self.res, self.dt = int(resolution), float(dt)
         self.occ_threshold, self.decay, self.warmup = float(occ_threshold), float(decay), warmup
         n = self.res**3
@@ -74,9 +76,11 @@ class OccupancyGrid(nn.Module):
     def update(self, density_fn, generator: torch.Generator | None = None, chunk: int = 1 << 20):
         """Evaluates ``density_fn(points [m, 3]) -> sigmas [m]`` at jittered cell points and
         refreshes the densities and the bitfield (``generator`` on the grid's device)."""
+        chunk = check_int("chunk", chunk, lo=1)
         cells = self._cells(generator)
         jitter = torch.rand(cells.shape[0], 3, device=cells.device, generator=generator)
-        points = ops.grid_cell_points(cells, jitter, self.res, self.box)
+        # the cells are the grid's own (no range check, no host sync)
+        points = ops.grid_cell_points(cells, jitter, self.res, self.box, check=False)
         values = torch.cat(
             [density_fn(points[s : s + chunk]).float() for s in range(0, points.shape[0], chunk)]
         )

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
+from .ops._bridge import check_int
 
 __all__ = ["render_rays", "render_image", "render_views", "render_nerf", "render_marched"]
 
@@ -40,6 +41,7 @@ def render_rays(
     """
     if mode not in ("sigma", "alpha"):
         raise ValueError(f"mode must be 'sigma' or 'alpha', got {mode!r}")
+    chunk = None if chunk is None else check_int("chunk", chunk, lo=1, hi=2**62)
     n_rays = origins.shape[0]
     dev, dt = origins.device, origins.dtype
     near = torch.as_tensor(near, device=dev, dtype=dt).expand(n_rays).contiguous()
@@ -115,7 +117,8 @@ def render_nerf(
     Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
     """
     n_rays = origins.shape[0]
-    chunk = chunk or max(n_rays, 1)
+    chunk = max(n_rays, 1) if chunk is None else check_int("chunk", chunk, lo=1, hi=2**62)
+    n_fine = check_int("n_fine", n_fine)
     dev, dt = origins.device, origins.dtype
     outs = []
     for s in range(0, max(n_rays, 1), chunk):
@@ -146,7 +149,8 @@ def render_nerf(
 
 def _shade(field, o, d, smp, background, t_threshold, want_weights, mode="sigma"):
     """Evaluates ``field`` at the packed samples' midpoints and composites them (the one place
-    both renderers shade samples). mode: the field returns densities ("sigma") or opacities."""
+    both renderers shade samples). mode: the field returns densities ("sigma") or opacities.
+    ``smp`` comes from the library's own samplers: its packed_info is not re-checked (no sync)."""
     ri = smp.ray_indices
     positions = o[ri] + d[ri] * smp.midpoints().unsqueeze(-1)
     values, rgbs = field(positions, d[ri])
@@ -161,6 +165,7 @@ def _shade(field, o, d, smp, background, t_threshold, want_weights, mode="sigma"
         packed_info=smp.packed_info,
         t_threshold=t_threshold,
         return_weights=want_weights,
+        check=False,
         **kw,
     )
 
@@ -210,10 +215,16 @@ def render_marched(
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints).
+
+    The packed samples are the grid's own: they are composited without re-checking their indices
+    (``render_packed(check=False)``), so no host sync is added to the marching's own.
     """
     from .ops.occupancy import live_samples
     from .ops.sampling import Samples
 
+    max_samples = check_int("max_samples", max_samples, lo=1)
+    round_samples = check_int("round_samples", round_samples)
+    sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
     if not torch.is_grad_enabled():
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
@@ -228,7 +239,7 @@ def render_marched(
     positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
     with torch.no_grad():
         sigmas, _ = field.density(positions)
-    keep, n_live = live_samples(smp, sigmas, t_threshold)
+    keep, n_live = live_samples(smp, sigmas, t_threshold, check=False)
     idx = torch.nonzero(keep).squeeze(1)
     counts = n_live.to(torch.int64)
     info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
@@ -246,6 +257,7 @@ def render_marched(
         background=background,
         packed_info=kept.packed_info,
         t_threshold=t_threshold,
+        check=False,
     )
     return {
         "rgb": rgb,
@@ -302,6 +314,7 @@ def _render_rounds(
             alive.numel(),
             packed_info=smp.packed_info,
             return_weights=True,
+            check=False,
         )
         t_a = trans[alive]
         seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import signal
 import threading
@@ -67,9 +66,11 @@ def _check_out(path, flag: str = "--out", file: bool = False) -> None:
 
 def _saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
+    from ..data._json import read_json
+
     try:
-        saved = json.loads((Path(run) / "config.json").read_text())
-    except (OSError, ValueError):
+        saved = read_json(Path(run) / "config.json", "run config")
+    except UserError:
         return {}
     return saved if isinstance(saved, dict) else {}
 

@@ -12,7 +12,6 @@ the intrinsics are the full-resolution ones divided by ``d``.
 
 from __future__ import annotations
 
-import json
 import math
 import numbers
 import os
@@ -22,6 +21,8 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ._json import read_json
+from .cameras import check_intrinsics, check_poses
 
 __all__ = ["load_blender", "find_transforms", "split_indices", "HOLDOUT_EVERY", "SPLITS"]
 
@@ -94,16 +95,7 @@ def _open_root(root, split, background, downscale, max_images) -> tuple[Path, np
 
 def _read_json(path: Path) -> tuple[dict, list]:
     """Parses a transforms file: a JSON object whose 'frames' is a non-empty list of objects."""
-    try:
-        text = path.read_text()
-    except OSError as e:  # permissions, a folder named like the file, I/O errors
-        raise UserError(f"{path}: cannot read the file ({e.strerror or e})") from None
-    except UnicodeDecodeError as e:
-        raise UserError(f"{path}: not valid JSON (not UTF-8 text: {e})") from None
-    try:
-        js = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise UserError(f"{path}: not valid JSON ({e})") from None
+    js = read_json(path, "transforms file")
     if not isinstance(js, dict):
         raise UserError(f"{path}: expected a JSON object with 'frames'")
     frames = js.get("frames")
@@ -216,11 +208,12 @@ def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
     Returns images [N, h, w, 3] float32 array, c2w [N, 4, 4] float64 array, paths, (H, W) at
     full resolution.
     """
-    images, mats, paths = [], [], []
+    mats = [_matrix(frames[i], i, path) for i in indices]
+    mats = check_poses(mats, path, lambda j: f"frames[{indices[j]}].transform_matrix")
+    images, paths = [], []
     first = None
     for j, i in enumerate(indices):
         fr = frames[i]
-        mats.append(_matrix(fr, i, path))
         img, ip = _read_image(root, fr.get("file_path"), i, path)
         hw = img.shape[:2]
         if sizes is not None and hw != tuple(sizes[j]):
@@ -241,7 +234,7 @@ def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
             )
         images.append(_area_downscale(_composite(img, bg), downscale).astype(np.float32))
         paths.append(str(ip))
-    return np.stack(images), np.stack(mats), paths, first[0]
+    return np.stack(images), mats, paths, first[0]
 
 
 def _result(images, c2w, intrinsics, paths, fmt) -> dict:
@@ -274,6 +267,13 @@ def load_blender(
     (camera-to-world, OpenGL). RGBA images are composited onto ``background``; ``downscale`` is an
     area average (see the module docstring for the crop rule).
 
+    Cameras are checked before any image is read (:func:`warpnerf.data.cameras.check_poses`):
+    finite matrices; rotations orthonormal with determinant +1, used as they are up to
+    max |R R^T - I| = 1e-4, replaced by the nearest rotation with a UserWarning up to 0.05, and
+    refused beyond (degenerate, scaled or mirrored); camera centres within 1e6 of the origin.
+    Intrinsics (:func:`~warpnerf.data.cameras.check_intrinsics`): ``camera_angle_x`` in (0, pi),
+    focal lengths in (0, 1e8] pixels, field of view below about 179.8 degrees.
+
     Args:
         split: "train", "val" or "test".
         max_images: keep the first ``max_images`` frames of the split.
@@ -301,7 +301,7 @@ def load_blender(
     else:
         fov = _number(js["camera_angle_x"], "camera_angle_x", path)
         if fov >= math.pi:
-            raise UserError(f"{path}: field 'camera_angle_x' must be below pi radians, got {fov}")
+            raise UserError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, got {fov}")
     images, c2w, paths, (full_h, full_w) = _load_frames(root, path, frames, indices, bg, downscale)
     if "fl_x" in js:
         cx = _number(js["cx"], "cx", path, positive=False) if "cx" in js else 0.5 * full_w
@@ -309,5 +309,7 @@ def load_blender(
     else:
         fx = fy = 0.5 * full_w / math.tan(0.5 * fov)
         cx, cy = 0.5 * full_w, 0.5 * full_h
+    fields = "fields 'fl_x', 'fl_y', 'cx', 'cy'" if "fl_x" in js else "field 'camera_angle_x'"
+    check_intrinsics([[fx, fy, cx, cy]], (full_w, full_h), path, lambda _: fields)
     k = np.array([fx, fy, cx, cy], dtype=np.float64) / downscale
     return _result(images, c2w, np.tile(k, (len(paths), 1)), paths, "blender")

@@ -3,10 +3,22 @@
 from __future__ import annotations
 
 import math
+import warnings
 
+import numpy as np
 import torch
 
+from ..errors import UserError
+
 __all__ = ["look_at", "intrinsics_from_fov", "spiral_path", "orbit_views"]
+
+# Limits every dataset loader applies to its cameras (check_poses, check_intrinsics):
+MAX_CENTRE = 1e6  # |camera centre| in the units rays are made in (float32 rays)
+ROTATION_EXACT = 1e-4  # max |R R^T - I| of a pose's rotation used as it is
+ROTATION_FIX = 0.05  # up to this: replaced by the nearest rotation (SVD), with a warning
+MAX_IMAGE_SIDE = 1 << 16  # pixels
+MAX_FOCAL = 1e8  # pixels
+MAX_TAN = 500.0  # tan of the widest ray's angle off the axis (about 89.9 degrees)
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), dtype=torch.float32) -> torch.Tensor:
@@ -194,3 +206,94 @@ def forward_facing_spiral(c2w, n_frames: int, focus: float = 4.0, rots: float = 
         eye = torch.tensor([math.cos(th), -math.sin(th), -math.sin(0.5 * th)]) * rads
         mats.append(look_at(eye, (0.0, 0.0, -focus), up=(0.0, 1.0, 0.0)))
     return torch.stack(mats)
+
+
+def _label(labels, i: int) -> str:
+    if labels is None:
+        return f"camera {i}"
+    return labels(i) if callable(labels) else str(labels[i])
+
+
+def check_poses(c2w, where, labels=None, max_centre: float = MAX_CENTRE) -> np.ndarray:
+    """Camera-to-world poses [N, 4, 4] (or [N, 3, 4]) checked where a loader reads them; returns a
+    float64 copy (rotations slightly off re-orthonormalised). UserError naming ``where`` (the file)
+    and the camera (``labels[i]`` or ``labels(i)``) otherwise.
+
+    - every value finite;
+    - the rotation R (upper-left 3x3) orthonormal with determinant +1: up to ``ROTATION_EXACT``
+      of max |R R^T - I| (float32 round-off, rounded decimals) it is used as it is; up to
+      ``ROTATION_FIX`` it is replaced by the nearest rotation (U V^T of its SVD) with a
+      UserWarning; beyond that, or det R <= 0 (mirrored, zero, rank-deficient), it is refused;
+    - the camera centre within ``max_centre`` of the origin.
+    """
+    c2w = np.array(c2w, dtype=np.float64)
+    finite = np.isfinite(c2w).all(axis=(1, 2))
+    if not finite.all():
+        i = int(np.argmin(finite))
+        raise UserError(f"{where}: {_label(labels, i)}: the pose has non-finite values")
+    r = c2w[:, :3, :3]
+    with np.errstate(all="ignore"):
+        err = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+        det = np.linalg.det(r) if len(r) else np.zeros(0)
+    bad = ~(err <= ROTATION_FIX) | ~(det > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise UserError(
+            f"{where}: {_label(labels, i)}: the pose's 3x3 part is not a rotation "
+            f"(max |R R^T - I| = {err[i]:.3g}, det = {det[i]:.3g}; need orthonormal axes with "
+            f"determinant +1, off by at most {ROTATION_FIX}: a degenerate, scaled or mirrored "
+            "matrix is refused)"
+        )
+    fix = err > ROTATION_EXACT
+    if fix.any():
+        u, _, vt = np.linalg.svd(r[fix])
+        c2w[fix, :3, :3] = u @ vt
+        i = int(np.argmax(err))
+        warnings.warn(
+            f"{where}: {int(fix.sum())} pose rotation(s) slightly off orthonormal (up to "
+            f"{err[i]:.2g}, {_label(labels, i)}); replaced by the nearest rotation",
+            UserWarning,
+            stacklevel=2,
+        )
+    with np.errstate(over="ignore"):
+        dist = np.linalg.norm(c2w[:, :3, 3], axis=1)
+    far = ~(dist <= max_centre)
+    if far.any():
+        i = int(np.argmax(far))
+        raise UserError(
+            f"{where}: {_label(labels, i)}: camera centre {c2w[i, :3, 3].tolist()} is "
+            f"{dist[i]:.3g} from the origin, more than the {max_centre:g} allowed (wrong units or "
+            "a corrupt pose)"
+        )
+    return c2w
+
+
+def check_intrinsics(intrinsics, size, where, labels=None) -> None:
+    """UserError naming ``where`` and the camera unless the image ``size`` (w, h) is positive and
+    at most ``MAX_IMAGE_SIDE`` pixels a side, and each camera's (fx, fy, cx, cy) [N, 4] (pixels)
+    is finite with 0 < fx, fy <= ``MAX_FOCAL`` and a field of view below about 179.8 degrees (the
+    image corners at most ``MAX_TAN`` focal lengths off the principal point)."""
+    w, h = size
+    if not all(isinstance(v, (int, np.integer)) and 1 <= v <= MAX_IMAGE_SIDE for v in (w, h)):
+        raise UserError(
+            f"{where}: image size {w}x{h} must be positive whole pixels, at most {MAX_IMAGE_SIDE} "
+            "a side"
+        )
+    k = np.asarray(intrinsics, dtype=np.float64).reshape(-1, 4)
+    for i, (fx, fy, cx, cy) in enumerate(k):
+        what = f"{where}: {_label(labels, i)}"
+        if not all(math.isfinite(v) for v in (fx, fy, cx, cy)):
+            raise UserError(f"{what}: intrinsics (fx, fy, cx, cy) = {k[i].tolist()} not finite")
+        if not (0 < fx <= MAX_FOCAL and 0 < fy <= MAX_FOCAL):
+            raise UserError(
+                f"{what}: focal lengths (fx, fy) = ({fx:g}, {fy:g}) must be positive and at most "
+                f"{MAX_FOCAL:g} pixels"
+            )
+        tan = max(max(abs(cx), abs(w - cx)) / fx, max(abs(cy), abs(h - cy)) / fy)
+        if not tan <= MAX_TAN:
+            deg = 2 * math.degrees(math.atan(tan))
+            raise UserError(
+                f"{what}: field of view too wide ({deg:.6g} degrees across; at most "
+                f"{2 * math.degrees(math.atan(MAX_TAN)):.4g}): (fx, fy, cx, cy) = "
+                f"{k[i].tolist()} for a {w}x{h} image"
+            )

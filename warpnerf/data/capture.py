@@ -16,6 +16,15 @@ Only camera poses decide the transform, so a COLMAP model and the LLFF file made
 the same way. The transform is a similarity (rotation, uniform scale, translation) and is stored
 in the run's config; meshes are mapped back to world units with its inverse.
 
+Cameras are checked at load (:mod:`warpnerf.data.cameras`): poses finite, camera centres within
+``MAX_WORLD`` = 1e9 world units of the origin (the normalisation runs in float64), rotations
+orthonormal with determinant +1 (used as they are within 1e-4, replaced by the nearest rotation
+with a UserWarning within 0.05, refused beyond: degenerate, scaled or mirrored); intrinsics of
+the images read finite, focal lengths in (0, 1e8] pixels, field of view below about 179.8
+degrees, images at most 65536 pixels a side; LLFF depth bounds 0 < near < far. After the
+normalisation the scene must be sane: camera centres within 1e6, 0 < near < far <= 1e6, else the
+capture is refused as degenerate (cameras at one point, absurd bounds).
+
 Hold-out (the LLFF convention): images ``i % holdout == 0`` in sorted order are val/test, the
 others train; ``holdout = 0`` trains on all and validates on all.
 """
@@ -29,7 +38,8 @@ import torch
 
 from ..errors import UserError
 from .blender import _area_downscale, _composite
-from .colmap import find_model, qvec_to_rotmat, read_model
+from .cameras import MAX_CENTRE, check_intrinsics, check_poses
+from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
 
 __all__ = ["detect_capture", "capture_info", "load_capture", "HOLDOUT", "NDC_NEAR"]
 
@@ -222,16 +232,36 @@ def _llff(root: Path, downscale: int) -> dict:
 # --------------------------------------------------------------------------------------------
 
 
-def _check_poses(c2w: np.ndarray, where: str):
-    r = c2w[:, :3, :3]
-    err = np.abs(r @ r.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    det = np.linalg.det(np.nan_to_num(r))
-    bad_pose = ~np.isfinite(err) | (err > 1e-3) | (det < 0)
-    if not np.isfinite(c2w).all() or bad_pose.any():
-        bad = int(np.argmax(bad_pose | ~np.isfinite(c2w).all(axis=(1, 2))))
+def _labels(sc: dict):
+    """Names of a capture's cameras for messages: COLMAP image names, LLFF rows."""
+    if sc.get("format") == "llff":
+        return lambda i: f"row {i} ({sc['names'][i]})"
+    return lambda i: f"image {sc['names'][i]!r}"
+
+
+def _check_cameras(sc: dict):
+    """The shared camera checks (:mod:`warpnerf.data.cameras`) on a capture's poses in world units
+    (centres within ``MAX_WORLD``; rotations slightly off re-orthonormalised, with a warning) and
+    on its intrinsics for the images read; COLMAP depth bounds and points finite and bounded."""
+    labels = _labels(sc)
+    check_intrinsics(sc["intrinsics"], sc["size"], sc["model"], labels)
+    sc["c2w"] = check_poses(sc["c2w"], sc["model"], labels, max_centre=MAX_WORLD)
+    b = sc["bounds"]
+    if b is not None and not (np.isnan(b) | ((b > 0) & np.isfinite(b))).all():
+        raise UserError(f"{sc['model']}: depth bounds must be finite and positive")
+
+
+def _check_scene(sc: dict):
+    """The normalised scene: camera centres within ``MAX_CENTRE``, 0 < near < far <= MAX_CENTRE,
+    a finite box (else the capture is degenerate: all cameras at one point, absurd bounds)."""
+    where = sc["model"]
+    check_poses(sc["c2w_norm"], f"{where} (normalised)", _labels(sc))
+    near, far, aabb = sc["near"], sc["far"], sc["aabb"]
+    if not (0 < near < far <= MAX_CENTRE and 0 < aabb <= MAX_CENTRE):
         raise UserError(
-            f"{where}: pose {bad} is not a finite rotation (orthonormality error {err[bad]:.2g}, "
-            f"determinant {det[bad]:.3g})"
+            f"{where}: degenerate capture: normalised near {near:.3g}, far {far:.3g}, box "
+            f"{aabb:.3g} (need 0 < near < far <= {MAX_CENTRE:g}); the cameras coincide or the "
+            "depth bounds / sparse points are absurd"
         )
 
 
@@ -310,6 +340,7 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
         raise UserError(f"{root}: --format llff, but no poses_bounds.npy found")
     sc = _colmap(root, downscale) if fmt == "colmap" else _llff(root, downscale)
     sc["format"] = fmt
+    _check_cameras(sc)
     _check_undistortion(sc)
     # --downscale d reads images_d when it exists, else area-averages the folder used by d.
     name = sc["folder"].name
@@ -320,7 +351,6 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
             f"which is already 1/{base}); use --downscale 1 for {name}/ as it is"
         )
     sc["extra"] = 1 if base > 1 else downscale
-    _check_poses(sc["c2w"], sc["model"])
     transform, forward, scale = _normalisation(sc["c2w"], sc["bounds"])
     sc.update(transform=transform, forward_facing=forward, scale=scale)
     sc["c2w_norm"] = apply_transform(transform, sc["c2w"])
@@ -344,6 +374,7 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
         box = np.abs(np.percentile(p, [2, 98], axis=0)).max()
         aabb = float(np.clip(box, 1.0, sc["far"]))
     sc["aabb"] = round(aabb, 3)
+    _check_scene(sc)
     return sc
 
 

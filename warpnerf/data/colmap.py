@@ -16,6 +16,13 @@ OPENCV           4  fx, fy, cx, cy, k1, k2, p1, p2
 
 Every camera becomes ``(fx, fy, cx, cy)`` plus OpenCV distortion ``(k1, k2, p1, p2)``. Other
 models (fisheye ones, FULL_OPENCV, ...) raise a UserError naming the model.
+
+The files are untrusted: a malformed line (wrong number of fields, non-numeric values), a count
+in a binary file larger than the rest of the file can hold (checked before anything is
+allocated), trailing bytes, duplicate camera / image / point ids, duplicate image names, image
+names that leave the images folder (absolute, ``..``), an image whose camera is not defined,
+camera sizes outside [1, 65536], non-finite camera parameters, poses or sparse points, and points
+farther than ``MAX_WORLD`` from the origin are each a UserError naming the file (and line).
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..io import atomic_path
+from .cameras import MAX_IMAGE_SIDE
 
 __all__ = ["Camera", "Image", "read_model", "find_model", "qvec_to_rotmat", "rotmat_to_qvec"]
 
@@ -48,6 +56,7 @@ _OTHER_MODELS = {
     10: "THIN_PRISM_FISHEYE",
 }
 _BY_NAME = {name: (i, n) for i, (name, n) in MODELS.items()}
+MAX_WORLD = 1e9  # |camera centre| and |sparse point| in world units, before normalisation
 
 
 @dataclass
@@ -154,6 +163,18 @@ class _Reader:
         self.pos += size
         return out
 
+    def count(self, min_bytes: int, what: str) -> int:
+        """A uint64 count of records of at least ``min_bytes`` bytes each, checked against the
+        bytes left in the file before anything is allocated for them."""
+        (n,) = self.read("Q")
+        left = len(self.data) - self.pos
+        if n * min_bytes > left:
+            raise UserError(
+                f"{self.path}: byte {self.pos - 8} says {n} {what}, more than the {left} bytes "
+                "left can hold (truncated, or not a COLMAP model?)"
+            )
+        return n
+
     def string(self) -> str:
         end = self.data.find(b"\0", self.pos)
         if end < 0:
@@ -184,8 +205,12 @@ def _model(model_id_or_name, path, cam_id) -> tuple[str, int]:
 
 def _camera(cam_id, model, w, h, params, path) -> Camera:
     params = np.asarray(params, dtype=np.float64)
-    if w < 1 or h < 1 or not np.isfinite(params).all():
-        raise UserError(f"{path}: camera {cam_id}: bad size {w}x{h} or non-finite parameters")
+    if not (1 <= w <= MAX_IMAGE_SIDE and 1 <= h <= MAX_IMAGE_SIDE):
+        raise UserError(
+            f"{path}: camera {cam_id}: size {w}x{h} must be in [1, {MAX_IMAGE_SIDE}] pixels a side"
+        )
+    if not np.isfinite(params).all():
+        raise UserError(f"{path}: camera {cam_id}: non-finite parameters {params.tolist()}")
     cam = Camera(int(cam_id), model, int(w), int(h), params)
     k, _ = cam.pinhole()
     if k[0] <= 0 or k[1] <= 0:
@@ -193,13 +218,19 @@ def _camera(cam_id, model, w, h, params, path) -> Camera:
     return cam
 
 
+def _unique(table: dict, key, what: str, path, where="") -> None:
+    if key in table:
+        raise UserError(f"{path}{where}: {what} {key!r} appears twice")
+
+
 def _read_cameras_bin(path: Path) -> dict[int, Camera]:
     r = _Reader(path)
-    (n,) = r.read("Q")
+    n = r.count(24 + 3 * 8, "cameras")
     cams = {}
     for _ in range(n):
         cam_id, model_id, w, h = r.read("iiQQ")
         model, n_params = _model(model_id, path, cam_id)
+        _unique(cams, cam_id, "camera id", path)
         cams[cam_id] = _camera(cam_id, model, w, h, r.array("<f8", n_params), path)
     r.done()
     return cams
@@ -207,13 +238,14 @@ def _read_cameras_bin(path: Path) -> dict[int, Camera]:
 
 def _read_images_bin(path: Path) -> dict[int, Image]:
     r = _Reader(path)
-    (n,) = r.read("Q")
+    n = r.count(64 + 1 + 8, "images")
     images = {}
     for _ in range(n):
         image_id, *pose, cam_id = r.read("i7di")
         name = r.string()
-        (n_pts,) = r.read("Q")
+        n_pts = r.count(24, "2D points")
         pts = r.array(np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]), n_pts)
+        _unique(images, image_id, "image id", path)
         images[image_id] = Image(
             image_id, np.array(pose[:4]), np.array(pose[4:]), cam_id, name, pts["id"].copy()
         )
@@ -223,10 +255,13 @@ def _read_images_bin(path: Path) -> dict[int, Image]:
 
 def _read_points_bin(path: Path) -> dict:
     r = _Reader(path)
-    (n,) = r.read("Q")
+    n = r.count(struct.calcsize("<Q3d3BdQ"), "3D points")
     xyz, ids = np.empty((n, 3)), np.empty(n, dtype=np.int64)
     for i in range(n):
-        ids[i], x, y, z, _, _, _, _, track = r.read("Q3d3BdQ")
+        pid, x, y, z, _, _, _, _, track = r.read("Q3d3BdQ")
+        if pid >= 2**63:  # images refer to points by int64 ids
+            raise UserError(f"{path}: 3D point id {pid} out of the 64-bit range")
+        ids[i] = pid
         r.array("<i4", 2 * track)
         xyz[i] = (x, y, z)
     r.done()
@@ -250,6 +285,22 @@ def _parse(path, lineno, fields, types):
         raise UserError(f"{path}:{lineno}: expected {len(types)} values ({names})") from None
 
 
+def _point_ids(path, lineno, fields) -> np.ndarray:
+    """POINT3D_ID of each X Y POINT3D_ID triple of a POINTS2D line (int64; -1: none)."""
+    try:
+        for i, v in enumerate(fields):
+            if i % 3 < 2:
+                float(v)
+        ids = [int(v) for v in fields[2::3]]
+    except ValueError:
+        raise UserError(
+            f"{path}:{lineno}: POINTS2D must be triples X Y POINT3D_ID (numbers, integer ids)"
+        ) from None
+    if any(not -(2**63) <= v < 2**63 for v in ids):
+        raise UserError(f"{path}:{lineno}: POINT3D_ID out of the 64-bit range")
+    return np.array(ids, dtype=np.int64)
+
+
 def _read_cameras_txt(path: Path) -> dict[int, Camera]:
     cams = {}
     for lineno, f in _text_lines(path):
@@ -262,6 +313,7 @@ def _read_cameras_txt(path: Path) -> dict[int, Camera]:
             raise UserError(f"{path}:{lineno}: model {model} needs {n_params} parameters")
         cam_id, w, h = _parse(path, lineno, [f[0], f[2], f[3]], [int, int, int])
         params = _parse(path, lineno, f[4:], [float] * n_params)
+        _unique(cams, cam_id, "camera id", path, f":{lineno}")
         cams[cam_id] = _camera(cam_id, model, w, h, params, path)
     return cams
 
@@ -283,7 +335,8 @@ def _read_images_txt(path: Path) -> dict[int, Image]:
         pts = lines[i + 1][1] if i + 1 < len(lines) else []
         if len(pts) % 3:
             raise UserError(f"{path}:{lines[i + 1][0]}: POINTS2D must be triples X Y POINT3D_ID")
-        ids = np.array([int(float(v)) for v in pts[2::3]], dtype=np.int64)
+        ids = _point_ids(path, lines[i + 1][0], pts) if pts else np.zeros(0, np.int64)
+        _unique(images, vals[0], "image id", path, f":{lineno}")
         images[vals[0]] = Image(
             vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, ids
         )
@@ -299,6 +352,8 @@ def _read_points_txt(path: Path) -> dict:
                 raise UserError(f"{path}:{lineno}: expected POINT3D_ID X Y Z R G B ERROR TRACK[]")
             ids.append(_parse(path, lineno, f[:1], [int])[0])
             xyz.append(_parse(path, lineno, f[1:4], [float] * 3))
+            if not -(2**63) <= ids[-1] < 2**63:
+                raise UserError(f"{path}:{lineno}: POINT3D_ID out of the 64-bit range")
     return {"ids": np.asarray(ids, dtype=np.int64), "xyz": np.asarray(xyz).reshape(-1, 3)}
 
 
@@ -320,7 +375,14 @@ def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None
     points = None
     if pts_path is not None:
         points = (_read_points_bin if pts_path.suffix == ".bin" else _read_points_txt)(pts_path)
+    img_path = folder / f"images{img_ext}"
+    _check_points(points, pts_path)
+    names = set()
     for im in images.values():
+        _check_name(im.name, img_path)
+        if im.name in names:
+            raise UserError(f"{img_path}: image name {im.name!r} appears twice")
+        names.add(im.name)
         if im.camera_id not in cams:
             raise UserError(
                 f"{folder / f'images{img_ext}'}: image {im.name!r} refers to camera "
@@ -333,6 +395,34 @@ def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None
                 f"{folder / f'images{img_ext}'}: image {im.name!r}: non-finite or zero pose"
             )
     return cams, images, points
+
+
+def _check_name(name: str, path) -> None:
+    """An image name must be a relative path inside the images folder."""
+    from pathlib import PurePosixPath, PureWindowsPath
+
+    parts = PurePosixPath(name.replace("\\", "/")).parts
+    if not name or name.startswith("/") or PureWindowsPath(name).drive or ".." in parts:
+        raise UserError(
+            f"{path}: image name {name!r} must be a relative path inside the images folder"
+        )
+
+
+def _check_points(points, path) -> None:
+    """Sparse points finite, within MAX_WORLD of the origin, with distinct ids."""
+    if points is None or not len(points["ids"]):
+        return
+    xyz = points["xyz"]
+    bad = ~(np.abs(xyz) <= MAX_WORLD).all(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise UserError(
+            f"{path}: 3D point {int(points['ids'][i])} at {xyz[i].tolist()} is not finite or "
+            f"farther than {MAX_WORLD:g} from the origin"
+        )
+    uniq, counts = np.unique(points["ids"], return_counts=True)
+    if (counts > 1).any():
+        raise UserError(f"{path}: 3D point id {int(uniq[np.argmax(counts > 1)])} appears twice")
 
 
 def _write(path: Path, data: bytes) -> None:

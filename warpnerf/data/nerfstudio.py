@@ -7,6 +7,13 @@ as nerfstudio stores it) and optional per-frame overrides of any intrinsic, size
 camera-model field. Only undistorted pinhole cameras are loaded: ``camera_model`` absent,
 ``"PINHOLE"`` or ``"OPENCV"`` with every distortion coefficient absent or zero.
 
+Cameras are checked as the Blender loader checks them (:func:`warpnerf.data.cameras.check_poses`,
+:func:`~warpnerf.data.cameras.check_intrinsics`): every frame's intrinsics and size (at most
+65536 pixels a side, focal lengths in (0, 1e8] pixels, field of view below about 179.8 degrees)
+before any image is read; the selected frames' poses finite, with rotations within 1e-4 of
+orthonormal used as they are, within 0.05 replaced by the nearest rotation (a UserWarning), and
+refused otherwise (degenerate, scaled, mirrored); camera centres within 1e6 of the origin.
+
 Split rule (nerfstudio folders have no split files): in the order of ``frames``, ``val`` and
 ``test`` are the frames with index ``i % 8 == 0`` and ``train`` all the others.
 """
@@ -17,6 +24,7 @@ import numpy as np
 
 from ..errors import UserError
 from .blender import _load_frames, _number, _open_root, _read_json, _result, split_indices
+from .cameras import check_intrinsics
 
 __all__ = ["load_nerfstudio", "CAMERA_MODELS", "DISTORTION_FIELDS"]
 
@@ -58,7 +66,9 @@ def _frame_camera(js: dict, frame: dict, i: int, path) -> tuple[list[float], tup
         positive, integer = key not in ("cx", "cy"), key in ("w", "h")
         vals[key] = _number(v, name, path, positive=positive, integer=integer)
     k = [vals["fl_x"], vals["fl_y"], vals["cx"], vals["cy"]]
-    return k, (int(vals["h"]), int(vals["w"]))
+    hw = (int(vals["h"]), int(vals["w"]))
+    check_intrinsics([k], hw[::-1], path, lambda _: f"frames[{i}] (fl_x, fl_y, cx, cy, w, h)")
+    return k, hw
 
 
 def load_nerfstudio(

@@ -151,14 +151,15 @@ class SDFScene:
 
     @classmethod
     def load(cls, path) -> SDFScene:
+        """The scene of a JSON file ({"primitives": [...]}, as :meth:`to_dict`); UserError naming
+        the file for a missing, unreadable, oversized, malformed or too deeply nested file and
+        for any field of the wrong type or range."""
+        from ..data._json import read_json
+
         path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise UserError(f"{path}: no such scene file") from None
-        except (OSError, json.JSONDecodeError) as e:
-            raise UserError(f"{path}: not a readable JSON scene ({e})") from None
-        return cls.from_dict(d, str(path))
+        if not path.exists():
+            raise UserError(f"{path}: no such scene file")
+        return cls.from_dict(read_json(path, "JSON scene"), str(path))
 
     # ---- evaluation ---------------------------------------------------------------------
     def arrays(self, device="cpu") -> dict:

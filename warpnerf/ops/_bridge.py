@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 import os
 
 import torch
@@ -13,6 +14,8 @@ if not os.environ.get("WARPNERF_VERBOSE"):
 
 _READY = False
 FLOATS = (torch.float32, torch.float64)
+INTS = (torch.int32, torch.int64)
+INT32_MAX = 2**31 - 1  # kernels index with 32-bit ints: sizes and offsets must stay below this
 
 
 def _wp():
@@ -87,3 +90,45 @@ def launch_tiled(kernel, n_blocks: int, block_dim: int, inputs: list, device: to
     wp.launch_tiled(
         kernel, dim=[n_blocks], inputs=inputs, device=dev, block_dim=block_dim, stream=stream
     )
+
+
+class IndexDtypeError(TypeError, ValueError):
+    """A float (or bool) tensor or number where integers are expected. A TypeError that is also a
+    ValueError: the ops' other argument errors are ValueErrors, and callers catch either."""
+
+
+def check_int(name: str, value, lo: int = 0, hi: int = INT32_MAX) -> int:
+    """``value`` as a Python int in [lo, hi] (ints, NumPy ints and one-element integer tensors
+    accepted; bools and floats refused: a float size or index would be truncated silently)."""
+    if isinstance(value, bool) or (isinstance(value, torch.Tensor) and value.dtype == torch.bool):
+        raise IndexDtypeError(f"{name} must be an int, got a bool")
+    try:
+        v = operator.index(value)
+    except TypeError:
+        raise IndexDtypeError(f"{name} must be an int, got {type(value).__name__}") from None
+    if not lo <= v <= hi:
+        raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {v}")
+    return v
+
+
+def check_index(name: str, t, shape: tuple, device=None) -> None:
+    """Raises naming the argument when an index tensor is not int32/int64 (IndexDtypeError: a
+    float tensor would be truncated), or its shape or device is not as expected (ValueError).
+    Host-side only: the values are checked by the op, in one device sync."""
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.dtype not in INTS:
+        raise IndexDtypeError(f"{name} must be an int32 or int64 tensor of indices, got {t.dtype}")
+    if device is not None and t.device != device:
+        raise ValueError(f"{name} is on {t.device}, expected {device} like the other inputs")
+    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
+
+
+def host_flags(*flags: torch.Tensor) -> list:
+    """Python ints of 0-dim bool/int device tensors, copied in one transfer (one host sync on
+    CUDA however many checks ride on it)."""
+    if not flags:
+        return []
+    return torch.stack([f.reshape(()).to(torch.int64) for f in flags]).tolist()

@@ -119,14 +119,66 @@ class _Composite(torch.autograd.Function):
 
 
 def packed_info_from_ray_indices(ray_indices: torch.Tensor, n_rays: int) -> torch.Tensor:
-    """``[n_rays, 2]`` int32 (start, count) from sorted ``ray_indices`` ``[n]``."""
-    if ray_indices.numel() > 1 and bool((ray_indices[1:] < ray_indices[:-1]).any()):
-        raise ValueError("ray_indices must be sorted (each ray's samples contiguous)")
-    if ray_indices.numel() and (int(ray_indices.min()) < 0 or int(ray_indices.max()) >= n_rays):
-        raise ValueError(f"ray_indices must lie in [0, {n_rays}), n_rays={n_rays}")
+    """``[n_rays, 2]`` int32 (start, count) from sorted ``ray_indices`` ``[n]`` (int32/int64).
+
+    Raises ValueError unless the indices are sorted and lie in [0, n_rays) (one pass over them and
+    one host sync on CUDA), IndexDtypeError (a TypeError and ValueError) for a float tensor.
+    """
+    n_rays = _bridge.check_int("n_rays", n_rays)
+    _bridge.check_index("ray_indices", ray_indices, (None,))
+    n = ray_indices.shape[0]
+    if n > _bridge.INT32_MAX:
+        raise ValueError(f"{n} samples exceed int32 offsets: render fewer samples at once")
+    if n:
+        ordered, lo_ok, hi_ok = _bridge.host_flags(
+            (ray_indices[1:] >= ray_indices[:-1]).all(),
+            ray_indices[0] >= 0,  # sorted: the ends bound all of them
+            ray_indices[-1] < n_rays,
+        )
+        if not ordered:
+            raise ValueError("ray_indices must be sorted (each ray's samples contiguous)")
+        if not (lo_ok and hi_ok):
+            raise ValueError(f"ray_indices must lie in [0, {n_rays}), n_rays={n_rays}")
     counts = torch.bincount(ray_indices.long(), minlength=n_rays)
     starts = torch.cumsum(counts, 0) - counts
     return torch.stack([starts, counts], -1).to(torch.int32)
+
+
+def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
+    """Raises ValueError unless ``packed_info`` [n_rays, 2] lays out exactly the samples of the
+    sorted ``ray_indices`` [n]: start, count >= 0, start + count <= n, every ray's first and last
+    sample belong to it, and the counts add up to n (so segments are disjoint and cover every
+    sample, whose weight and gradient would otherwise be left unwritten). One host sync."""
+    info = packed_info.to(torch.int64)  # int64 sums: no int32 wrap-around while checking
+    starts, counts = info[:, 0], info[:, 1]
+    ends = starts + counts
+    flags = [info.amin() >= 0 if n_rays else torch.ones((), dtype=torch.bool, device=info.device)]
+    flags.append(ends.amax() <= n if n_rays else flags[0])
+    flags.append(counts.sum() == n)
+    if n:
+        ri = ray_indices
+        rays = torch.arange(n_rays, device=ri.device)
+        first = ri[starts.clamp(0, n - 1)]
+        last = ri[(ends - 1).clamp(0, n - 1)]
+        flags += [
+            (ri[1:] >= ri[:-1]).all(),
+            (ri[0] >= 0) & (ri[-1] < n_rays),
+            ((first == rays) & (last == rays) | (counts <= 0)).all(),
+        ]
+    ok = _bridge.host_flags(*flags) + [1] * (6 - len(flags))
+    if not ok[0]:
+        raise ValueError("packed_info has a negative start or count")
+    if not ok[1]:
+        raise ValueError(f"packed_info has a segment past the end of the {n} samples")
+    if not ok[3]:
+        raise ValueError("ray_indices must be sorted (each ray's samples contiguous)")
+    if not ok[4]:
+        raise ValueError(f"ray_indices must lie in [0, {n_rays}), n_rays={n_rays}")
+    if not (ok[2] and ok[5]):
+        raise ValueError(
+            "packed_info does not match ray_indices: each ray's (start, count) must cover exactly "
+            "its samples (as packed_info_from_ray_indices gives)"
+        )
 
 
 def _background(background, n_rays, device, dtype):
@@ -163,6 +215,7 @@ def render_packed(
     packed_info: torch.Tensor | None = None,  # [n_rays, 2] int32, computed if None
     t_threshold: float = 0.0,
     return_weights: bool = False,
+    check: bool = True,
 ):
     """Composites packed samples into per-ray colour, expected depth and opacity.
 
@@ -177,10 +230,21 @@ def render_packed(
     make their ray's outputs and gradients NaN rather than a plausible value (checked in the
     kernel: no host sync); other rays are unaffected. See docs/NUMERICS.md.
 
+    Index checks: ``ray_indices`` and ``packed_info`` must be int32/int64 tensors
+    (IndexDtypeError, a TypeError and ValueError, for floats); ``ray_indices`` sorted in
+    [0, n_rays) and ``packed_info`` the exact layout of those samples (start, count >= 0,
+    start + count <= n, counts summing to n; ValueError otherwise, never an out-of-bounds read).
+    This costs one pass over ``ray_indices`` and ``packed_info`` and one host sync per call on
+    CUDA. ``check=False`` skips these value checks (shapes and dtypes are still checked, on the
+    host); it is for callers that built ``packed_info`` themselves, as the library's renderers
+    do (from :func:`stratified_samples`, :func:`importance_samples` or :func:`march_rays`):
+    wrong values then read outside the arrays.
+
     Returns:
         rgb [n_rays, 3], depth [n_rays], opacity [n_rays] (and weights [n] if return_weights).
     """
     values, use_alpha = _values(sigmas, alphas)
+    n_rays = _bridge.check_int("n_rays", n_rays)
     n = values.shape[0] if values.dim() == 1 else -1
     dev, dt = values.device, values.dtype
     _bridge.check_float("sigmas" if not use_alpha else "alphas", values, (None,))
@@ -190,14 +254,16 @@ def render_packed(
         ("rgbs", rgbs, (n, 3)),
     ):
         _bridge.check_float(name, t, shape, dt, dev)
-    if ray_indices.shape != (n,):
-        raise ValueError(f"ray_indices must have shape [{n}], got {list(ray_indices.shape)}")
+    if n > _bridge.INT32_MAX:
+        raise ValueError(f"{n} samples exceed int32 offsets: render fewer samples at once")
+    _bridge.check_index("ray_indices", ray_indices, (n,))
     if packed_info is None:
         packed_info = packed_info_from_ray_indices(ray_indices.to(dev), n_rays)
-    elif packed_info.shape != (n_rays, 2):
-        raise ValueError(
-            f"packed_info must have shape [{n_rays}, 2], got {list(packed_info.shape)}"
-        )
+    else:
+        _bridge.check_index("packed_info", packed_info, (n_rays, 2))
+        packed_info = packed_info.to(dev)
+        if check:
+            _check_packed_info(packed_info, ray_indices.to(dev), n, n_rays)
     bg = _background(background, n_rays, dev, dt)
     rgb, depth, opacity, weights = _Composite.apply(
         packed_info.to(dev, torch.int32).contiguous(),
@@ -234,6 +300,8 @@ def render_dense(
     name = "alphas" if use_alpha else "sigmas"
     _bridge.check_float(name, values, (None, None))
     n_rays, n_s = values.shape
+    if values.numel() > _bridge.INT32_MAX:
+        raise ValueError(f"{values.numel()} samples exceed int32 offsets: render fewer at once")
     dev, dt = values.device, values.dtype
     for nm, t, shape in (
         ("t_starts", t_starts, (n_rays, n_s)),

@@ -30,13 +30,23 @@ class HashGrid:
     max_res: int = 2048
 
     def __post_init__(self):
-        if self.n_levels < 1 or self.n_features < 1:
-            raise ValueError("n_levels and n_features must be >= 1")
+        for name in ("n_levels", "n_features", "log2_size", "base_res", "max_res"):
+            _bridge.check_int(name, getattr(self, name), lo=-(2**62), hi=2**62)
+        if not (1 <= self.n_levels <= 64 and 1 <= self.n_features <= 64):
+            raise ValueError(
+                f"n_levels and n_features must be in [1, 64], got {self.n_levels}, "
+                f"{self.n_features}"
+            )
         if not 4 <= self.log2_size <= 26:
             raise ValueError(f"log2_size must be in [4, 26], got {self.log2_size}")
         if not 1 <= self.base_res <= self.max_res <= 2**20:
             raise ValueError(
                 f"need 1 <= base_res <= max_res <= 2^20, got {self.base_res}, {self.max_res}"
+            )
+        if self.n_rows * self.n_features > _bridge.INT32_MAX:  # the kernels index rows in int32
+            raise ValueError(
+                f"the table would have {self.n_rows} rows x {self.n_features} features, more than "
+                "int32 indices reach: use fewer levels or a smaller log2_size"
             )
 
     @cached_property
@@ -132,4 +142,9 @@ def hash_encode(
     )
     if x.requires_grad:
         raise ValueError("hash_encode: positions with requires_grad are not supported (no dx)")
+    if x.shape[0] * grid.n_levels > _bridge.INT32_MAX:  # one thread per (point, level)
+        raise ValueError(
+            f"{x.shape[0]} points x {grid.n_levels} levels exceed int32 thread indices: "
+            "encode fewer points at once"
+        )
     return _HashEncode.apply(x.contiguous(), table.contiguous(), grid)

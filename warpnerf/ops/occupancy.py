@@ -23,6 +23,19 @@ __all__ = [
 ]
 
 
+# Most lattice steps a ray's interval may span: k stays far from int32 overflow, and float32
+# lattice positions t_lo + k * dt stay distinct.
+MAX_STEPS = 1 << 24
+
+
+def _empty_f(dev):
+    return torch.empty(0, device=dev, dtype=torch.float32)
+
+
+def _empty_i(dev):
+    return torch.empty(0, device=dev, dtype=torch.int32)
+
+
 def _box(aabb):
     box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1).cpu()
     if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[3:] > box[:3]).all()):
@@ -46,18 +59,40 @@ def _check_res(res: int, n_cells: int | None = None):
         raise ValueError(f"grid has {n_cells} cells, expected res^3 = {res**3}")
 
 
+def _check_cells(cells: torch.Tensor, n_cells: int, more=()) -> list:
+    """Raises ValueError unless every cell index lies in [0, n_cells); ``more`` flags ride on the
+    same host sync (their values are returned)."""
+    flags = list(more)
+    if cells.numel():
+        lo, hi = torch.aminmax(cells)
+        flags.append((lo >= 0) & (hi < n_cells))
+    got = _bridge.host_flags(*flags)
+    if cells.numel() and not got[-1]:
+        raise ValueError(f"cells must lie in [0, {n_cells}) (the grid's res^3 cells)")
+    return got[: len(more)]
+
+
 def grid_cell_points(
-    cells: torch.Tensor,  # [m] int32 cell indices
+    cells: torch.Tensor,  # [m] int32/int64 cell indices in [0, res^3)
     jitter: torch.Tensor,  # [m, 3] float32 in [0, 1)
     res: int,
     aabb,
+    *,
+    check: bool = True,
 ) -> torch.Tensor:
-    """Points ``lo + (cell + jitter) * cell_size`` [m, 3] (one per listed cell)."""
+    """Points ``lo + (cell + jitter) * cell_size`` [m, 3] (one per listed cell).
+
+    Cells outside [0, res^3) raise ValueError (one reduction and one host sync on CUDA;
+    ``check=False`` skips it for cells the caller drew itself, as :class:`OccupancyGrid` does).
+    """
     from warpnerf.kernels import occupancy as K
 
     _check_res(res)
+    _bridge.check_index("cells", cells, (None,))
     m, dev = cells.shape[0], cells.device
     _bridge.check_float("jitter", jitter, (m, 3), torch.float32, dev)
+    if check:
+        _check_cells(cells, res**3)
     lo, size = _cell_geometry(aabb, res)
     points = torch.empty(m, 3, device=dev, dtype=torch.float32)
     wp = _bridge._wp()
@@ -73,16 +108,22 @@ def grid_ema_update(
     decay: float,
 ) -> torch.Tensor:
     """``density[c] = max(decay * density[c], max of values at c)`` for every listed cell c
-    (duplicates allowed: the maximum wins). NaN values raise ValueError."""
+    (duplicates allowed: the maximum wins). NaN values, and cells outside [0, len(density)),
+    raise ValueError (checked together: one host sync on CUDA)."""
     from warpnerf.kernels import occupancy as K
 
     dev = density.device
     _bridge.check_float("density", density, (None,), torch.float32)
+    _bridge.check_index("cells", cells, (None,), dev)
     _bridge.check_float("values", values, (cells.shape[0],), torch.float32, dev)
     if not 0.0 <= decay <= 1.0:
         raise ValueError(f"decay must be in [0, 1], got {decay}")
-    if values.numel() and bool(torch.isnan(values).any()):
-        raise ValueError("the field returned NaN densities; the occupancy grid cannot be updated")
+    if values.numel():
+        (has_nan,) = _check_cells(cells, density.shape[0], [torch.isnan(values).any()])
+        if has_nan:
+            raise ValueError(
+                "the field returned NaN densities; the occupancy grid cannot be updated"
+            )
     newmax = torch.full_like(density, -1.0)
     a = _bridge.arr
     cells = cells.to(torch.int32)
@@ -95,6 +136,7 @@ def grid_pack_bits(density: torch.Tensor, threshold: float) -> torch.Tensor:
     """Bitfield [n_cells / 8] uint8 of ``density > threshold`` (bit c & 7 of byte c >> 3)."""
     from warpnerf.kernels import occupancy as K
 
+    _bridge.check_float("density", density, (None,), torch.float32)
     n = density.shape[0]
     if n % 8:
         raise ValueError(f"the number of cells must be a multiple of 8, got {n}")
@@ -134,7 +176,12 @@ def march_rays(
         (Samples with t_starts, t_ends [n] float32, ray_indices [n] int32, packed_info
         [n_rays, 2] int32, and k_next [n_rays] int32: the lattice index to continue from, -1 when
         the ray has no more samples).
-    Raises ValueError for non-finite origins/directions, zero directions, bad shapes or dt <= 0.
+    Raises ValueError for non-finite origins/directions, zero directions, NaN near/far, bad
+    shapes, dt <= 0, a ray whose interval spans more than ``MAX_STEPS`` lattice steps, ``jitter``
+    outside [0, 1) or ``k_begin`` outside [-1, 2^31); IndexDtypeError (a TypeError and
+    ValueError) for a float ``k_begin``. These value checks cost no extra host sync: offending
+    rays are given no samples before the kernel runs (it could otherwise loop for ~2^31 steps)
+    and the error is raised at the sync that reads the sample total, which marching needs anyway.
     """
     from warpnerf.kernels import occupancy as K
 
@@ -145,24 +192,34 @@ def march_rays(
     _check_res(res)
     if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
         raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
-    if not (dt > 0 and dt < float("inf")) or max_samples < 1:
-        raise ValueError(f"need dt > 0 (got {dt}) and max_samples >= 1 (got {max_samples})")
+    if isinstance(dt, torch.Tensor) or not (dt > 0 and dt < float("inf")):
+        raise ValueError(f"need dt > 0 (a finite float), got {dt}")
+    max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
+    if n_rays > _bridge.INT32_MAX:
+        raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
     near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n_rays)
     far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n_rays)
     box = _box(aabb)
     t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
-    t_lo = torch.maximum(t_in, near).contiguous()
-    t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo).contiguous()
-    # One host sync for the total below; the finiteness check rides on it.
-    finite = torch.isfinite(origins).all() & torch.isfinite(directions).all()
-    finite = finite & torch.isfinite(near).all() & ~torch.isnan(far).any()
-    finite = finite & (directions.abs().amax(-1) > 0).all()  # a zero direction never ends
-    empty_f = torch.empty(0, device=dev, dtype=torch.float32)
-    empty_i = torch.empty(0, device=dev, dtype=torch.int32)
-    jit = empty_f if jitter is None else jitter.to(dev, torch.float32).contiguous()
-    kb = empty_i if k_begin is None else k_begin.to(dev, torch.int32).contiguous()
-    if jit.numel() not in (0, n_rays) or kb.numel() not in (0, n_rays):
-        raise ValueError(f"jitter and k_begin must have shape [{n_rays}]")
+    t_lo = torch.maximum(t_in, near)
+    t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo)
+    # Rays the kernel must not see (checked per ray, raised after the one host sync below).
+    bad = ~(torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1))
+    bad |= ~torch.isfinite(near) | torch.isnan(far)
+    bad |= ~(directions.abs().amax(-1) > 0)  # a zero direction never ends
+    too_long = ~((t_hi - t_lo) < MAX_STEPS * float(dt))  # k would outgrow int32 / float32 steps
+    poison = [bad, too_long]
+    jit, kb = _empty_f(dev), _empty_i(dev)
+    if jitter is not None:
+        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
+        jit = jitter.to(torch.float32).contiguous()
+        poison.append(~((jit >= 0) & (jit < 1)))  # NaN included
+    if k_begin is not None:
+        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
+        poison.append((k_begin < -1) | (k_begin > _bridge.INT32_MAX))
+        kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    poison = torch.stack(poison)  # [2..4, n_rays]
+    t_lo, t_hi = t_lo.contiguous(), torch.where(poison.any(0), t_lo, t_hi).contiguous()
     lo, size = _cell_geometry(box, res)
     a = _bridge.arr
     counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
@@ -181,19 +238,27 @@ def march_rays(
         float(dt),
         int(max_samples),
     ]
+    no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
     _bridge.launch(
-        K.march,
-        n_rays,
-        head + [0, a(empty_i), a(counts), a(k_next), a(empty_f), a(empty_f), a(empty_i)],
-        dev,
+        K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev
     )
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
-    total, ok = torch.stack([total[0], finite.to(torch.int64)]).tolist()
-    if not ok:
+    # the one host sync: the sample total and which checks failed
+    total, *flags = torch.cat([total, poison.any(1).to(torch.int64)]).tolist()
+    if flags[0]:
         raise ValueError(
             "origins, directions and near must be finite, far not NaN, directions non-zero"
         )
+    if flags[1]:
+        raise ValueError(
+            f"a ray spans more than {MAX_STEPS} lattice steps of dt={dt} (directions too short "
+            "or dt too small for the box)"
+        )
+    if jitter is not None and flags[2]:
+        raise ValueError("jitter must lie in [0, 1)")
+    if k_begin is not None and flags[-1]:
+        raise ValueError("k_begin must be -1 (done) or a lattice index in [0, 2^31)")
     if total >= 2**31:
         raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
     offsets = (csum - counts).to(torch.int32)
@@ -211,18 +276,32 @@ def march_rays(
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 
 
-def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float):
+def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, check=True):
     """Early termination on densities alone: (keep [n] bool, n_live [n_rays] int32).
 
     keep marks each ray's samples before the first one with transmittance below ``t_threshold``
-    (the rule of the compositing kernels); n_live counts them per ray.
+    (the rule of the compositing kernels); n_live counts them per ray. ``samples`` is packed
+    (as :func:`march_rays` gives); its ``packed_info`` [n_rays, 2] and ``ray_indices`` [n] must
+    describe its samples exactly (ValueError otherwise; one pass and one host sync on CUDA, which
+    ``check=False`` skips for samples the caller marched itself).
     """
     from warpnerf.kernels import occupancy as K
 
+    from .composite import _check_packed_info
+
+    if not isinstance(samples, Samples) or samples.packed_info is None:
+        raise ValueError("samples must be packed Samples (with packed_info and ray_indices)")
     ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
-    n = ts.shape[0]
-    _bridge.check_float("sigmas", sigmas, (n,), torch.float32, ts.device)
-    n_rays, dev = info.shape[0], ts.device
+    _bridge.check_float("samples.t_starts", ts, (None,), torch.float32)
+    n, dev = ts.shape[0], ts.device
+    _bridge.check_float("samples.t_ends", te, (n,), torch.float32, dev)
+    _bridge.check_float("sigmas", sigmas, (n,), torch.float32, dev)
+    _bridge.check_index("samples.packed_info", info, (None, 2), dev)
+    _bridge.check_index("samples.ray_indices", samples.ray_indices, (n,), dev)
+    n_rays = info.shape[0]
+    if check:
+        _check_packed_info(info, samples.ray_indices, n, n_rays)
+    info = info.to(torch.int32).contiguous()
     n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
     a = _bridge.arr
     inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]

@@ -32,6 +32,7 @@ def generate_rays(
     px: torch.Tensor | None = None,  # [n] continuous pixel x (pixel centre = x + 0.5)
     py: torch.Tensor | None = None,  # [n]
     normalize: bool = True,
+    check: bool = True,
 ):
     """Pinhole rays, either for every pixel or for a list of (camera, x, y) pixels.
 
@@ -39,6 +40,11 @@ def generate_rays(
     ``origins, directions`` of shape [n_cams * height * width, 3]. A batch (pass cam_idx, px, py):
     one ray per entry, e.g. from :func:`random_pixels`. Direction in camera space
     ((x - cx) / fx, -(y - cy) / fy, -1), rotated by c2w; unit length if ``normalize``.
+
+    ``cam_idx`` must be an int32/int64 tensor (IndexDtypeError, a TypeError and ValueError, for
+    floats) with values in [0, n_cams) (ValueError): one reduction and one host sync per call on
+    CUDA, which ``check=False`` skips for indices the caller drew itself (e.g. from
+    :func:`random_pixels`; an index out of range then reads outside c2w).
 
     Returns:
         origins [n, 3], directions [n, 3] (no gradient).
@@ -51,20 +57,30 @@ def generate_rays(
     if grid:
         if px is not None or py is not None:
             raise ValueError("pass cam_idx together with px and py")
-        if width is None or height is None or width <= 0 or height <= 0:
+        if width is None or height is None:
             raise ValueError("width and height (positive) are needed to generate every pixel's ray")
+        width = _bridge.check_int("width", width, lo=1)
+        height = _bridge.check_int("height", height, lo=1)
         n = c2w.shape[0] * width * height
+        if n > _bridge.INT32_MAX:
+            raise ValueError(f"n_cams * width * height = {n} rays exceed int32 indices")
         cam_idx = torch.empty(0, device=dev, dtype=torch.int64)
         px = py = torch.empty(0, device=dev, dtype=dt)
     else:
         if px is None or py is None:
             raise ValueError("pass px and py together with cam_idx")
+        _bridge.check_index("cam_idx", cam_idx, (None,))
         n = cam_idx.shape[0]
+        if n > _bridge.INT32_MAX:
+            raise ValueError(f"{n} rays exceed int32 indices: generate fewer at once")
         _bridge.check_float("px", px.to(dt), (n,), dt, dev)
         _bridge.check_float("py", py.to(dt), (n,), dt, dev)
-        if n and (int(cam_idx.min()) < 0 or int(cam_idx.max()) >= c2w.shape[0]):
-            raise ValueError(f"cam_idx must lie in [0, {c2w.shape[0]})")
         cam_idx, px, py = cam_idx.to(dev, torch.int64), px.to(dt), py.to(dt)
+        if check and n:
+            lo, hi = torch.aminmax(cam_idx)
+            lo_ok, hi_ok = _bridge.host_flags(lo >= 0, hi < c2w.shape[0])  # one sync
+            if not (lo_ok and hi_ok):
+                raise ValueError(f"cam_idx must lie in [0, {c2w.shape[0]})")
         width = height = 0
     origins = torch.empty(n, 3, device=dev, dtype=dt)
     directions = torch.empty(n, 3, device=dev, dtype=dt)
@@ -92,7 +108,14 @@ def generate_rays(
 
 def random_pixels(n_cams: int, width: int, height: int, batch: int, generator=None, device="cpu"):
     """A uniform random batch of pixels across all images: cam_idx [batch] int64, px, py [batch]
-    float32 at pixel centres, plus the flat pixel index [batch] (cam, row, column order)."""
+    float32 at pixel centres, plus the flat pixel index [batch] (cam, row, column order).
+    Sizes must be ints: n_cams, width, height >= 1 and batch >= 0 (ValueError otherwise)."""
+    n_cams = _bridge.check_int("n_cams", n_cams, lo=1)
+    width = _bridge.check_int("width", width, lo=1)
+    height = _bridge.check_int("height", height, lo=1)
+    batch = _bridge.check_int("batch", batch, lo=0, hi=2**62)
+    if n_cams * width * height >= 2**62:
+        raise ValueError(f"n_cams * width * height = {n_cams * width * height} pixels is too many")
     flat = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
     flat = flat.to(device)
     cam = flat // (width * height)
@@ -111,7 +134,8 @@ def ray_aabb_intersect(
     """Exact slab intersection of rays with an axis-aligned box, clipped to t >= t_min.
 
     Axis-parallel rays (zero direction components) are exact, with no 0 * inf; tangent rays hit
-    with t_near == t_far; misses return t_near = t_far = t_min and hit = False.
+    with t_near == t_far; misses return t_near = t_far = t_min and hit = False. A non-finite or
+    inverted (min > max) box, or a NaN t_min, raises ValueError (a NaN box would report hits).
 
     Returns:
         t_near [n], t_far [n], hit [n] bool.
@@ -122,8 +146,12 @@ def ray_aabb_intersect(
     n, dev, dt = origins.shape[0], origins.device, origins.dtype
     _bridge.check_float("directions", directions, (n, 3), dt, dev)
     box = torch.as_tensor(aabb, dtype=dt).reshape(-1)  # checked where it is (host: no sync)
-    if box.shape != (6,) or bool((box[:3] > box[3:]).any()):
-        raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min <= max")
+    if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[:3] <= box[3:]).all()):
+        raise ValueError(
+            "aabb must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax] with min <= max"
+        )
+    if t_min != t_min:
+        raise ValueError("t_min must not be NaN")
     box = box.to(dev)
     t_near = torch.empty(n, device=dev, dtype=dt)
     t_far = torch.empty(n, device=dev, dtype=dt)

@@ -47,15 +47,20 @@ def stratified_samples(
     (perturb=True): interior bin edges jittered uniformly by up to half a bin (Warp RNG keyed by
     ``seed`` and ray index; pass a new seed every step). Packed: rays with far <= near get no
     samples.
-    Non-finite near/far raise ValueError (they would otherwise yield plausible-looking samples).
+    Non-finite near/far raise ValueError (they would otherwise yield plausible-looking samples);
+    so does an ``n_samples`` that is not an int or whose n_rays * n_samples overflows int32
+    offsets.
     """
     from warpnerf.kernels import sampling as K
 
     _bridge.check_float("near", near, (None,))
     n_rays, dev, dt = near.shape[0], near.device, near.dtype
     _bridge.check_float("far", far, (n_rays,), dt, dev)
-    if n_samples < 1:
-        raise ValueError(f"n_samples must be >= 1, got {n_samples}")
+    n_samples = _bridge.check_int("n_samples", n_samples, lo=1)
+    if n_rays * n_samples > _bridge.INT32_MAX:
+        raise ValueError(
+            f"n_rays * n_samples = {n_rays * n_samples} exceeds int32 offsets: sample fewer rays"
+        )
     if n_rays and not bool(torch.isfinite(near).all() & torch.isfinite(far).all()):
         raise ValueError("near and far must be finite (a NaN/Inf bound would hide a bad ray)")
     if packed:
@@ -121,14 +126,15 @@ def importance_samples(
 
     if not isinstance(samples, Samples):
         raise ValueError(f"samples must be a Samples tuple, got {type(samples).__name__}")
-    if isinstance(n_fine, bool) or not isinstance(n_fine, int) or n_fine < 1:
-        raise ValueError(f"n_fine must be an int >= 1, got {n_fine!r}")
+    n_fine = _bridge.check_int("n_fine", n_fine, lo=1)
     ts, te, packed_info = samples.t_starts, samples.t_ends, samples.packed_info
     packed = packed_info is not None
     _bridge.check_float("samples.t_starts", ts, (None,) if packed else (None, None))
     dev, dt = ts.device, ts.dtype
     _bridge.check_float("samples.t_ends", te, tuple(ts.shape), dt, dev)
     _bridge.check_float("weights", weights, tuple(ts.shape), dt, dev)
+    if ts.numel() > _bridge.INT32_MAX:
+        raise ValueError(f"{ts.numel()} samples exceed int32 offsets: sample fewer rays at once")
     ts, te, w = ts.detach().contiguous(), te.detach().contiguous(), weights.detach().contiguous()
     if packed:
         n_rays, n_c = _check_packed(samples, ts.shape[0], dev), 0
@@ -142,6 +148,8 @@ def importance_samples(
         in_range &= packed_info[:, 0].long() + counts <= ts.shape[0]
     else:
         n_rays, n_c = ts.shape
+        if n_rays * (n_c + n_fine) > _bridge.INT32_MAX:
+            raise ValueError("n_rays * (n_coarse + n_fine) exceeds int32 offsets: use fewer rays")
         if samples.ray_indices is not None:
             raise ValueError("samples: dense samples (no packed_info) must have ray_indices None")
         if n_c < 1:
@@ -167,6 +175,8 @@ def importance_samples(
     ]  # one device sync for all the checks
     if not ok_range:
         raise ValueError("samples.packed_info has a (start, count) outside the samples")
+    if n_out > _bridge.INT32_MAX:
+        raise ValueError(f"{n_out} output samples exceed int32 offsets: use fewer rays or n_fine")
     if not finite_w:
         raise ValueError("weights must be finite (a NaN/Inf weight would skew its ray's PDF)")
     if not pos_w:
@@ -223,6 +233,14 @@ def importance_samples(
 def _check_packed(samples: Samples, n: int, dev: torch.device) -> int:
     """Checks a packed Samples' packed_info [n_rays, 2] int32 and ray_indices [n] int64; n_rays."""
     info, ray_indices = samples.packed_info, samples.ray_indices
+    if isinstance(info, torch.Tensor) and (info.dtype.is_floating_point or info.dtype.is_complex):
+        raise _bridge.IndexDtypeError(
+            f"samples.packed_info must be an int32 tensor [n_rays, 2], got {info.dtype}"
+        )
+    if isinstance(ray_indices, torch.Tensor) and ray_indices.dtype.is_floating_point:
+        raise _bridge.IndexDtypeError(
+            f"samples.ray_indices must be an int64 tensor [n], got {ray_indices.dtype}"
+        )
     if not isinstance(info, torch.Tensor) or info.dtype != torch.int32 or info.dim() != 2:
         raise ValueError("samples.packed_info must be an int32 tensor [n_rays, 2]")
     if info.shape[1] != 2 or info.device != dev:

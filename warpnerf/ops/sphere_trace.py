@@ -70,7 +70,8 @@ def sphere_trace(
     _bridge.check_float("origins", origins, (None, 3), dtype=torch.float32)
     n, dev = origins.shape[0], origins.device
     _bridge.check_float("directions", directions, (n, 3), torch.float32, dev)
-    if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0 and max_iters >= 1):
+    max_iters = _bridge.check_int("max_iters", max_iters, lo=1)
+    if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0):
         raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2 and max_iters >= 1")
     if n:
         norms = directions.norm(dim=-1)

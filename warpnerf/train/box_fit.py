@@ -12,10 +12,9 @@ generator).
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -75,22 +74,39 @@ class BoxFitConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict):
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
-        return cls(**d)
+    def from_dict(cls, d: dict, where: str = "config"):
+        """The settings saved in a box run's config.json (untrusted; without the run keys):
+        unknown field names, values of the wrong type (``true`` is not a number), non-finite
+        numbers and out-of-range values are a UserError naming ``where``, the field and the
+        expected form."""
+        from ..data._json import check_fields
 
-    def validate(self):
+        return cls(**check_fields(cls, d, where)).validate(where)
+
+    def validate(self, where: str | None = None):
+        """Range checks; ``where`` None: messages name the command-line flags, else the file
+        ``where`` and the config field."""
+        from ..data._json import field_error
+
         for name in ("iters", "batch", "n_samples", "ckpt_every"):
             if getattr(self, name) < 1:
-                raise UserError(f"--{name.replace('_', '-')} must be >= 1")
-        if not self.far > self.near:
-            raise UserError(f"--far ({self.far}) must be greater than --near ({self.near})")
-        if not all(math.isfinite(v) and v > 0 for v in (self.lr, self.lr_final_ratio)):
-            raise UserError("--lr and the final lr ratio must be positive and finite")
+                raise field_error(where, name, f"must be >= 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.far) and self.far > self.near >= 0):
+            raise field_error(where, "near", f"must be >= 0 and below a finite far (--far), got "
+                              f"near {self.near}, far {self.far}")  # fmt: skip
+        for name in ("lr", "lr_final_ratio", "beta", "alpha"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise field_error(where, name, f"must be positive and finite, got {v}")
         if not (math.isfinite(self.max_seconds) and self.max_seconds >= 0):
-            raise UserError(f"--max-seconds must be finite and >= 0, got {self.max_seconds}")
+            raise field_error(where, "max_seconds", f"must be finite and >= 0, got "
+                              f"{self.max_seconds}")  # fmt: skip
+        if not (math.isfinite(self.background) and 0 <= self.background <= 1):
+            raise field_error(where, "background", f"must be in [0, 1], got {self.background}")
+        if self.lr_decay_steps < 0:
+            raise field_error(where, "lr_decay_steps", f"must be >= 0, got {self.lr_decay_steps}")
+        if not 0 <= self.seed < 2**31:
+            raise field_error(where, "seed", f"must be an integer in [0, 2^31), got {self.seed}")
         return self
 
     def render_kwargs(self) -> dict:
@@ -244,25 +260,44 @@ def _save(run: Path, step, volume, opt, sched, gen, history, cfg):
     write_json(run / "history.json", history)
 
 
-def _read_config(run: Path):
-    """config.json of a run folder as a dict, or None when there is none or it is unreadable."""
-    try:
-        d = json.loads((run / "config.json").read_text())
-    except (OSError, ValueError):
+def _read_config(run: Path, strict: bool = False):
+    """config.json of a run folder as a dict; None when there is none, or (unless ``strict``:
+    then a UserError naming the file) when it is unreadable, malformed or not a JSON object."""
+    from ..data._json import read_json
+
+    path = run / "config.json"
+    if not path.is_file():
         return None
+    try:
+        d = read_json(path, "run config")
+    except UserError:
+        if strict:
+            raise
+        return None
+    if not isinstance(d, dict) and strict:
+        raise UserError(f"{path}: expected a JSON object (a run's config)")
     return d if isinstance(d, dict) else None
 
 
 def load_box_run(run, device: str | None = None):
     """(cfg, data, device, checkpoint) of a box run folder; ``device`` overrides the saved one."""
+    from ..data._json import is_device, show
+
     run = Path(run)
-    d = _read_config(run)
+    d = _read_config(run, strict=(run / CHECKPOINT).is_file())
     if d is None or not (run / CHECKPOINT).is_file():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     if d.get("model") != MODEL:
         raise UserError(f"{run}: not a box run (config model {d.get('model')!r})")
     data, saved_device = d.get("data"), d.get("device", "cpu")
-    cfg = BoxFitConfig.from_dict({k: v for k, v in d.items() if k not in _RUN_KEYS})
+    cfg = BoxFitConfig.from_dict(
+        {k: v for k, v in d.items() if k not in _RUN_KEYS}, str(run / "config.json")
+    )
+    if not isinstance(data, str) or not is_device(saved_device):
+        raise UserError(
+            f"{run / 'config.json'}: fields 'data' and 'device' must be a folder and cpu, cuda or "
+            f"cuda:N; got {show(data)}, {show(saved_device)}"
+        )
     device = device or saved_device
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"{run}: device {device} is not available here; pass --device cpu")

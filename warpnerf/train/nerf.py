@@ -6,7 +6,6 @@ restored)."""
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import time
 from pathlib import Path
@@ -242,12 +241,9 @@ def load_run(run, device: str | None = None):
     cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
     if not cfg_path.is_file() or not ckpt_path.is_file():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
-    try:
-        saved = json.loads(cfg_path.read_text())
-    except OSError as e:
-        raise UserError(f"{cfg_path}: cannot read ({e.strerror or e})") from None
-    except ValueError as e:  # JSONDecodeError, bad UTF-8
-        raise UserError(f"{cfg_path}: unreadable ({e})") from None
+    from ..data._json import read_json
+
+    saved = read_json(cfg_path, "run config")  # size- and depth-bounded, one-line errors
     if not isinstance(saved, dict):
         raise UserError(f"{cfg_path}: unreadable (expected a JSON object)")
     model = saved.get("model")

@@ -5,7 +5,7 @@ config.json."""
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
@@ -85,11 +85,15 @@ class NeRFConfig:
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "config"):
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise UserError(f"{where}: unknown field(s) {sorted(unknown)}")
-        return cls(**d)
+        """The config saved in a run's config.json (untrusted): unknown field names, values of
+        the wrong type (``true`` is not a number), non-finite numbers, integers beyond +-2^31 and
+        out-of-range values (the checks of :meth:`validate` that need no data or device, see
+        :meth:`check_values`) are a UserError naming ``where`` (the file), the field and the
+        expected form."""
+        from ..data._json import check_fields
+
+        cfg = cls(**check_fields(cls, d, where))
+        return cfg.check_values(where)
 
     def resolve(self):
         """Fills in defaults that depend on the data and the field (near/far, lr, aabb)."""
@@ -160,53 +164,101 @@ class NeRFConfig:
         """(fx, fy, W, H) of the NDC camera, or None when rays stay in world space."""
         return self.scene["ndc"] if self.scene else None
 
-    def validate(self):
-        for name in (
-            "iters",
-            "batch",
-            "n_coarse",
-            "n_layers",
-            "width",
-            "val_every",
-            "ckpt_every",
-            "chunk",
-            "builtin_size",
-            "downscale",
-        ):
+    def check_values(self, where: str | None = None):
+        """The checks of :meth:`validate` that need neither the data nor the device: counts,
+        sizes, choices, ranges, the seed and a saved ``scene``. ``where`` None: messages name the
+        command-line flags; else the file ``where`` and the config field."""
+
+        from ..data._json import field_error, is_device
+
+        def fail(name: str, rule: str):
+            return field_error(where, name, rule)
+
+        for name in ("iters", "batch", "n_coarse", "n_layers", "width", "val_every",
+                     "ckpt_every", "chunk", "builtin_size", "downscale"):  # fmt: skip
             value = getattr(self, name)
             if value < 1:
-                raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-        if self.n_fine < 0 or self.pos_freqs < 0 or self.dir_freqs < 0:
-            raise UserError("--n-fine, --pos-freqs and --dir-freqs must be >= 0")
-        if self.field not in ("mlp", "hash", "volsdf"):
-            raise UserError(f"--field must be mlp, hash or volsdf, got {self.field!r}")
+                raise fail(name, f"must be >= 1, got {value}")
+        for name in ("n_fine", "pos_freqs", "dir_freqs", "skip", "lr_decay_steps"):
+            if getattr(self, name) < 0:
+                raise fail(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("pos_freqs", "dir_freqs"):  # 2^64 * coordinates stays finite in float32
+            if getattr(self, name) > 64:
+                raise fail(name, f"must be at most 64, got {getattr(self, name)}")
+        if self.holdout < 0 or self.holdout == 1:
+            raise fail("holdout", f"must be 0 (none) or >= 2, got {self.holdout}")
+        if not 0 <= self.seed < 2**31:
+            raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
+        choices = {"field": ("mlp", "hash", "volsdf"), "ndc": ("auto", "on", "off"),
+                   "density_activation": ("relu", "softplus"),
+                   "data_format": ("auto", "blender", "nerfstudio", "colmap", "llff")}  # fmt: skip
+        for name, allowed in choices.items():
+            if (v := getattr(self, name)) not in allowed:
+                raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
+        if not is_device(self.device):
+            raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
         if self.field == "volsdf":
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
-                raise UserError(f"need 0 < --beta-min <= --beta, got {self.beta_min}, {self.beta}")
+                raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
+                           f"beta {self.beta}")  # fmt: skip
+            d_in = 3 * (1 + 2 * self.pos_freqs)
+            if self.width <= d_in:
+                raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
             ew = self.eikonal_weight
-            if self.width <= 3 * (1 + 2 * self.pos_freqs) or not (math.isfinite(ew) and ew >= 0):
-                raise UserError("volsdf: --width must exceed the encoded position size and "
-                                "--eikonal-weight must be >= 0")  # fmt: skip
+            if not (math.isfinite(ew) and ew >= 0):
+                raise fail("eikonal_weight", f"must be finite and >= 0, got {ew}")
         if self.field == "hash":
             from ..ops.encoding import HashGrid
 
             try:
                 HashGrid(**self._grid_kwargs())
             except ValueError as e:
-                raise UserError(f"hash grid: {e}") from None
+                raise UserError(f"{where + ': ' if where else ''}hash grid: {e}") from None
             if self.hidden < 1:
-                raise UserError(f"--hidden must be >= 1, got {self.hidden}")
-        self.resolve()
+                raise fail("hidden", f"must be >= 1, got {self.hidden}")
         if self.grid_res:
             if self.field != "hash":
-                raise UserError("--grid-res needs --field hash (set --grid-res 0 otherwise)")
+                raise fail("grid_res", "needs --field hash (set --grid-res 0 otherwise)")
             if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
-                raise UserError(f"--grid-res must be even, in [2, 1024], got {self.grid_res}")
+                raise fail("grid_res", f"must be even, in [2, 1024], got {self.grid_res}")
             for name in ("grid_every", "max_samples"):
                 if getattr(self, name) < 1:
-                    raise UserError(f"--{name.replace('_', '-')} must be >= 1")
-            if not (0 < self.occ_threshold < 1 and math.isfinite(self.march_step)):
-                raise UserError("--occ-threshold must be in (0, 1) and --march-step finite")
+                    raise fail(name, "must be >= 1")
+            if not 0 < self.occ_threshold < 1:
+                raise fail("occ_threshold", f"must be in (0, 1), got {self.occ_threshold}")
+            if not (math.isfinite(self.march_step) and self.march_step >= 0):
+                raise fail("march_step", f"must be finite and >= 0, got {self.march_step}")
+            for name in ("grid_warmup", "target_samples", "round_samples"):
+                if getattr(self, name) < 0:
+                    raise fail(name, f"must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.t_threshold < 1.0:
+            raise fail("t_threshold", f"must be in [0, 1), got {self.t_threshold}")
+        for name in ("max_seconds", "val_images", "max_images"):
+            if not getattr(self, name) >= 0:
+                raise fail(name, f"must be >= 0, got {getattr(self, name)}")
+        if not (math.isfinite(self.background) and 0 <= self.background <= 1):
+            raise fail("background", f"must be in [0, 1], got {self.background}")
+        if not (math.isfinite(self.aabb) and self.aabb >= 0):
+            raise fail("aabb", f"must be finite and >= 0 (0: automatic), got {self.aabb}")
+        for name in ("near", "far", "lr", "lr_final"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and (v > 0 or (name == "near" and v == 0))):
+                rule = ">= 0" if name == "near" else "positive"
+                raise fail(name, f"must be finite and {rule}, got {v}")
+        if self.near is not None and self.far is not None and not self.far > self.near:
+            raise fail("near", f"must be below far: need 0 <= near < far, got near={self.near}, "
+                       f"far={self.far}")  # fmt: skip
+        if self.scene is not None:
+            _check_scene(self.scene, lambda rule: fail("scene", rule))
+        return self
+
+    def validate(self):
+        """All checks (:meth:`check_values`, then those that need the resolved data-dependent
+        settings and the device); fills in the data-dependent defaults (:meth:`resolve`)."""
+        self.check_values()
+        self.resolve()
+        self.check_values()  # the resolved grid, near/far and scene too
+        if self.grid_res:
             # lattice intervals across the diagonal (the default step gives exactly 1024)
             need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step * (1 - 1e-6))
             if self.max_samples < need:  # training would cut rays off where rendering does not
@@ -214,12 +266,6 @@ class NeRFConfig:
                     f"--max-samples {self.max_samples} is below the {need} steps of "
                     f"--march-step {self.march_step:g} across the box diagonal"
                 )
-            if min(self.grid_warmup, self.target_samples, self.round_samples) < 0:
-                raise UserError("--grid-warmup, --target-samples, --round-samples must be >= 0")
-        if not 0.0 <= self.t_threshold < 1.0:
-            raise UserError(f"--t-threshold must be in [0, 1), got {self.t_threshold}")
-        if self.max_seconds < 0 or self.val_images < 0 or self.max_images < 0:
-            raise UserError("--max-seconds, --val-images and --max-images must be >= 0")
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise UserError(
                 f"device {self.device!r}: no CUDA device available here (pass --device cpu)"
@@ -247,3 +293,37 @@ class NeRFConfig:
         if self.field not in ("hash", "volsdf"):
             return None
         return [-a, -a, -a, a, a, a]
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_scene(scene, fail) -> None:
+    """A saved ``scene`` (see :meth:`NeRFConfig._resolve_scene`): the capture's format, its
+    world -> normalised similarity transform [4][4], the NDC camera or null, near, far, aabb."""
+    keys = ("format", "transform", "ndc", "near", "far", "aabb")
+    if not isinstance(scene, dict) or set(scene) != set(keys):
+        raise fail(f"must be null or an object with exactly the keys {', '.join(keys)}")
+    if scene["format"] not in ("colmap", "llff"):
+        raise fail(f"format must be colmap or llff, got {scene['format']!r}"[:200])
+    t = scene["transform"]
+    rows_ok = isinstance(t, list) and len(t) == 4
+    rows_ok = rows_ok and all(isinstance(r, list) and len(r) == 4 for r in t)
+    rows_ok = rows_ok and all(_number(v) for r in t for v in r)
+    if not rows_ok or t[3] != [0, 0, 0, 1] or not abs(_det3([r[:3] for r in t[:3]])) > 1e-300:
+        raise fail("transform must be a 4x4 list of finite numbers (a similarity, last row "
+                   "[0, 0, 0, 1])")  # fmt: skip
+    ndc = scene["ndc"]
+    if ndc is not None and not (
+        isinstance(ndc, list) and len(ndc) == 4 and all(_number(v) and v > 0 for v in ndc)
+    ):
+        raise fail("ndc must be null or 4 positive finite numbers (fx, fy, W, H)")
+    near, far, aabb = scene["near"], scene["far"], scene["aabb"]
+    if not (all(map(_number, (near, far, aabb))) and 0 <= near < far and aabb > 0):
+        raise fail("near, far, aabb must be finite numbers with 0 <= near < far and aabb > 0")
+
+
+def _det3(m) -> float:
+    (a, b, c), (d, e, f), (g, h, i) = m
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)

@@ -12,11 +12,10 @@ back in the original units.
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import time
 import zipfile
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -69,30 +68,53 @@ class SDFConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d):
-        unknown = set(d) - {f.name for f in fields(cls)}
-        if unknown:
-            raise UserError(f"config: unknown field(s) {sorted(unknown)}")
-        return cls(**d)
+    def from_dict(cls, d, where: str = "config"):
+        """The config saved in a run's config.json (untrusted): unknown field names, values of
+        the wrong type (``true`` is not a number), non-finite numbers, integers beyond +-2^31 and
+        out-of-range values (:meth:`check_values`) are a UserError naming ``where`` (the file),
+        the field and the expected form."""
+        from ..data._json import check_fields
 
-    def validate(self):
+        return cls(**check_fields(cls, d, where)).check_values(where)
+
+    def check_values(self, where: str | None = None):
+        """The checks of :meth:`validate` that do not need the device; ``where`` None: messages
+        name the command-line flags, else the file ``where`` and the config field."""
+        from ..data._json import field_error, is_device
+
         for name in ("iters", "batch", "n_random", "n_layers", "width", "ckpt_every"):
             if getattr(self, name) < 1:
-                raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+                raise field_error(where, name, f"must be >= 1, got {getattr(self, name)}")
+        for name in ("pos_freqs", "skip", "lr_decay_steps"):
+            if getattr(self, name) < 0:
+                raise field_error(where, name, f"must be >= 0, got {getattr(self, name)}")
+        if self.pos_freqs > 64:  # 2^64 * coordinates stays finite in float32
+            raise field_error(where, "pos_freqs", f"must be at most 64, got {self.pos_freqs}")
         d_in = 3 * (1 + 2 * self.pos_freqs)
         if self.skip < self.n_layers and self.width <= d_in:
-            raise UserError(f"--width must exceed the encoded input ({d_in} for --pos-freqs "
-                            f"{self.pos_freqs}) because of the skip connection")  # fmt: skip
-        if self.pos_freqs < 0:
-            raise UserError("--pos-freqs must be >= 0")
+            raise field_error(where, "width", f"must exceed the encoded input ({d_in} for "
+                              f"--pos-freqs {self.pos_freqs}) because of the skip "
+                              "connection")  # fmt: skip
         if not 8 <= self.resolution <= 1024:
-            raise UserError(f"--resolution must be in [8, 1024], got {self.resolution}")
-        if not all(math.isfinite(v) and v > 0 for v in (self.lr, self.lr_final)):
-            raise UserError("--lr and --lr-final must be positive and finite")
+            raise field_error(where, "resolution", f"must be in [8, 1024], got {self.resolution}")
+        for name in ("lr", "lr_final"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise field_error(where, name, f"must be positive and finite, got "
+                                  f"{getattr(self, name)}")  # fmt: skip
         for name in ("eikonal_weight", "normal_weight", "max_seconds"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
-                raise UserError(f"--{name.replace('_', '-')} must be finite and >= 0, got {v}")
+                raise field_error(where, name, f"must be finite and >= 0, got {v}")
+        if not 0 <= self.seed < 2**31:
+            raise field_error(where, "seed", f"must be an integer in [0, 2^31), got {self.seed}")
+        if not is_device(self.device):
+            raise field_error(where, "device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
+        if self.model != MODEL:
+            raise field_error(where, "model", f"must be {MODEL!r}, got {self.model!r}")
+        return self
+
+    def validate(self):
+        self.check_values()
         if self.device.startswith("cuda") and not torch.cuda.is_available():
             raise UserError(f"device {self.device!r}: no CUDA device available here")
         return self
@@ -166,19 +188,18 @@ def _build(cfg):
 
 def load_sdf_run(run, device=None):
     """(cfg, model, checkpoint) of a neural-SDF run folder."""
+    from ..data._json import read_json
+
     run = Path(run)
-    try:
-        d = json.loads((run / "config.json").read_text())
-    except (FileNotFoundError, NotADirectoryError, ValueError):  # missing, or not JSON
-        raise UserError(f"{run}: not a training run (needs a readable config.json)") from None
-    except OSError as e:
-        raise UserError(f"{run / 'config.json'}: cannot read ({e.strerror or e})") from None
+    if not (run / "config.json").exists():
+        raise UserError(f"{run}: not a training run (needs a readable config.json)")
+    d = read_json(run / "config.json", "run config")
     if not isinstance(d, dict) or d.get("model") != MODEL:
         model = d.get("model") if isinstance(d, dict) else None
         raise UserError(f"{run}: not a neural-SDF run (config model {model!r})")
     if not (run / CHECKPOINT).is_file():
         raise UserError(f"{run}: no {CHECKPOINT} yet (the run never reached a checkpoint)")
-    cfg = SDFConfig.from_dict(d)
+    cfg = SDFConfig.from_dict(d, str(run / "config.json"))
     if device:
         cfg.device = device
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
