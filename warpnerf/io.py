@@ -255,7 +255,7 @@ def json_safe(obj):
     """``obj`` with every float that is not finite (an infinite PSNR of identical images, a
     Chamfer distance without a mesh) replaced by ``None``: JSON has no NaN or Infinity, and
     files with them are not valid JSON for other tools. Training stops before a non-finite
-    loss could reach its history (see ``train._signals.check_finite``)."""
+    loss could reach its history (see ``train._signals.nonfinite_flags``)."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):

@@ -25,7 +25,7 @@ from ..io import (
 )
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
-from ._signals import check_finite, check_resume_iters, stop_requests
+from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
 from .nerf_config import NeRFConfig
 
 __all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
@@ -392,19 +392,25 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
                 history.setdefault("beta", []).append(float(f.beta.detach()))
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            check_finite(step + 1, loss, params, run, lr)
+            flags = nonfinite_flags(loss, params)
             opt.step()
             done = step + 1
+            # the step's one host sync: losses and the divergence flags in one transfer (a
+            # diverged step is never saved: the run keeps its last good checkpoint)
+            loss_v, fine_v, *bad = torch.cat(
+                [torch.stack([loss.detach(), loss_fine.detach()]).double(), flags.double()]
+            ).tolist()
+            raise_if_diverged(bad, done, loss_v, run, lr)
             if cfg.device.startswith("cuda"):
                 torch.cuda.synchronize()
             seconds = elapsed0 + time.perf_counter() - t0 - val_time
             history["step"].append(done)
-            history["loss"].append(loss.item())
-            history["psnr"].append(_psnr(loss_fine.item()))
+            history["loss"].append(loss_v)
+            history["psnr"].append(_psnr(fine_v))
             history["seconds"].append(seconds)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{loss.item():.4f}", psnr=f"{history['psnr'][-1]:.2f}")
+                bar.set_postfix(loss=f"{loss_v:.4f}", psnr=f"{history['psnr'][-1]:.2f}")
             session = seconds - elapsed0  # this invocation's training time
             out_of_time = cfg.max_seconds > 0 and session >= cfg.max_seconds
             if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
