@@ -13,27 +13,24 @@ from __future__ import annotations
 
 import contextlib
 import math
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import torch
 
-from ..errors import Interrupted, UserError
+from ..errors import UserError
 from ..fields.sdf_volume import SDFVolume
 from ..io import (
-    adopt,
     check_foreign,
     load_checkpoint,
     load_weights,
     output_lock,
     remove_own,
-    save_checkpoint,
     write_json,
 )
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
-from ._signals import check_finite, check_resume_iters, stop_requests
+from .loop import LoopSettings, Task, lock_run, resume_checks, run_loop
 
 __all__ = [
     "BoxFitConfig",
@@ -152,7 +149,6 @@ def fit_box(
         dict with center, side_lengths, final_loss (mean of the last 10 steps), losses, step,
         seconds, and the fitted ``volume``.
     """
-    n_img, h, w, _ = images.shape
     volume = SDFVolume(
         "box",
         center=tuple(init_center),
@@ -160,80 +156,24 @@ def fit_box(
         alpha=cfg.alpha,
         beta=cfg.beta,
     ).to(images.device)
-    opt = torch.optim.Adam(volume.parameters(), lr=cfg.lr)
-    decay = cfg.lr_decay_steps if cfg.lr_decay_steps > 0 else cfg.iters
-    gamma = cfg.lr_final_ratio ** (1.0 / max(decay, 1))
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    history = {"step": [], "loss": [], "seconds": []}
-    start = 0
+    task = BoxTask(images, c2w, intrinsics, cfg, volume, log_every)
     if state is not None:
         where = Path(run) / CHECKPOINT if run is not None else "the checkpoint"
         load_weights(volume, state["volume"], where, "box parameters")
-        load_weights(opt, state["optimizer"], where, "optimizer state")
-        load_weights(sched, state["scheduler"], where, "learning-rate schedule")
-        gen.set_state(state["generator"].cpu())  # map_location may have moved it
-        history, start = state["history"], state["step"]
-    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
-    flat_images = images.reshape(-1, 3)
-    t0 = time.perf_counter()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.iters, initial=start, desc="fit box", unit="step", leave=False,
-                   disable=None)  # fmt: skip
-    no_signals = contextlib.nullcontext({"signum": None})
-    with stop_requests() if run is not None else no_signals as stop:
-        for step in range(start, cfg.iters):
-            cam, px, py, flat = random_pixels(
-                n_img, w, h, cfg.batch, generator=gen, device=images.device
-            )
-            o, d = generate_rays(c2w, intrinsics, cam_idx=cam, px=px, py=py)
-            out = render_rays(
-                o,
-                d,
-                cfg.near,
-                cfg.far,
-                volume,
-                perturb=True,
-                seed=cfg.seed * 100003 + step,
-                **cfg.render_kwargs(),
-            )
-            loss = torch.mean((out["rgb"] - flat_images[flat]) ** 2)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            where = run if run is not None else "the fit"
-            check_finite(step + 1, loss, list(volume.parameters()), where, sched.get_last_lr()[0])
-            opt.step()
-            sched.step()
-            with torch.no_grad():
-                volume.side_lengths.clamp_(min=1e-3)
-            done = step + 1
-            seconds = elapsed0 + time.perf_counter() - t0
-            history["step"].append(done)
-            history["loss"].append(loss.item())
-            history["seconds"].append(seconds)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{history['loss'][-1]:.2e}")
-            if log_every and (step % log_every == 0 or step == cfg.iters - 1):
-                c = [round(v, 4) for v in volume.center.tolist()]
-                s = [round(v, 4) for v in volume.side_lengths.tolist()]
-                print(f"step {step:5d} loss {history['loss'][-1]:.3e} center {c} sides {s}")
-            out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
-            stopping = out_of_time or stop["signum"] is not None
-            if run is not None and (done % cfg.ckpt_every == 0 or done == cfg.iters or stopping):
-                _save(Path(run), done, volume, opt, sched, gen, history, cfg)
-            if out_of_time:
-                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
-                break
-            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
-                break
-    if bar is not None:
-        bar.close()
-    if stop["signum"] is not None:
-        raise Interrupted(stop["signum"], history["step"][-1], run)
+        task.gen.set_state(state["generator"].cpu())  # map_location may have moved it
+    settings = LoopSettings(
+        iters=cfg.iters,
+        lr=cfg.lr,
+        lr_final=cfg.lr * cfg.lr_final_ratio,
+        lr_decay_steps=cfg.lr_decay_steps,
+        max_seconds=cfg.max_seconds,
+        ckpt_every=cfg.ckpt_every,
+        desc="fit box",
+    )
+    history = run_loop(
+        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=state, progress=progress,
+        log=log,
+    )  # fmt: skip
     losses = history["loss"]
     return {
         "center": volume.center.detach().tolist(),
@@ -246,18 +186,49 @@ def fit_box(
     }
 
 
-def _save(run: Path, step, volume, opt, sched, gen, history, cfg):
-    state = {
-        "step": step,
-        "volume": volume.state_dict(),
-        "optimizer": opt.state_dict(),
-        "scheduler": sched.state_dict(),
-        "generator": gen.get_state(),
-        "history": history,
-        "config": cfg.to_dict(),
-    }
-    save_checkpoint(run / CHECKPOINT, state)
-    write_json(run / "history.json", history)
+class BoxTask(Task):
+    """The box fit as a :class:`~warpnerf.train.loop.Task`: random pixels of the images, rays
+    volume-rendered through the box's SDF, mean squared colour error; the side lengths are kept
+    above 1e-3 after each step."""
+
+    def __init__(self, images, c2w, intrinsics, cfg, volume, log_every=0):
+        self.images, self.c2w, self.intrinsics, self.cfg = images, c2w, intrinsics, cfg
+        self.flat = images.reshape(-1, 3)
+        self.volume, self.log_every = volume, log_every
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+
+    def parameters(self):
+        return list(self.volume.parameters())
+
+    def loss(self, step):
+        cfg, (n_img, h, w, _) = self.cfg, self.images.shape
+        cam, px, py, flat = random_pixels(
+            n_img, w, h, cfg.batch, generator=self.gen, device=self.images.device
+        )
+        o, d = generate_rays(self.c2w, self.intrinsics, cam_idx=cam, px=px, py=py)
+        out = render_rays(
+            o, d, cfg.near, cfg.far, self.volume, perturb=True, seed=cfg.seed * 100003 + step,
+            **cfg.render_kwargs(),
+        )  # fmt: skip
+        return torch.mean((out["rgb"] - self.flat[flat]) ** 2), {}
+
+    def after_step(self, step, history):
+        with torch.no_grad():
+            self.volume.side_lengths.clamp_(min=1e-3)
+        if self.log_every and (step % self.log_every == 0 or step == self.cfg.iters - 1):
+            c = [round(v, 4) for v in self.volume.center.tolist()]
+            s = [round(v, 4) for v in self.volume.side_lengths.tolist()]
+            print(f"step {step:5d} loss {history['loss'][-1]:.3e} center {c} sides {s}")
+
+    def postfix(self, history):
+        return {"loss": f"{history['loss'][-1]:.2e}"}
+
+    def state(self):
+        return {
+            "volume": self.volume.state_dict(),
+            "generator": self.gen.get_state(),
+            "config": self.cfg.to_dict(),
+        }
 
 
 def _read_config(run: Path, strict: bool = False):
@@ -301,7 +272,7 @@ def load_box_run(run, device: str | None = None):
     device = device or saved_device
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"{run}: device {device} is not available here; pass --device cpu")
-    keys = ("step", "volume", "optimizer", "scheduler", "generator", "history")
+    keys = ("step", "volume", "optimizer", "generator", "history")
     ckpt = load_checkpoint(run / CHECKPOINT, device, keys)
     return cfg, data, device, ckpt
 
@@ -338,11 +309,9 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
 
     state = None
     if resume:
-        if out.is_dir():  # (a missing folder: the loader says it is not a run)
-            locks.enter_context(output_lock(out, "run folder"))
+        lock_run(out, locks)
         saved, data, device, state = load_box_run(out, device)
-        check_resume_iters(out, state["step"], cfg.iters)
-        adopt(out, OUTPUTS)  # a run from before manifests: its files are the run's own
+        resume_checks(out, state["step"], cfg.iters, OUTPUTS)
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved
     else:

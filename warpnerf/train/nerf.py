@@ -7,25 +7,20 @@ from __future__ import annotations
 
 import contextlib
 import math
-import time
 from pathlib import Path
 
 import torch
 
-from ..errors import Interrupted, UserError
+from ..errors import UserError
 from ..fields.nerf import NeRFField
 from ..io import (
-    adopt,
-    check_foreign,
     load_checkpoint,
     load_weights,
-    output_lock,
-    save_checkpoint,
     write_json,
 )
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
-from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
+from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import NeRFConfig
 
 __all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
@@ -220,21 +215,6 @@ def _optimizer(cfg, params):
     return torch.optim.Adam(params, lr=cfg.lr)
 
 
-def _save(run: Path, step, fields_, opt, gen, history, cfg, extra=None):
-    state = {
-        **(extra or {}),
-        "step": step,
-        "fields": {
-            k: (v.state_dict() if v is not None else None) for k, v in _unique(fields_).items()
-        },
-        "optimizer": opt.state_dict(),
-        "generator": gen.get_state(),
-        "history": history,
-        "config": cfg.to_dict(),
-    }
-    save_checkpoint(run / CHECKPOINT, state)
-
-
 def load_run(run, device: str | None = None):
     """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one."""
     run = Path(run)
@@ -300,11 +280,9 @@ def train_nerf(
 
 def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     if resume:
-        if run.is_dir():  # (a missing folder: the loader says it is not a run)
-            locks.enter_context(output_lock(run, "run folder"))
+        lock_run(run, locks)
         saved_cfg, fields_, ckpt = load_run(run, device)
-        check_resume_iters(run, ckpt["step"], cfg.iters)
-        adopt(run, OUTPUTS)  # a run from before manifests: its files are the run's own
+        resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
         saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved_cfg
         cfg.validate()
@@ -321,126 +299,123 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     train = load_data(cfg, "train")
     val = load_data(cfg, "val") if cfg.val_images > 0 else None
     if not resume:
-        locks.enter_context(output_lock(run, "run folder"))
-        if (run / CHECKPOINT).exists():  # another process started a run here meanwhile
-            raise UserError(f"{run}: already holds a run; choose another --out")
-        check_foreign([run / n for n in OUTPUTS])
+        claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
-    n_img, h, w = train["images"].shape[:3]
-    flat = train["images"].reshape(-1, 3)
-    params = _parameters(fields_)
-    opt = _optimizer(cfg, params)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    grid = fields_.get("grid")
-    # The grid's updates and lattice jitter draw from a generator on the device (saved too).
-    grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1) if grid else None
-
-    def density_of(x):
-        return fields_["coarse"].density(x)[0]
-
-    history = {"step": [], "loss": [], "psnr": [], "val_step": [], "val_psnr": [], "seconds": []}
-    start, batch = 0, cfg.batch
+    task = NeRFTask(cfg, fields_, train, val, log)
     if ckpt is not None:
-        load_weights(opt, ckpt["optimizer"], run / CHECKPOINT, "optimizer state")
-        gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
-        history, start = ckpt["history"], ckpt["step"]
-        batch = ckpt.get("batch", cfg.batch)
-        state = ckpt.get("grid_generator")
-        if grid_gen is not None and ckpt.get("grid_generator_device") == grid_gen.device.type:
-            grid_gen.set_state(state.cpu())
-        elif grid_gen is not None:
-            log(f"{run}: resumed on another device type; the grid's random stream restarts "
-                "from the seed (the continuation is not bit-exact)")  # fmt: skip
+        task.resume(ckpt, run, log)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
-    t0, val_time = time.perf_counter(), 0.0  # training time excludes validation renders
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    settings = LoopSettings(
+        iters=cfg.iters,
+        lr=cfg.lr,
+        lr_final=cfg.lr_final,
+        lr_decay_steps=cfg.lr_decay_steps,
+        max_seconds=cfg.max_seconds,
+        ckpt_every=cfg.ckpt_every,
+        val_every=cfg.val_every if val is not None else 0,
+        desc="train nerf",
+    )
+    return run_loop(
+        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
+    )
 
-        bar = tqdm(total=cfg.iters, initial=start, desc="train nerf", unit="step", disable=None)
-    with stop_requests() as stop:
-        for step in range(start, cfg.iters):
-            lr = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            if grid is not None and step % cfg.grid_every == 0:
-                grid.update(density_of, grid_gen)
-            cam, px, py, idx = random_pixels(n_img, w, h, batch, generator=gen, device=cfg.device)
-            o, d = dataset_rays(cfg, train, cam, px, py)
-            out = render_rays_of(
-                fields_, cfg, o, d, perturb=True, seed=cfg.seed * 1000003 + step, generator=grid_gen
-            )
-            if grid is not None:
-                history.setdefault("samples_per_ray", []).append(out["n_kept"] / batch)
-                history.setdefault("batch", []).append(batch)
-                if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
-                    batch = int(batch * cfg.target_samples / max(out["n_kept"], 1))
-                    batch = min(max(batch, 64), 1 << 16)
-            target = flat[idx]
-            loss_fine = torch.mean((out["rgb"] - target) ** 2)
-            loss = loss_fine
-            coarse = out.get("rgb_coarse")
-            if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
-                loss = loss + torch.mean((coarse - target) ** 2)
-            if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
-                f = fields_["coarse"]
-                box = (torch.rand(cfg.batch, 3, generator=gen) * 2 - 1).to(cfg.device) * cfg.aabb
-                eik = 0.5 * (f.last_eikonal + f.eikonal(box))
-                loss = loss + cfg.eikonal_weight * eik
-                history.setdefault("beta", []).append(float(f.beta.detach()))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            flags = nonfinite_flags(loss, params)
-            opt.step()
-            done = step + 1
-            # the step's one host sync: losses and the divergence flags in one transfer (a
-            # diverged step is never saved: the run keeps its last good checkpoint)
-            loss_v, fine_v, *bad = torch.cat(
-                [torch.stack([loss.detach(), loss_fine.detach()]).double(), flags.double()]
-            ).tolist()
-            raise_if_diverged(bad, done, loss_v, run, lr)
-            if cfg.device.startswith("cuda"):
-                torch.cuda.synchronize()
-            seconds = elapsed0 + time.perf_counter() - t0 - val_time
-            history["step"].append(done)
-            history["loss"].append(loss_v)
-            history["psnr"].append(_psnr(fine_v))
-            history["seconds"].append(seconds)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{loss_v:.4f}", psnr=f"{history['psnr'][-1]:.2f}")
-            session = seconds - elapsed0  # this invocation's training time
-            out_of_time = cfg.max_seconds > 0 and session >= cfg.max_seconds
-            if val is not None and (done % cfg.val_every == 0 or done == cfg.iters or out_of_time):
-                tv = time.perf_counter()
-                v = validate(fields_, cfg, val)
-                val_time += time.perf_counter() - tv
-                history["val_step"].append(done)
-                history["val_psnr"].append(v)
-                log(
-                    f"step {done}: train psnr {history['psnr'][-1]:.2f}, val psnr {v:.2f}, "
-                    f"{seconds:.0f} s"
-                )
-            stopping = out_of_time or stop["signum"] is not None
-            if done % cfg.ckpt_every == 0 or done == cfg.iters or stopping:
-                extra = {"batch": batch}
-                if grid_gen is not None:
-                    extra["grid_generator"] = grid_gen.get_state()
-                    extra["grid_generator_device"] = grid_gen.device.type
-                _save(run, done, fields_, opt, gen, history, cfg, extra)
-                write_json(run / "history.json", history)
-            if out_of_time:
-                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
-                break
-            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done, checkpoint it
-                break
-    if bar is not None:
-        bar.close()
-    if stop["signum"] is not None:
-        raise Interrupted(stop["signum"], history["step"][-1], run)
-    return history
+
+class NeRFTask(Task):
+    """NeRF and VolSDF as a :class:`~warpnerf.train.loop.Task`: random ray batches across all
+    training images, coarse/fine or occupancy-grid rendering, the photometric loss (plus the
+    coarse pass's and VolSDF's eikonal term), validation PSNR."""
+
+    history_keys = ("psnr", "val_step", "val_psnr")
+    validation_keys = ("val_psnr",)
+
+    def __init__(self, cfg, fields_, train, val, log=print):
+        self.cfg, self.fields, self.train, self.val = cfg, fields_, train, val
+        self.n_img, self.h, self.w = train["images"].shape[:3]
+        self.flat = train["images"].reshape(-1, 3)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.grid = fields_.get("grid")
+        # The grid's updates and lattice jitter draw from a generator on the device (saved too).
+        self.grid_gen = None
+        if self.grid is not None:
+            self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
+        self.batch = cfg.batch
+
+    def resume(self, ckpt, run, log):
+        self.gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
+        self.batch = ckpt.get("batch", self.cfg.batch)
+        if self.grid_gen is not None:
+            if ckpt.get("grid_generator_device") == self.grid_gen.device.type:
+                self.grid_gen.set_state(ckpt.get("grid_generator").cpu())
+            else:
+                log(f"{run}: resumed on another device type; the grid's random stream restarts "
+                    "from the seed (the continuation is not bit-exact)")  # fmt: skip
+
+    def parameters(self):
+        return _parameters(self.fields)
+
+    def optimizer(self, params, lr):
+        return _optimizer(self.cfg, params)
+
+    def loss(self, step):
+        cfg, fields_, grid = self.cfg, self.fields, self.grid
+        if grid is not None and step % cfg.grid_every == 0:
+            grid.update(lambda x: fields_["coarse"].density(x)[0], self.grid_gen)
+        cam, px, py, idx = random_pixels(
+            self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device
+        )
+        o, d = dataset_rays(cfg, self.train, cam, px, py)
+        seed = cfg.seed * 1000003 + step
+        out = render_rays_of(fields_, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
+        terms = {}
+        if grid is not None:
+            terms["samples_per_ray"] = out["n_kept"] / self.batch
+            terms["batch"] = self.batch
+            if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
+                batch = int(self.batch * cfg.target_samples / max(out["n_kept"], 1))
+                self.batch = min(max(batch, 64), 1 << 16)
+        target = self.flat[idx]
+        loss_fine = torch.mean((out["rgb"] - target) ** 2)
+        terms["psnr"] = loss_fine
+        loss = loss_fine
+        coarse = out.get("rgb_coarse")
+        if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
+            loss = loss + torch.mean((coarse - target) ** 2)
+        if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
+            f = fields_["coarse"]
+            box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
+            eik = 0.5 * (f.last_eikonal + f.eikonal(box))
+            loss = loss + cfg.eikonal_weight * eik
+            terms["beta"] = f.beta.detach()
+        return loss, terms
+
+    def record(self, history, terms):
+        terms = dict(terms, psnr=_psnr(terms["psnr"]))  # the fine pass's MSE, as PSNR
+        super().record(history, terms)
+
+    def validate(self, step):
+        return {"val_psnr": validate(self.fields, self.cfg, self.val)}
+
+    def validation_text(self, history):
+        return f"train psnr {history['psnr'][-1]:.2f}, val psnr {history['val_psnr'][-1]:.2f}"
+
+    def postfix(self, history):
+        return {"loss": f"{history['loss'][-1]:.4f}", "psnr": f"{history['psnr'][-1]:.2f}"}
+
+    def state(self):
+        state = {
+            "fields": {
+                k: (v.state_dict() if v is not None else None)
+                for k, v in _unique(self.fields).items()
+            },
+            "generator": self.gen.get_state(),
+            "config": self.cfg.to_dict(),
+            "batch": self.batch,
+        }
+        if self.grid_gen is not None:
+            state["grid_generator"] = self.grid_gen.get_state()
+            state["grid_generator_device"] = self.grid_gen.device.type
+        return state
 
 
 def validate(fields_, cfg, val) -> float:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import time
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -21,18 +20,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import Interrupted, UserError
+from ..errors import UserError
 from ..fields.neural_sdf import NeuralSDF
 from ..io import (
-    adopt,
-    check_foreign,
     load_checkpoint,
     load_weights,
-    output_lock,
-    save_checkpoint,
     write_json,
 )
-from ._signals import check_finite, check_resume_iters, stop_requests
+from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
@@ -213,18 +208,18 @@ def load_sdf_run(run, device=None):
 
 def sdf_loss(model, surf, normals, rand, cfg):
     """(loss, parts): mean |f| on the points, eikonal on the random and the surface points,
-    optional normals."""
+    optional normals; the parts are detached 0-dim tensors (read at the loop's one sync)."""
     pts = torch.cat([surf, rand])
     f, g = model.gradient(pts)
     n = surf.shape[0]
     l_surf = f[:n].abs().mean()
     l_eik = ((g.norm(dim=-1) - 1.0) ** 2).mean()
     loss = l_surf + cfg.eikonal_weight * l_eik
-    parts = {"surface": l_surf.item(), "eikonal": l_eik.item()}
+    parts = {"surface": l_surf.detach(), "eikonal": l_eik.detach()}
     if normals is not None and cfg.normal_weight > 0:
         l_n = (1 - torch.nn.functional.cosine_similarity(g[:n], normals, dim=-1)).mean()
         loss = loss + cfg.normal_weight * l_n
-        parts["normal"] = l_n.item()
+        parts["normal"] = l_n.detach()
     return loss, parts
 
 
@@ -241,11 +236,9 @@ def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, devic
 def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     ckpt = None
     if resume:
-        if run.is_dir():  # (a missing folder: the loader says it is not a run)
-            locks.enter_context(output_lock(run, "run folder"))
+        lock_run(run, locks)
         saved, model, ckpt = load_sdf_run(run, device)
-        check_resume_iters(run, ckpt["step"], cfg.iters)
-        adopt(run, OUTPUTS)  # a run from before manifests: its files are the run's own
+        resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
         saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved.validate()
     else:
@@ -260,10 +253,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     if model is None:
         model = _build(cfg)
     if not resume:
-        locks.enter_context(output_lock(run, "run folder"))
-        if (run / CHECKPOINT).exists():  # another process started a run here meanwhile
-            raise UserError(f"{run}: already holds a run; choose another --out")
-        check_foreign([run / n for n in OUTPUTS])
+        claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
     dev = cfg.device
     pts = torch.as_tensor((pts_np - center) * scale, dtype=torch.float32, device=dev)
@@ -271,75 +261,65 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     # local scale of the near-surface samples: distance to the 8th nearest point (on a subset)
     sub = pts[torch.randperm(len(pts), generator=torch.Generator().manual_seed(0))[:2000].to(dev)]
     sigma = float(torch.cdist(sub, pts).topk(9, largest=False).values[:, -1].median())
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    gen = torch.Generator().manual_seed(cfg.seed)
-    history = {"step": [], "loss": [], "surface": [], "eikonal": [], "seconds": []}
-    start = 0
+    task = SDFTask(cfg, model, pts, nrm, sigma, {"center": center.tolist(), "scale": scale})
     if ckpt is not None:
-        load_weights(opt, ckpt["optimizer"], run / CHECKPOINT, "optimizer state")
-        gen.set_state(ckpt["generator"].cpu())
-        history, start = ckpt["history"], ckpt["step"]
-    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
-    t0 = time.perf_counter()
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=cfg.iters, initial=start, desc="train sdf", unit="step", disable=None)
-    with stop_requests() as stop:
-        for step in range(start, cfg.iters):
-            for gr in opt.param_groups:
-                gr["lr"] = cfg.lr * (cfg.lr_final / cfg.lr) ** min(step / cfg.lr_decay_steps, 1.0)
-            idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
-            half = cfg.n_random // 2
-            near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
-            noise = torch.randn(cfg.n_random - half, 3, generator=gen).to(dev) * sigma
-            uni = (torch.rand(half, 3, generator=gen) * 2 - 1).to(dev)
-            rand = torch.cat([uni, pts[near_idx] + noise])
-            surf_nrm = nrm[idx] if nrm is not None else None
-            loss, parts = sdf_loss(model, pts[idx], surf_nrm, rand, cfg)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            check_finite(step + 1, loss, list(model.parameters()), run, opt.param_groups[0]["lr"])
-            opt.step()
-            done = step + 1
-            seconds = elapsed0 + time.perf_counter() - t0
-            history["step"].append(done)
-            history["loss"].append(loss.item())
-            history["surface"].append(parts["surface"])
-            history["eikonal"].append(parts["eikonal"])
-            history["seconds"].append(seconds)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(surface=f"{parts['surface']:.4f}",
-                                eikonal=f"{parts['eikonal']:.4f}")  # fmt: skip
-            out_of_time = cfg.max_seconds > 0 and seconds - elapsed0 >= cfg.max_seconds
-            stopping = out_of_time or stop["signum"] is not None
-            if done % cfg.ckpt_every == 0 or done == cfg.iters or stopping:
-                state = {
-                    "step": done,
-                    "model": model.state_dict(),
-                    "optimizer": opt.state_dict(),
-                    "generator": gen.get_state(),
-                    "history": history,
-                    "normalisation": {"center": center.tolist(), "scale": scale},
-                }
-                save_checkpoint(run / CHECKPOINT, state)
-                write_json(run / "history.json", history)
-            if out_of_time:
-                log(f"stopping at step {done}: --max-seconds {cfg.max_seconds} reached")
-                break
-            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
-                break
-    if bar is not None:
-        bar.close()
-    if stop["signum"] is not None:  # no mesh: the run continues with --resume
-        raise Interrupted(stop["signum"], history["step"][-1], run)
+        task.gen.set_state(ckpt["generator"].cpu())
+    settings = LoopSettings(
+        iters=cfg.iters,
+        lr=cfg.lr,
+        lr_final=cfg.lr_final,
+        lr_decay_steps=cfg.lr_decay_steps,
+        max_seconds=cfg.max_seconds,
+        ckpt_every=cfg.ckpt_every,
+        desc="train sdf",
+    )
+    history = run_loop(
+        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
+    )
     metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
     metrics.update(step=history["step"][-1] if history["step"] else 0,
                    seconds=history["seconds"][-1] if history["seconds"] else 0.0)  # fmt: skip
     write_json(run / "metrics.json", metrics)
     return metrics
+
+
+class SDFTask(Task):
+    """A neural SDF fitted to points as a :class:`~warpnerf.train.loop.Task`: each step draws
+    surface points, uniform box points and points near the surface, and minimises
+    :func:`sdf_loss`."""
+
+    history_keys = ("surface", "eikonal")
+
+    def __init__(self, cfg, model, pts, nrm, sigma, normalisation):
+        self.cfg, self.model, self.pts, self.nrm, self.sigma = cfg, model, pts, nrm, sigma
+        self.normalisation = normalisation
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+
+    def parameters(self):
+        return list(self.model.parameters())
+
+    def loss(self, step):
+        cfg, pts, gen, dev = self.cfg, self.pts, self.gen, self.pts.device
+        idx = torch.randint(0, len(pts), (cfg.batch,), generator=gen).to(dev)
+        half = cfg.n_random // 2
+        near_idx = torch.randint(0, len(pts), (cfg.n_random - half,), generator=gen).to(dev)
+        noise = torch.randn(cfg.n_random - half, 3, generator=gen).to(dev) * self.sigma
+        uni = (torch.rand(half, 3, generator=gen) * 2 - 1).to(dev)
+        rand = torch.cat([uni, pts[near_idx] + noise])
+        surf_nrm = self.nrm[idx] if self.nrm is not None else None
+        loss, parts = sdf_loss(self.model, pts[idx], surf_nrm, rand, cfg)
+        return loss, {"surface": parts["surface"], "eikonal": parts["eikonal"]}
+
+    def postfix(self, history):
+        return {"surface": f"{history['surface'][-1]:.4f}",
+                "eikonal": f"{history['eikonal'][-1]:.4f}"}  # fmt: skip
+
+    def state(self):
+        return {
+            "model": self.model.state_dict(),
+            "generator": self.gen.get_state(),
+            "normalisation": self.normalisation,
+        }
 
 
 @torch.no_grad()

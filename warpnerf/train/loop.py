@@ -1,0 +1,241 @@
+"""The one training loop: every trainer (NeRF and VolSDF, neural SDF from points, box fit) is a
+:class:`Task` run by :func:`run_loop`.
+
+The loop owns the duties every trainer shares, so no task re-implements them:
+
+- step counting from 0 or from a checkpoint's step up to ``iters``;
+- the learning rate, ``lr * (lr_final / lr) ** min(step / decay_steps, 1)``, set on every
+  parameter group before each step;
+- the optimiser (built by the task: its betas and eps are the task's), and its state across
+  ``--resume``;
+- the non-finite guard: the loss and every gradient are checked after ``backward()`` (one fused
+  max-norm, no host sync of its own: the flags are read together with the loss at the step's one
+  sync); the first non-finite value raises :class:`~warpnerf.errors.Diverged` and nothing of
+  that step is saved, so the run keeps its last good checkpoint;
+- history (``step``, ``loss``, ``seconds`` and the task's own terms), training time that excludes
+  validation, ``--max-seconds`` (counted per invocation);
+- periodic validation (every ``val_every`` steps, at the last step and when time runs out);
+- SIGINT/SIGTERM (finish the step, checkpoint it, raise :class:`~warpnerf.errors.Interrupted`);
+- atomic checkpoints and ``history.json`` every ``ckpt_every`` steps, at the end and when
+  stopping; a resumed run continues bit-exactly on CPU.
+
+A task provides the model side: its parameters and optimiser, one step's loss, what its
+checkpoint holds besides the loop's keys, and optionally a validation and progress-bar text.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from ..errors import Interrupted, UserError
+from ..io import adopt, check_foreign, load_weights, output_lock, save_checkpoint, write_json
+from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
+
+__all__ = ["Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run"]
+
+# checkpoint keys the loop writes and reads (a task's state adds its own)
+LOOP_KEYS = ("step", "optimizer", "history")
+
+
+@dataclass
+class LoopSettings:
+    """The loop's settings (taken from a task's config)."""
+
+    iters: int
+    lr: float
+    lr_final: float
+    lr_decay_steps: int = 0  # 0: decay over all ``iters``
+    max_seconds: float = 0.0  # 0: no limit
+    ckpt_every: int = 500
+    val_every: int = 0  # 0: no periodic validation
+    desc: str = "train"
+
+
+def lr_at(s: LoopSettings, step: int) -> float:
+    """The learning rate of step ``step`` (0-based): exponential from lr to lr_final over
+    ``lr_decay_steps`` steps, constant after."""
+    decay = s.lr_decay_steps if s.lr_decay_steps > 0 else s.iters
+    return s.lr * (s.lr_final / s.lr) ** min(step / max(decay, 1), 1.0)
+
+
+class Task:
+    """What a trainer plugs into :func:`run_loop`. Override :meth:`parameters`, :meth:`loss` and
+    :meth:`state`; the other methods have defaults."""
+
+    history_keys: tuple = ()  # the task's history lists, created empty for a new run
+    validation_keys: tuple = ()  # the figures :meth:`validate` returns
+
+    def parameters(self) -> list:
+        """The trained tensors (each once)."""
+        raise NotImplementedError
+
+    def optimizer(self, params: list, lr: float) -> torch.optim.Optimizer:
+        return torch.optim.Adam(params, lr=lr)
+
+    def loss(self, step: int) -> tuple:
+        """(loss, terms) of step ``step`` (0-based): draws its batch, renders or evaluates, and
+        returns the scalar loss to minimise and a dict of terms for the history (0-dim tensors,
+        read at the step's one sync, or Python numbers)."""
+        raise NotImplementedError
+
+    def after_step(self, step: int, history: dict) -> None:
+        """After the optimiser step of ``step`` and its history entry (projections such as
+        clamping, logging); before any checkpoint."""
+
+    def record(self, history: dict, terms: dict) -> None:
+        """Appends this step's terms (host numbers) to the history (default: by name)."""
+        for k, v in terms.items():
+            history.setdefault(k, []).append(v)
+
+    def validate(self, step: int) -> dict | None:
+        """Validation figures after ``step`` steps (appended to the history by name), or None
+        when the task has none."""
+        return None
+
+    def validation_text(self, history: dict) -> str:
+        """The log line's text after a validation (default: the latest figures by name)."""
+        return ", ".join(f"{k} {history[k][-1]:.2f}" for k in self.validation_keys)
+
+    def state(self) -> dict:
+        """What the checkpoint holds besides the loop's keys (weights, generators, config)."""
+        raise NotImplementedError
+
+    def postfix(self, history: dict) -> dict:
+        """The progress bar's text after a step."""
+        return {"loss": f"{history['loss'][-1]:.4g}"}
+
+
+def _read_terms(loss, terms: dict, flags):
+    """Host values of the loss, the tensor terms and the divergence flags, in one transfer."""
+    names = [k for k, v in terms.items() if isinstance(v, torch.Tensor)]
+    parts = [loss.detach().reshape(1)] + [terms[k].detach().reshape(1) for k in names]
+    parts.append(flags)
+    dev = loss.device
+    vals = torch.cat([p.to(dev, torch.float64) for p in parts]).tolist()
+    out = {k: (v if not isinstance(v, torch.Tensor) else None) for k, v in terms.items()}
+    for k, v in zip(names, vals[1 : 1 + len(names)]):
+        out[k] = v
+    return vals[0], out, vals[1 + len(names) :]
+
+
+def run_loop(
+    task: Task,
+    s: LoopSettings,
+    *,
+    run: Path | None,
+    checkpoint: str = "checkpoint.pt",
+    resume_from: dict | None = None,
+    progress: bool = False,
+    log=print,
+    where=None,
+) -> dict:
+    """Trains ``task`` up to ``s.iters`` steps; returns the history.
+
+    ``run`` None: no files are written and signals keep their handlers. ``resume_from``: a
+    checkpoint dict (the task has already restored its own state from it) whose optimiser state,
+    history and step the loop continues from. ``where`` names the run in messages (default
+    ``run``).
+    """
+    where = where if where is not None else (run if run is not None else "the fit")
+    params = task.parameters()
+    opt = task.optimizer(params, s.lr)
+    history = {"step": [], "loss": [], **{k: [] for k in task.history_keys}, "seconds": []}
+    start = 0
+    if resume_from is not None:
+        load_weights(opt, resume_from["optimizer"], Path(run) / checkpoint, "optimizer state")
+        history, start = resume_from["history"], resume_from["step"]
+    elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
+    t0, val_time = time.perf_counter(), 0.0  # training time excludes validation
+    cuda = any(p.is_cuda for p in params)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=s.iters, initial=start, desc=s.desc, unit="step", disable=None)
+
+    def save(done):
+        state = {**task.state(), "step": done, "optimizer": opt.state_dict(), "history": history}
+        save_checkpoint(Path(run) / checkpoint, state)
+        write_json(Path(run) / "history.json", history)
+
+    signals = stop_requests() if run is not None else contextlib.nullcontext({"signum": None})
+    with signals as stop:
+        for step in range(start, s.iters):
+            lr = lr_at(s, step)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            loss, terms = task.loss(step)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            flags = nonfinite_flags(loss, params)
+            opt.step()
+            done = step + 1
+            # the step's one host sync: the loss, the terms and the divergence flags (a step
+            # that diverged is never saved: the run keeps its last good checkpoint)
+            loss_v, values, bad = _read_terms(loss, terms, flags)
+            raise_if_diverged(bad, done, loss_v, where, lr)
+            if cuda:
+                torch.cuda.synchronize()
+            seconds = elapsed0 + time.perf_counter() - t0 - val_time
+            history["step"].append(done)
+            history["loss"].append(loss_v)
+            task.record(history, values)
+            history["seconds"].append(seconds)
+            task.after_step(step, history)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(task.postfix(history))
+            out_of_time = s.max_seconds > 0 and seconds - elapsed0 >= s.max_seconds
+            if s.val_every and (done % s.val_every == 0 or done == s.iters or out_of_time):
+                tv = time.perf_counter()
+                figures = task.validate(done)
+                val_time += time.perf_counter() - tv
+                if figures is not None:
+                    history.setdefault("val_step", []).append(done)
+                    for k, v in figures.items():
+                        history.setdefault(k, []).append(v)
+                    log(f"step {done}: {task.validation_text(history)}, {seconds:.0f} s")
+            stopping = out_of_time or stop["signum"] is not None
+            if run is not None and (done % s.ckpt_every == 0 or done == s.iters or stopping):
+                save(done)
+            if out_of_time:
+                log(f"stopping at step {done}: --max-seconds {s.max_seconds} reached")
+                break
+            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
+                break
+    if bar is not None:
+        bar.close()
+    if stop["signum"] is not None:
+        raise Interrupted(stop["signum"], history["step"][-1], run)
+    return history
+
+
+# --- opening a run folder (the same steps for every task) ---------------------------------------
+
+
+def lock_run(run: Path, locks: contextlib.ExitStack) -> None:
+    """Takes the run folder's lock for the rest of ``locks`` (before a resume reads the run; a
+    missing folder is left to the run's loader to report)."""
+    if run.is_dir():
+        locks.enter_context(output_lock(run, "run folder"))
+
+
+def resume_checks(run: Path, step: int, iters: int, outputs) -> None:
+    """Before continuing a run at checkpoint ``step``: ``iters`` must go beyond it, and the
+    run's files (from before the manifest existed) become the run's own."""
+    check_resume_iters(run, step, iters)
+    adopt(run, outputs)
+
+
+def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) -> None:
+    """For a new run, once its data has loaded: locks the folder, refuses it if a run started
+    there meanwhile (another process), and refuses to replace files warpnerf did not write."""
+    locks.enter_context(output_lock(run, "run folder"))
+    if (run / checkpoint).exists():
+        raise UserError(f"{run}: already holds a run; choose another --out")
+    check_foreign([run / n for n in outputs])
