@@ -13,40 +13,24 @@ from pathlib import Path
 
 import torch
 
-from .data.cameras import intrinsics_from_fov, orbit_views, spiral_path
+from .data.cameras import intrinsics_from_fov, orbit_views
 from .fields.sdf_volume import SDFVolume
-from .io import depth_to_uint8, to_uint8, write_image, write_json, write_video
+from .io import write_image, write_json
 from .metrics import psnr
-from .render import render_views
-from .train.box_fit import BoxFitConfig, fit_box, render_box_views
+from .train.box_fit import (
+    SPIRAL_FOV_X,
+    SPIRAL_RADIUS,
+    BoxFitConfig,
+    fit_box,
+    render_box_views,
+    write_spiral,
+)
 
 __all__ = ["GT_BOX", "run_demo", "write_spiral"]
 
 GT_BOX = {"center": (0.15, -0.1, 0.2), "side_lengths": (1.2, 0.8, 0.6)}
-FOV_X = 0.7  # radians
-CAMERA_RADIUS = 3.0
-
-
-def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, prefix="spiral"):
-    """Renders ``frames`` views on a spiral: {prefix}_rgb.mp4/.gif, {prefix}_depth.gif and the
-    first frame's depth PNG normalised by its maximum. Returns (rgb, depth) tensors."""
-    dev = volume.center.device
-    cams = spiral_path(frames, radius=CAMERA_RADIUS).to(dev)
-    k = intrinsics_from_fov(size, size, FOV_X).to(dev).expand(frames, 4)
-    out_r = render_views(cams, k, size, size, cfg.near, cfg.far, volume, **cfg.render_kwargs())
-    rgb, depth = out_r["rgb"].cpu(), out_r["depth"].cpu()
-    # Expected depth of the visible surface (depth / opacity), normalised by its maximum.
-    surf = torch.where(
-        out_r["opacity"].cpu() > 1e-3,
-        depth / out_r["opacity"].cpu().clamp_min(1e-3),
-        torch.zeros_like(depth),
-    )
-    dmax = float(surf.max()) or 1.0
-    write_video(out / f"{prefix}_rgb.mp4", [to_uint8(f) for f in rgb])
-    write_video(out / f"{prefix}_rgb.gif", [to_uint8(f) for f in rgb])
-    write_video(out / f"{prefix}_depth.gif", [depth_to_uint8(f, dmax) for f in surf])
-    write_image(out / f"{prefix}_depth_000.png", depth_to_uint8(surf[0]))
-    return rgb, surf
+FOV_X = SPIRAL_FOV_X  # radians
+CAMERA_RADIUS = SPIRAL_RADIUS
 
 
 def run_demo(

@@ -69,12 +69,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tb.add_argument("--frames", type=_nonnegative, default=40, help="spiral video frames (0: none)")
     tb.add_argument("--quiet", action="store_true")
-    tb.set_defaults(func=cmd_train_box)
+    tb.set_defaults(func=cmd_train_box, subparser=tb)
 
     tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
     _nerf_flags(tn)
     _grid_flags(tn)
-    tn.set_defaults(func=cmd_train_nerf)
+    tn.set_defaults(func=cmd_train_nerf, subparser=tn)
 
     tv = tsub.add_parser(
         "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
@@ -85,7 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
     tv.add_argument("--beta-min", type=_positive(float), default=1e-4)
     tv.add_argument("--fixed-beta", action="store_true", help="keep beta at --beta")
     tv.add_argument("--eikonal-weight", type=_finite, default=0.1)
-    tv.set_defaults(func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True)
+    tv.set_defaults(
+        func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True, subparser=tv
+    )
 
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
     ts.add_argument("--points", help="FILE.npz (verts|points [, normals]) or FILE.ply, or builtin")
@@ -104,7 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--max-seconds", type=_nonnegative_float, default=0.0)
     ts.add_argument("--seed", type=_seed, default=0)
     ts.add_argument("--quiet", action="store_true")
-    ts.set_defaults(func=cmd_train_sdf)
+    ts.set_defaults(func=cmd_train_sdf, subparser=ts)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
     e.add_argument("run", help="run folder written by 'warpnerf train nerf'")

@@ -86,9 +86,8 @@ def _resume_device(args):
     was used (the run's saved config holds everything else)."""
     if args.iters is None:
         raise UserError("--resume needs --iters (the total number of steps to reach)")
-    from .parser import build_parser  # here: the parser imports this module
-
-    defaults = build_parser().parse_args(["train", args.model, "--out", "x"])
+    # the subcommand's own parser (set as a default by cli.parser): its defaults, unparsed
+    defaults = args.subparser.parse_args(["--out", "x"])
     fixed = [
         k for k, v in vars(args).items() if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
     ]

@@ -12,9 +12,8 @@ __all__ = ["scene_sdf", "sphere_trace"]
 
 
 def _scene(scene, device):
-    from ..fields.sdf_scene import SDFScene
-
-    if not isinstance(scene, SDFScene):
+    # an SDFScene (warpnerf.fields), by its interface: ops import no fields
+    if not callable(getattr(scene, "arrays", None)):
         raise TypeError(f"scene must be an SDFScene, got {type(scene).__name__}")
     a = scene.arrays(device)
     wp = _bridge._wp()

@@ -18,15 +18,20 @@ from pathlib import Path
 
 import torch
 
+from ..data.cameras import intrinsics_from_fov, spiral_path
 from ..errors import UserError
 from ..fields.sdf_volume import SDFVolume
 from ..io import (
     check_foreign,
+    depth_to_uint8,
     load_checkpoint,
     load_weights,
     output_lock,
     remove_own,
+    to_uint8,
+    write_image,
     write_json,
+    write_video,
 )
 from ..ops import generate_rays, random_pixels
 from ..render import render_rays, render_views
@@ -350,7 +355,31 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     extra = {"step": fit["step"], "seconds": fit["seconds"], "losses": fit["losses"]}
     write_json(out / "result.json", result | extra)
     if frames > 0:
-        from ..demo import write_spiral
-
         write_spiral(volume, out, frames, min(ds["width"], 256), cfg)
     return result
+
+
+SPIRAL_FOV_X = 0.7  # radians: the spiral video's camera (and the demo's)
+SPIRAL_RADIUS = 3.0
+
+
+def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, prefix="spiral"):
+    """Renders ``frames`` views on a spiral: {prefix}_rgb.mp4/.gif, {prefix}_depth.gif and the
+    first frame's depth PNG normalised by its maximum. Returns (rgb, depth) tensors."""
+    dev = volume.center.device
+    cams = spiral_path(frames, radius=SPIRAL_RADIUS).to(dev)
+    k = intrinsics_from_fov(size, size, SPIRAL_FOV_X).to(dev).expand(frames, 4)
+    out_r = render_views(cams, k, size, size, cfg.near, cfg.far, volume, **cfg.render_kwargs())
+    rgb, depth = out_r["rgb"].cpu(), out_r["depth"].cpu()
+    # Expected depth of the visible surface (depth / opacity), normalised by its maximum.
+    surf = torch.where(
+        out_r["opacity"].cpu() > 1e-3,
+        depth / out_r["opacity"].cpu().clamp_min(1e-3),
+        torch.zeros_like(depth),
+    )
+    dmax = float(surf.max()) or 1.0
+    write_video(out / f"{prefix}_rgb.mp4", [to_uint8(f) for f in rgb])
+    write_video(out / f"{prefix}_rgb.gif", [to_uint8(f) for f in rgb])
+    write_video(out / f"{prefix}_depth.gif", [depth_to_uint8(f, dmax) for f in surf])
+    write_image(out / f"{prefix}_depth_000.png", depth_to_uint8(surf[0]))
+    return rgb, surf

@@ -1,0 +1,177 @@
+"""The package's import graph: no cycles, and imports only point down the layers of
+docs/ARCHITECTURE.md (lazy imports inside functions count too)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# layer of each top-level part of the package: a module may import its own layer or lower ones
+LAYERS = {
+    "kernels": 0,
+    "errors": 1,
+    "trace": 1,
+    "reference": 2,
+    "ops": 2,
+    "io": 2,
+    "metrics": 2,
+    "data": 3,
+    "fields": 4,
+    "occupancy": 4,
+    "render": 5,
+    "mesh": 5,
+    "train": 6,
+    "bench": 7,
+    "demo": 7,
+    "cli": 8,
+    "__init__": 9,
+    "__main__": 9,
+}
+# modules placed above their folder's layer: the built-in scene is rendered by the pipeline (its
+# dataset is made with fields and render; no other data module imports it)
+OVERRIDES = {"warpnerf.data.synthetic": LAYERS["render"]}
+
+
+def _modules() -> dict:
+    """{dotted name: (path, package of relative imports)} of warpnerf and its kernels."""
+    mods = {}
+    for base, prefix in ((ROOT / "warpnerf", "warpnerf"), (ROOT / "kernels", "warpnerf.kernels")):
+        for p in sorted(base.rglob("*.py")):
+            rel = p.relative_to(base)
+            if prefix == "warpnerf" and rel.parts[0] == "kernels":
+                continue  # (a link to kernels/ in a source tree)
+            parts = [prefix, *rel.with_suffix("").parts]
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+                pkg = ".".join(parts)
+            else:
+                pkg = ".".join(parts[:-1])
+            mods[".".join(parts)] = (p, pkg)
+    return mods
+
+
+def _imports(mods: dict) -> dict:
+    """{module: {imported modules of the package}} and a set of all top-level names imported."""
+    edges = {m: set() for m in mods}
+    external = {m: set() for m in mods}
+    for m, (p, pkg) in mods.items():
+        for node in ast.walk(ast.parse(p.read_text(), str(p))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    up = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+                    base = ".".join(up + ([node.module] if node.module else []))
+                else:
+                    base = node.module or ""
+                subs = [f"{base}.{a.name}" for a in node.names]
+                names = [n for n in subs if n in mods] or [base]
+            else:
+                continue
+            for n in names:
+                external[m].add(n.split(".")[0])
+                while n and n not in mods:  # warpnerf.x.y.name -> the module warpnerf.x.y
+                    n = n.rpartition(".")[0]
+                if n and n != m:
+                    edges[m].add(n)
+    return edges, external
+
+
+def _layer(mod: str) -> int:
+    if mod in OVERRIDES:
+        return OVERRIDES[mod]
+    parts = mod.split(".")
+    return LAYERS["__init__"] if len(parts) == 1 else LAYERS[parts[1]]
+
+
+def _cycles(edges: dict) -> list:
+    """Strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+    for root in edges:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(edges[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(edges[w]))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return out
+
+
+def _parent_packages(mod: str) -> set:
+    parts = mod.split(".")
+    return {".".join(parts[:i]) for i in range(1, len(parts))}
+
+
+def test_every_part_has_a_layer():
+    mods = _modules()
+    unknown = {m.split(".")[1] for m in mods if "." in m and m.split(".")[1] not in LAYERS}
+    assert not unknown, f"add these parts of the package to LAYERS: {sorted(unknown)}"
+
+
+def test_no_import_cycles():
+    edges, _ = _imports(_modules())
+    # a package's __init__ re-exporting its modules is not a cycle with them
+    edges = {m: {n for n in e if n not in _parent_packages(m)} for m, e in edges.items()}
+    assert _cycles(edges) == []
+
+
+def test_imports_point_down_the_layers():
+    edges, _ = _imports(_modules())
+    upward = [
+        f"{m} (layer {_layer(m)}) imports {n} (layer {_layer(n)})"
+        for m, e in sorted(edges.items())
+        for n in sorted(e)
+        if _layer(n) > _layer(m) and n not in _parent_packages(m)
+    ]
+    assert upward == []
+
+
+def test_kernels_import_no_torch_and_ops_no_fields():
+    mods = _modules()
+    edges, external = _imports(mods)
+    for m in mods:
+        if m.startswith("warpnerf.kernels"):
+            assert "torch" not in external[m], f"{m} imports torch"
+            assert all(n.startswith("warpnerf.kernels") for n in edges[m]), m
+        if m.startswith("warpnerf.ops"):
+            assert not [n for n in edges[m] if n.startswith(("warpnerf.fields", "warpnerf.data"))]
+        if m.startswith("warpnerf.data") and m not in OVERRIDES:
+            assert not [n for n in edges[m] if n.startswith(("warpnerf.train", "warpnerf.render"))]
+
+
+def test_the_checker_finds_a_cycle_and_an_upward_import():
+    """The test's own machinery on a made-up graph (so the tests above cannot pass vacuously)."""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+    assert _layer("warpnerf.ops.rays") < _layer("warpnerf.fields.nerf")
+    edges, _ = _imports(_modules())
+    assert "warpnerf.ops._bridge" in edges["warpnerf.ops.composite"]
