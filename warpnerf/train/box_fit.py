@@ -166,15 +166,7 @@ def fit_box(
         where = Path(run) / CHECKPOINT if run is not None else "the checkpoint"
         load_weights(volume, state["volume"], where, "box parameters")
         task.gen.set_state(state["generator"].cpu())  # map_location may have moved it
-    settings = LoopSettings(
-        iters=cfg.iters,
-        lr=cfg.lr,
-        lr_final=cfg.lr * cfg.lr_final_ratio,
-        lr_decay_steps=cfg.lr_decay_steps,
-        max_seconds=cfg.max_seconds,
-        ckpt_every=cfg.ckpt_every,
-        desc="fit box",
-    )
+    settings = LoopSettings.of(cfg, "fit box", lr_final=cfg.lr * cfg.lr_final_ratio)
     history = run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=state, progress=progress,
         log=log,

@@ -55,6 +55,13 @@ class LoopSettings:
     val_every: int = 0  # 0: no periodic validation
     desc: str = "train"
 
+    @classmethod
+    def of(cls, cfg, desc: str, **override) -> LoopSettings:
+        """The loop settings of a task config (fields of the same names; ``override`` wins)."""
+        names = ("iters", "lr", "lr_final", "lr_decay_steps", "max_seconds", "ckpt_every")
+        kw = {k: getattr(cfg, k) for k in names if hasattr(cfg, k)}
+        return cls(**(kw | override), desc=desc)
+
 
 def lr_at(s: LoopSettings, step: int) -> float:
     """The learning rate of step ``step`` (0-based): exponential from lr to lr_final over

@@ -306,16 +306,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
         task.resume(ckpt, run, log)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    settings = LoopSettings(
-        iters=cfg.iters,
-        lr=cfg.lr,
-        lr_final=cfg.lr_final,
-        lr_decay_steps=cfg.lr_decay_steps,
-        max_seconds=cfg.max_seconds,
-        ckpt_every=cfg.ckpt_every,
-        val_every=cfg.val_every if val is not None else 0,
-        desc="train nerf",
-    )
+    settings = LoopSettings.of(cfg, "train nerf", val_every=cfg.val_every if val is not None else 0)
     return run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
     )

@@ -264,15 +264,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     task = SDFTask(cfg, model, pts, nrm, sigma, {"center": center.tolist(), "scale": scale})
     if ckpt is not None:
         task.gen.set_state(ckpt["generator"].cpu())
-    settings = LoopSettings(
-        iters=cfg.iters,
-        lr=cfg.lr,
-        lr_final=cfg.lr_final,
-        lr_decay_steps=cfg.lr_decay_steps,
-        max_seconds=cfg.max_seconds,
-        ckpt_every=cfg.ckpt_every,
-        desc="train sdf",
-    )
+    settings = LoopSettings.of(cfg, "train sdf")
     history = run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
     )
