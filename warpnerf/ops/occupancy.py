@@ -239,9 +239,7 @@ def march_rays(
         int(max_samples),
     ]
     no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
-    _bridge.launch(
-        K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev
-    )
+    _bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     # the one host sync: the sample total and which checks failed
