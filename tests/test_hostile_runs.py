@@ -530,8 +530,12 @@ def test_tampered_config_is_one_line_naming_the_field(runs, tmp_path, capsys, ki
 
 
 def test_tampered_config_refused_by_every_reader(runs, tmp_path, capsys):
-    for argv in (["eval", "RUN", "--max-images", "1"], ["render", "RUN", "--frames", "1"],
-                 ["train", "nerf", "--out", "RUN", "--resume", "--iters", "9", "--quiet"]):  # fmt: skip
+    readers = (
+        ["eval", "RUN", "--max-images", "1"],
+        ["render", "RUN", "--frames", "1"],
+        ["train", "nerf", "--out", "RUN", "--resume", "--iters", "9", "--quiet"],
+    )
+    for argv in readers:
         run = _copy(runs, "nerf", tmp_path / argv[0])
         _tamper(run, n_samples="64")
         rc = main([str(run) if a == "RUN" else a for a in argv])

@@ -20,7 +20,7 @@ from warpnerf.cli import main
 from warpnerf.data import load_dataset
 from warpnerf.data._json import read_json
 from warpnerf.data.blender import load_blender
-from warpnerf.data.colmap import Camera, Image, read_model, write_model
+from warpnerf.data.colmap import read_model, write_model
 from warpnerf.data.nerfstudio import load_nerfstudio
 from warpnerf.errors import UserError
 from warpnerf.fields.sdf_scene import SDFScene
