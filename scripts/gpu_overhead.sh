@@ -14,47 +14,51 @@ DATA=$PWD/${DATA:-.gpu/lego}
 ITERS=${ITERS:-1000}
 args="train nerf --data $DATA --field hash --batch 4096 --target-samples 262144 --tf32 --iters $ITERS --val-images 0 --device cuda --quiet"
 run_version() {  # version, argv...
-  if [ "$1" = base ]; then shift; (cd .gpu/base && python3 -m warpnerf.cli "$@"); else shift; python3 -m warpnerf.cli "$@"; fi
+  if [ "$1" = base ]; then shift; (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -m warpnerf.cli "$@"); else shift; python3 -m warpnerf.cli "$@"; fi
 }
-(cd .gpu/base && python3 -c "import warpnerf; print('base code:', warpnerf.__file__)")
+(B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -c "import warpnerf; print('base code:', warpnerf.__file__)")
 python3 -c "import warpnerf; print('new code:', warpnerf.__file__)"
-for r in 1 2; do
+for r in $(seq 1 ${REPS:-2}); do
   for v in base new; do
     rm -rf /tmp/ab_${v}_$r
     run_version $v $args --out /tmp/ab_${v}_$r > /dev/null 2>> "$OUT/log.txt" || echo "train $v $r failed" | tee -a "$OUT/log.txt"
   done
 done
-for v in base new; do
-  for r in 1 2; do
+for r in $(seq 1 ${EVAL_REPS:-4}); do  # interleaved: the host's speed drifts between runs
+  for v in base new; do
     rm -rf /tmp/ev_${v}_$r
     run_version $v eval /tmp/ab_new_1 --max-images 20 --out /tmp/ev_${v}_$r >> "$OUT/log.txt" 2>&1
   done
 done
-python3 - "$ITERS" <<'PY' | tee "$OUT/overhead.md"
-import json, statistics, sys
-iters = int(sys.argv[1])
+python3 - "$ITERS" "${REPS:-2}" "${EVAL_REPS:-4}" <<'PY' | tee "$OUT/overhead.md"
+import json, os, statistics, sys
+iters, reps, ereps = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 def step_ms(run):
+    """median step ms over steps 300..iters, and the median per 262144 kept samples"""
     h = json.load(open(f"{run}/history.json"))
-    s = h["seconds"]
-    d = [1e3 * (b - a) for a, b in zip(s[299:], s[300:iters])]
-    return statistics.median(d), len(d), statistics.mean(h.get("samples_per_ray", [0])[300:])
+    s, spr, b = h["seconds"], h["samples_per_ray"], h["batch"]
+    d = [1e3 * (s[i] - s[i - 1]) for i in range(300, iters)]
+    per = [d[j] * 262144 / max(spr[i] * b[i], 1) for j, i in enumerate(range(300, iters))]
+    return statistics.median(d), statistics.median(per), statistics.mean(spr[300:])
 def render_ms(ev):
     return json.load(open(f"{ev}/metrics.json"))["render_ms_median"]
-print("| version | run | median step ms (steps 300..%d) | samples/ray |" % iters)
-print("|---|---|---|---|")
+print(f"| version | run | median step ms (steps 300..{iters}) | ms per 262144 samples | samples/ray |")
+print("|---|---|---|---|---|")
 rows = {}
-for v in ("base", "new"):
-    for r in (1, 2):
-        ms, n, spr = step_ms(f"/tmp/ab_{v}_{r}")
+for r in range(1, reps + 1):
+    for v in ("base", "new"):
+        ms, per, spr = step_ms(f"/tmp/ab_{v}_{r}")
         rows.setdefault(v, []).append(ms)
-        print(f"| {v} | {r} | {ms:.3f} | {spr:.1f} |")
+        rows.setdefault(v + "_per", []).append(per)
+        print(f"| {v} | {r} | {ms:.3f} | {per:.3f} | {spr:.1f} |")
 for v in ("base", "new"):
-    rm = [render_ms(f"/tmp/ev_{v}_{r}") for r in (1, 2)]
+    rm = [render_ms(f"/tmp/ev_{v}_{r}") for r in range(1, ereps + 1)]
     rows[v + "_render"] = rm
-    print(f"| {v} | eval 20 val images | median frame {rm[0]:.2f} / {rm[1]:.2f} ms | |")
-b, n = statistics.mean(rows["base"]), statistics.mean(rows["new"])
-br, nr = statistics.mean(rows["base_render"]), statistics.mean(rows["new_render"])
-print(f"\nstep: new / base = {n / b:.4f} ({100 * (n / b - 1):+.2f} %); "
-      f"frame: new / base = {nr / br:.4f} ({100 * (nr / br - 1):+.2f} %)")
-json.dump(rows, open(__import__("os").environ.get("OUT", "/tmp/out") + "/overhead.json", "w"))
+    shown = " / ".join(f"{x:.1f}" for x in rm)
+    print(f"| {v} | eval 20 val images, median frame ms per run: {shown} | | | |")
+m = {k: statistics.median(v) for k, v in rows.items()}
+for what, k in (("step", ""), ("step per sample", "_per"), ("frame", "_render")):
+    q = m["new" + k] / m["base" + k]
+    print(f"{what}: new / base = {q:.4f} ({100 * (q - 1):+.2f} %) (medians over runs)")
+json.dump(rows, open(os.environ.get("OUT", "/tmp/out") + "/overhead.json", "w"))
 PY

@@ -412,8 +412,11 @@ def test_train_os_errors_are_one_line(runs, tmp_path, monkeypatch, capsys, err, 
     rc = main(["train", "nerf", "--data", str(runs / "bl"), "--out", str(tmp_path / "r"), *TN])
     line = _one_line(capsys, rc, 2, errno.errorcode[err])
     assert "warpnerf train: error:" in line
-    assert not [p for p in (tmp_path / "r").rglob(".*") if p.suffix in (".pt", ".json")
-                and p.name != io.MANIFEST]  # fmt: skip  (no temporary files left)
+    assert not [
+        p
+        for p in (tmp_path / "r").rglob(".*")
+        if p.suffix in (".pt", ".json") and p.name != io.MANIFEST
+    ]  # fmt: skip  (no temporary files left)
 
 
 def test_name_too_long_and_not_a_folder(runs, tmp_path, capsys, monkeypatch):
@@ -455,8 +458,10 @@ def test_impossible_sizes_are_refused_before_allocating(runs, tmp_path, capsys):
 
 
 def test_allocator_failures_are_described():
-    e = RuntimeError("[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't "
-                     "allocate memory: you tried to allocate 4000000000000 bytes. Error code 12")
+    e = RuntimeError(
+        "[enforce fail at alloc_cpu.cpp:117] data. DefaultCPUAllocator: can't "
+        "allocate memory: you tried to allocate 4000000000000 bytes. Error code 12"
+    )
     assert "tried to allocate 3.6 TiB" in describe_failure(e)
     cuda = RuntimeError("CUDA out of memory. Tried to allocate 20.00 GiB (GPU 0; 79.1 GiB)")
     assert "out of memory" in describe_failure(cuda)
@@ -470,7 +475,75 @@ def test_allocator_failures_are_described():
 def test_seeds_beyond_31_bits_are_refused(tmp_path, capsys):
     for seed in ("100000000000000000000000", "-1", str(2**31)):
         with pytest.raises(SystemExit) as e:
-            main(["train", "nerf", "--data", "builtin", "--out", str(tmp_path / "r"), "--seed", seed])
+            main(
+                ["train", "nerf", "--data", "builtin", "--out", str(tmp_path / "r"), "--seed", seed]
+            )
         assert e.value.code == 2
         assert "--seed" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------- 9: a run's config.json is validated on load
+
+
+def _tamper(run: Path, **fields) -> None:
+    cfg = json.loads((run / "config.json").read_text())
+    for k, v in fields.items():
+        if v is _DROP:
+            cfg.pop(k, None)
+        else:
+            cfg[k] = v
+    text = json.dumps(cfg).replace('"__NAN__"', "NaN")
+    (run / "config.json").write_text(text)
+
+
+_DROP = object()
+TAMPERED = [  # (kind, fields, words in the message)
+    ("nerf", {"iters": "10"}, ["'iters'", "an integer"]),
+    ("nerf", {"lr": True}, ["'lr'"]),
+    ("nerf", {"near": 5.0, "far": 1.0}, ["near"]),
+    ("nerf", {"colour": 1}, ["unknown field", "colour"]),
+    ("nerf", {"seed": 2**70}, ["'seed'"]),
+    ("nerf", {"lr": "__NAN__"}, ["'lr'"]),
+    ("nerf", {"batch": [[[[1]]]]}, ["'batch'"]),
+    ("volsdf", {"beta_min": -1.0}, ["beta"]),
+    ("sdf", {"width": 1.5}, ["'width'"]),
+    ("sdf", {"pos_freqs": 1000}, ["pos_freqs"]),
+    ("box", {"near": 4.0, "far": 1.0}, ["near"]),
+    ("box", {"batch": None}, ["'batch'"]),
+]
+COMMANDS = {
+    "nerf": ["eval", "RUN", "--max-images", "1"],
+    "volsdf": ["mesh", "RUN", "--out", "m.ply", "--resolution", "8", "--no-screenshot"],
+    "sdf": ["mesh", "RUN", "--out", "m.ply", "--resolution", "8", "--no-screenshot"],
+    "box": ["train", "box", "--out", "RUN", "--resume", "--iters", "5", "--quiet"],
+}
+
+
+@pytest.mark.parametrize("kind,fields,words", TAMPERED, ids=lambda x: str(x)[:30])
+def test_tampered_config_is_one_line_naming_the_field(runs, tmp_path, capsys, kind, fields,
+                                                      words):  # fmt: skip
+    run = _copy(runs, kind, tmp_path)
+    _tamper(run, **fields)
+    rc = main([str(run) if a == "RUN" else a for a in COMMANDS[kind]])
+    _one_line(capsys, rc, 2, "config.json", *words)
+
+
+def test_tampered_config_refused_by_every_reader(runs, tmp_path, capsys):
+    readers = (
+        ["eval", "RUN", "--max-images", "1"],
+        ["render", "RUN", "--frames", "1"],
+        ["train", "nerf", "--out", "RUN", "--resume", "--iters", "9", "--quiet"],
+    )
+    for argv in readers:
+        run = _copy(runs, "nerf", tmp_path / argv[0])
+        _tamper(run, n_samples="64")
+        rc = main([str(run) if a == "RUN" else a for a in argv])
+        _one_line(capsys, rc, 2, "config.json", "n_samples")
+
+
+def test_deeply_nested_config_is_not_a_recursion_error(runs, tmp_path, capsys):
+    run = _copy(runs, "sdf", tmp_path)
+    (run / "config.json").write_text("[" * 200_000 + "]" * 200_000)
+    rc = main(["mesh", str(run), "--out", "m.ply", "--no-screenshot"])
+    _one_line(capsys, rc, 2, "config.json", "nested too deeply")

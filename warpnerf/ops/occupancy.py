@@ -203,23 +203,27 @@ def march_rays(
     t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
     t_lo = torch.maximum(t_in, near)
     t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo)
-    # Rays the kernel must not see (checked per ray, raised after the one host sync below).
-    bad = ~(torch.isfinite(origins).all(-1) & torch.isfinite(directions).all(-1))
-    bad |= ~torch.isfinite(near) | torch.isnan(far)
-    bad |= ~(directions.abs().amax(-1) > 0)  # a zero direction never ends
-    too_long = ~((t_hi - t_lo) < MAX_STEPS * float(dt))  # k would outgrow int32 / float32 steps
-    poison = [bad, too_long]
+    # Rays the kernel must not see, in one fused test per ray (few launches: rendering marches
+    # in many rounds): a NaN/Inf origin, direction or near, or a zero direction (1 / max |d| is
+    # inf) make x non-finite; a NaN far or an interval of more than MAX_STEPS lattice steps
+    # (k would outgrow int32 and float32 steps) fail the span test. Such rays get no samples;
+    # which check failed is worked out after the one host sync below, only when one did.
+    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
+    bad = ~(torch.isfinite(x) & ((t_hi - t_lo) < MAX_STEPS * float(dt)))
     jit, kb = _empty_f(dev), _empty_i(dev)
     if jitter is not None:
         _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
         jit = jitter.to(torch.float32).contiguous()
-        poison.append(~((jit >= 0) & (jit < 1)))  # NaN included
+        bad |= ~((jit >= 0) & (jit < 1))  # NaN included
     if k_begin is not None:
         _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
-        poison.append((k_begin < -1) | (k_begin > _bridge.INT32_MAX))
-        kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
-    poison = torch.stack(poison)  # [2..4, n_rays]
-    t_lo, t_hi = t_lo.contiguous(), torch.where(poison.any(0), t_lo, t_hi).contiguous()
+        if k_begin.dtype == torch.int32:
+            bad |= k_begin < -1
+            kb = k_begin.contiguous()
+        else:
+            bad |= (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
+            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
     lo, size = _cell_geometry(box, res)
     a = _bridge.arr
     counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
@@ -239,26 +243,13 @@ def march_rays(
         int(max_samples),
     ]
     no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
-    _bridge.launch(
-        K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev
-    )
+    _bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
-    # the one host sync: the sample total and which checks failed
-    total, *flags = torch.cat([total, poison.any(1).to(torch.int64)]).tolist()
-    if flags[0]:
-        raise ValueError(
-            "origins, directions and near must be finite, far not NaN, directions non-zero"
-        )
-    if flags[1]:
-        raise ValueError(
-            f"a ray spans more than {MAX_STEPS} lattice steps of dt={dt} (directions too short "
-            "or dt too small for the box)"
-        )
-    if jitter is not None and flags[2]:
-        raise ValueError("jitter must lie in [0, 1)")
-    if k_begin is not None and flags[-1]:
-        raise ValueError("k_begin must be -1 (done) or a lattice index in [0, 2^31)")
+    # the one host sync: the sample total and whether any ray was refused
+    total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
+    if refused:
+        _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
     if total >= 2**31:
         raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
     offsets = (csum - counts).to(torch.int32)
@@ -274,6 +265,24 @@ def march_rays(
         )
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin):
+    """The ValueError for rays :func:`march_rays` refused (the slow path: only after a refusal)."""
+    finite = torch.isfinite(origins).all() & torch.isfinite(directions).all()
+    finite &= torch.isfinite(near).all() & ~torch.isnan(far).any()
+    if not bool(finite & (directions.abs().amax(-1) > 0).all()):
+        raise ValueError(
+            "origins, directions and near must be finite, far not NaN, directions non-zero"
+        )
+    if jitter is not None and not bool(((jitter >= 0) & (jitter < 1)).all()):
+        raise ValueError("jitter must lie in [0, 1)")
+    if k_begin is not None and not bool(((k_begin >= -1) & (k_begin <= _bridge.INT32_MAX)).all()):
+        raise ValueError("k_begin must be -1 (done) or a lattice index in [0, 2^31)")
+    raise ValueError(
+        f"a ray spans more than {MAX_STEPS} lattice steps of dt={dt} (directions too short, "
+        "dt too small for the box, or a value overflowed)"
+    )
 
 
 def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, check=True):
