@@ -42,7 +42,9 @@ def test_field_and_render_finite_for_small_beta(device, beta):
     out = render_nerf({"coarse": f, "fine": f}, o, d, 1.0, 5.0, n_coarse=32, n_fine=32,
                       perturb=True, aabb=[-1, -1, -1, 1, 1, 1])  # fmt: skip
     loss = (
-        out["rgb"].square().mean() + f.last_eikonal + f.eikonal(torch.rand(128, 3, device=device))
+        out["rgb"].square().mean()
+        + f.aux_losses()["eikonal"]
+        + f.eikonal(torch.rand(128, 3, device=device))
     )
     loss.backward()
     assert all(torch.isfinite(v).all() for v in out.values())

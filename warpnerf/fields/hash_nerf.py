@@ -81,6 +81,12 @@ class HashNeRFField(nn.Module):
             feat = torch.cat([h, self.sh(directions.to(h.dtype))], -1)
         return torch.sigmoid(self.color_mlp(feat))
 
+    kind = "density"  # the field protocol (see VolSDFField for an "sdf" field)
+
+    def aux_losses(self) -> dict:
+        """Regularisers of the last forward pass: none for this field."""
+        return {}
+
     def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
         sigma, h = self.density(positions)
         return sigma, self.color(h, directions)

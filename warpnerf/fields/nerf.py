@@ -70,6 +70,12 @@ class NeRFField(nn.Module):
         sigma = F.relu(raw) if self.density_activation == "relu" else F.softplus(raw - 1.0)
         return sigma, h
 
+    kind = "density"  # the field protocol (see VolSDFField for an "sdf" field)
+
+    def aux_losses(self) -> dict:
+        """Regularisers of the last forward pass: none for this field."""
+        return {}
+
     def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
         sigma, h = self.density(positions)
         feat = self.feature(h)

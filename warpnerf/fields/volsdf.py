@@ -49,7 +49,15 @@ class VolSDFField(nn.Module):
             nn.Linear(d_in, color_width), nn.ReLU(), nn.Linear(color_width, color_width),
             nn.ReLU(), nn.Linear(color_width, 3),
         )  # fmt: skip
-        self.last_eikonal = None
+        self._aux = {}  # regularisers of the last forward with gradients (see aux_losses)
+
+    kind = "sdf"  # the field protocol: "density" fields give sigma, "sdf" fields a distance
+
+    def aux_losses(self) -> dict:
+        """The regularisers of the last forward pass with gradients, once: {"eikonal": mean
+        (|grad d| - 1)^2 at the rendered samples} (empty after it was taken, or without one)."""
+        aux, self._aux = self._aux, {}
+        return aux
 
     @property
     def beta(self) -> torch.Tensor:
@@ -78,7 +86,7 @@ class VolSDFField(nn.Module):
         if not graph:
             d, g, feat = d.detach(), g.detach(), feat.detach()
         else:
-            self.last_eikonal = ((g.norm(dim=-1) - 1.0) ** 2).mean()
+            self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()}
         beta = self.beta.to(d.dtype)
         sigma = laplace_cdf(-d, beta) / beta
         n = torch.nn.functional.normalize(g, dim=-1)

@@ -375,7 +375,7 @@ class NeRFTask(Task):
         if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
             f = fields_["coarse"]
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            eik = 0.5 * (f.last_eikonal + f.eikonal(box))
+            eik = 0.5 * (f.aux_losses()["eikonal"] + f.eikonal(box))
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
