@@ -4,8 +4,6 @@ early termination, weights, extreme optical depths, zero-length intervals and Na
 
 from __future__ import annotations
 
-import contextlib
-
 import pytest
 import torch
 
@@ -16,14 +14,8 @@ from warpnerf.ops import composite as C
 F32, F64 = torch.float32, torch.float64
 
 
-@contextlib.contextmanager
 def impl(kind, block_dim=32):
-    old = dict(C._IMPL)
-    C._IMPL.update(float32_sigma=kind, block_dim=block_dim)
-    try:
-        yield
-    finally:
-        C._IMPL.update(old)
+    return C.composite_kernels(kind, block_dim)
 
 
 def _case(device, counts, *, tau_values=None, zero_len=False, nan_ray=None, seed=0):

@@ -323,20 +323,15 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
         variants = [("composite_packed", "tiled", 32), ("composite_packed_seq", "sequential", 32)]
         if dev.type == "cuda":
             variants.insert(1, ("composite_packed_b128", "tiled", 128))
-        saved = dict(C._IMPL)
-        try:
-            for n_rays, n_s in _sizes(dev, quick):
-                for label, impl, block in variants:
-                    C._IMPL.update(float32_sigma=impl, block_dim=block)
+        for n_rays, n_s in _sizes(dev, quick):
+            for label, impl, block in variants:
+                with C.composite_kernels(impl, block):
                     row = _composite_case(n_rays, n_s, dev, repeats, check_error=True)
-                    row["kernel"] = label
-                    row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
-                    row["bw_pct_fwdbwd"] = (
-                        100 * row["bytes_fwdbwd"] / (row["warp_fwdbwd_ms"] / 1e3) / bw
-                    )
-                    rows.append(row)
-        finally:
-            C._IMPL.update(saved)
+                row["kernel"] = label
+                row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
+                fwdbwd_s = row["warp_fwdbwd_ms"] / 1e3
+                row["bw_pct_fwdbwd"] = 100 * row["bytes_fwdbwd"] / fwdbwd_s / bw
+                rows.append(row)
     if kernel in ("march", "all"):
         if dev.type == "cuda":
             cases = [(400, r, 128) for r in (0.25, 0.5, 0.8, 1.2, 3.0)] + [(800, 0.8, 128)]

@@ -6,6 +6,8 @@ The maths (forward, early termination and the exact backward) is documented in t
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from . import _bridge
@@ -14,9 +16,27 @@ __all__ = ["render_packed", "render_dense", "packed_info_from_ray_indices"]
 
 
 # Which kernels composite float32 densities: "tiled" (one block per ray, coalesced loads; the
-# default) or "sequential" (one thread per ray, the only choice for float64 and for alphas). Tests
-# switch this to check the two against each other; users have no reason to.
+# default) or "sequential" (one thread per ray, the only choice for float64 and for alphas).
+# Switched only through composite_kernels() (tests and benchmarks compare the two).
 _IMPL = {"float32_sigma": "tiled", "block_dim": 32}
+
+
+@contextlib.contextmanager
+def composite_kernels(float32_sigma: str = "tiled", block_dim: int = 32):
+    """Within the block, float32 densities are composited by the ``"tiled"`` kernels (one block
+    of ``block_dim`` lanes per ray, the default) or the ``"sequential"`` ones (one thread per
+    ray); restored on exit. For tests and benchmarks: both give the same results within float32
+    round-off (tests/test_composite_tiled.py)."""
+    if float32_sigma not in ("tiled", "sequential"):
+        raise ValueError(f"float32_sigma must be 'tiled' or 'sequential', got {float32_sigma!r}")
+    block_dim = _bridge.check_int("block_dim", block_dim, lo=1, hi=1024)
+    saved = dict(_IMPL)
+    _IMPL.update(float32_sigma=float32_sigma, block_dim=block_dim)
+    try:
+        yield
+    finally:
+        _IMPL.clear()
+        _IMPL.update(saved)
 
 
 def _use_tiled(values: torch.Tensor, use_alpha: int) -> bool:
