@@ -169,7 +169,8 @@ def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
     sorted ``ray_indices`` [n]: start, count >= 0, start + count <= n, every ray's first and last
     sample belong to it, and the counts add up to n (so segments are disjoint and cover every
     sample, whose weight and gradient would otherwise be left unwritten). One host sync."""
-    info = packed_info.to(torch.int64)  # int64 sums: no int32 wrap-around while checking
+    # int64, clamped to [-1, n + 1] (which keeps every refusal): no wrap-around in the sums
+    info = packed_info.to(torch.int64).clamp(-1, n + 1)
     starts, counts = info[:, 0], info[:, 1]
     ends = starts + counts
     flags = [info.amin() >= 0 if n_rays else torch.ones((), dtype=torch.bool, device=info.device)]

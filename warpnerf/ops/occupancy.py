@@ -213,7 +213,7 @@ def march_rays(
     jit, kb = _empty_f(dev), _empty_i(dev)
     if jitter is not None:
         _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
-        jit = jitter.to(torch.float32).contiguous()
+        jitter = jit = jitter.to(torch.float32).contiguous()  # checked as the kernel sees it
         bad |= ~((jit >= 0) & (jit < 1))  # NaN included
     if k_begin is not None:
         _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
