@@ -6,6 +6,8 @@ import argparse
 import sys
 
 from ..errors import Diverged, Interrupted, UserError, describe_failure
+from ..train.box_fit import BoxFitConfig
+from ..train.sdf import SDFConfig
 from ._common import (
     _data_format_flags,
     _finite,
@@ -53,13 +55,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="cpu (default for a new fit) or cuda; on --resume, default the run's own",
     )
-    tb.add_argument("--iters", type=_positive(int), default=None, help="total steps (400)")
+    tb.add_argument(
+        "--iters", type=_positive(int), default=None, help=f"total steps ({BoxFitConfig.iters})"
+    )
     tb.add_argument("--batch", type=_positive(int), default=4096)
     tb.add_argument("--samples", type=_positive(int), default=64)
     tb.add_argument("--near", type=_finite, default=0.0)
     tb.add_argument("--far", type=_finite, default=5.0)
     tb.add_argument("--lr", type=_positive(float), default=0.02)
-    tb.add_argument("--ckpt-every", type=_positive(int), default=100)
+    tb.add_argument("--ckpt-every", type=_positive(int), default=BoxFitConfig.ckpt_every)
     tb.add_argument("--seed", type=_seed, default=0)
     tb.add_argument(
         "--max-seconds",
@@ -94,7 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     ts.add_argument("--out", required=True, help="run folder")
     ts.add_argument("--resume", action="store_true")
     ts.add_argument("--device", default=None)
-    ts.add_argument("--iters", type=_positive(int), default=None, help="total steps (2000)")
+    ts.add_argument(
+        "--iters", type=_positive(int), default=None, help=f"total steps ({SDFConfig.iters})"
+    )
     ts.add_argument("--batch", type=_positive(int), default=4096, help="points per step")
     ts.add_argument("--lr", type=_positive(float), default=1e-3)
     ts.add_argument("--eikonal-weight", type=_finite, default=0.1)

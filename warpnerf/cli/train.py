@@ -6,6 +6,9 @@ import argparse
 
 from ..errors import UserError
 from ..io import json_dumps
+from ..train.box_fit import BoxFitConfig
+from ..train.nerf_config import NeRFConfig
+from ..train.sdf import SDFConfig
 from ._common import (
     _check_out,
     _data_format_flags,
@@ -20,7 +23,7 @@ from ._common import (
 
 
 def cmd_train_box(args) -> int:
-    from ..train.box_fit import BoxFitConfig, run_box_fit_on_folder
+    from ..train.box_fit import run_box_fit_on_folder
 
     _check_out(args.out)
     if args.resume:
@@ -40,7 +43,7 @@ def cmd_train_box(args) -> int:
     if args.data is None:
         raise UserError("--data DIR is required (a Blender-format folder)")
     cfg = BoxFitConfig(
-        iters=args.iters or 400,
+        iters=args.iters or BoxFitConfig.iters,
         batch=args.batch,
         n_samples=args.samples,
         near=args.near,
@@ -101,7 +104,7 @@ def _resume_device(args):
 
 
 def cmd_train_nerf(args) -> int:
-    from ..train.nerf import NeRFConfig, train_nerf
+    from ..train.nerf import train_nerf
 
     if args.model == "volsdf" and args.field != "volsdf":
         raise UserError("train volsdf trains the volsdf field; use train nerf for --field mlp|hash")
@@ -124,7 +127,7 @@ def cmd_train_nerf(args) -> int:
             data_format=args.format,
             holdout=args.holdout,
             ndc=args.ndc,
-            iters=args.iters or 20000,
+            iters=args.iters or NeRFConfig.iters,
             batch=args.batch,
             field=args.field,
             lr=args.lr,
@@ -179,7 +182,7 @@ def cmd_train_nerf(args) -> int:
 
 
 def cmd_train_sdf(args) -> int:
-    from ..train.sdf import SDFConfig, train_sdf
+    from ..train.sdf import train_sdf
 
     _check_out(args.out)
     if args.resume:
@@ -191,7 +194,7 @@ def cmd_train_sdf(args) -> int:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
         cfg = SDFConfig(
             points=args.points,
-            iters=args.iters or 2000,
+            iters=args.iters or SDFConfig.iters,
             batch=args.batch,
             n_random=args.batch,
             lr=args.lr,
@@ -234,7 +237,9 @@ def _nerf_flags(tn) -> None:
         default=None,
         help="cpu (default for a new run) or cuda; on --resume, default the run's own",
     )
-    tn.add_argument("--iters", type=_positive(int), default=None, help="total steps (20000)")
+    tn.add_argument(
+        "--iters", type=_positive(int), default=None, help=f"total steps ({NeRFConfig.iters})"
+    )
     tn.add_argument("--batch", type=_positive(int), default=1024, help="rays per step")
     tn.add_argument(
         "--field",
@@ -268,9 +273,9 @@ def _nerf_flags(tn) -> None:
     tn.add_argument("--downscale", type=_positive(int), default=1)
     tn.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all training images")
     tn.add_argument("--builtin-size", type=_positive(int), default=48)
-    tn.add_argument("--val-every", type=_positive(int), default=1000)
+    tn.add_argument("--val-every", type=_positive(int), default=NeRFConfig.val_every)
     tn.add_argument("--val-images", type=_nonnegative, default=2)
-    tn.add_argument("--ckpt-every", type=_positive(int), default=1000)
+    tn.add_argument("--ckpt-every", type=_positive(int), default=NeRFConfig.ckpt_every)
     tn.add_argument("--seed", type=_seed, default=0)
     tn.add_argument(
         "--max-seconds",

@@ -23,7 +23,7 @@ class NeRFConfig:
     ndc: str = "auto"  # COLMAP/LLFF: NDC rays on/off; auto: on for forward-facing captures
     scene: dict | None = None  # COLMAP/LLFF, resolved at the start: format, transform (world ->
     # normalised [4][4]), ndc camera (fx, fy, W, H) or None, near, far, aabb
-    iters: int = 2000
+    iters: int = 20000
     batch: int = 1024  # rays per step, uniform across all training images
     field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast);
     # "volsdf": a neural SDF rendered through VolSDF's Laplace density
@@ -70,9 +70,9 @@ class NeRFConfig:
     max_images: int = 0  # 0 = all
     builtin_size: int = 48
     t_threshold: float = 1e-4  # early termination (training and rendering)
-    val_every: int = 500
+    val_every: int = 1000
     val_images: int = 2
-    ckpt_every: int = 500
+    ckpt_every: int = 1000
     chunk: int = 8192  # rays per chunk when rendering whole images
     max_seconds: float = 0.0  # stop (and checkpoint) after this much training time in this
     # invocation (a resume gets a fresh budget); 0 = no limit
