@@ -4,8 +4,10 @@
 #   (git worktree add /tmp/b COMMIT; cp -r /tmp/b/warpnerf .gpu/base/; cp -r /tmp/b/kernels .gpu/base/warpnerf/kernels)
 # Data: lego under .gpu/lego (carried). Expects Warp importable and this tree installed. Writes $OUT.
 # Measures: training step time (hash field + occupancy grid, ~262k samples a step, median over
-# steps 300..ITERS from history.json), twice per version interleaved; the median frame time of
-# `eval` (20 val images) of one run rendered by each version.
+# steps 300..ITERS from history.json), REPS runs per version interleaved; the median frame time of
+# `eval` (20 val images) of one run rendered by each version. The order within a repetition
+# alternates (ORDER=alt, the default: the second run of a pair measured a few % slower on the
+# H100); ORDER="base new" or "new base" fixes it.
 set -u
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
@@ -13,19 +15,22 @@ export PYTHONUNBUFFERED=1
 DATA=$PWD/${DATA:-.gpu/lego}
 ITERS=${ITERS:-1000}
 args="train nerf --data $DATA --field hash --batch 4096 --target-samples 262144 --tf32 --iters $ITERS --val-images 0 --device cuda --quiet"
+order() {  # the versions' order in repetition $1: ORDER="base new", "new base" or "alt" (default)
+  case ${ORDER:-alt} in alt) if [ $(($1 % 2)) = 1 ]; then echo base new; else echo new base; fi ;; *) echo $ORDER ;; esac
+}
 run_version() {  # version, argv...
   if [ "$1" = base ]; then shift; (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -m warpnerf.cli "$@"); else shift; python3 -m warpnerf.cli "$@"; fi
 }
 (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -c "import warpnerf; print('base code:', warpnerf.__file__)")
 python3 -c "import warpnerf; print('new code:', warpnerf.__file__)"
 for r in $(seq 1 ${REPS:-2}); do
-  for v in base new; do
+  for v in $(order $r); do
     rm -rf /tmp/ab_${v}_$r
     run_version $v $args --out /tmp/ab_${v}_$r > /dev/null 2>> "$OUT/log.txt" || echo "train $v $r failed" | tee -a "$OUT/log.txt"
   done
 done
 for r in $(seq 1 ${EVAL_REPS:-4}); do  # interleaved: the host's speed drifts between runs
-  for v in base new; do
+  for v in $(order $r); do
     rm -rf /tmp/ev_${v}_$r
     run_version $v eval /tmp/ab_new_1 --max-images 20 --out /tmp/ev_${v}_$r >> "$OUT/log.txt" 2>&1
   done
@@ -59,6 +64,10 @@ for v in ("base", "new"):
 m = {k: statistics.median(v) for k, v in rows.items()}
 for what, k in (("step", ""), ("step per sample", "_per"), ("frame", "_render")):
     q = m["new" + k] / m["base" + k]
-    print(f"{what}: new / base = {q:.4f} ({100 * (q - 1):+.2f} %) (medians over runs)")
+    pairs = [a / b for a, b in zip(rows["new" + k], rows["base" + k])]
+    sd = statistics.stdev(pairs) / len(pairs) ** 0.5 if len(pairs) > 1 else float("nan")
+    print(f"{what}: new / base = {q:.4f} ({100 * (q - 1):+.2f} %) (medians over runs); "
+          f"paired ratios {' '.join(f'{x:.3f}' for x in pairs)}, mean {statistics.mean(pairs):.4f} "
+          f"+- {sd:.4f} (standard error)")
 json.dump(rows, open(os.environ.get("OUT", "/tmp/out") + "/overhead.json", "w"))
 PY
