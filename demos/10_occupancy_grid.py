@@ -46,22 +46,20 @@ def slices(grid) -> np.ndarray:
 
 
 def main(argv=None) -> int:
-    p = _nerf_args.parser(__doc__.splitlines()[0], "out/10_occupancy_grid")
-    p.add_argument("--grid-res", type=_nerf_args.positive, default=32)
+    flags = _nerf_args.FLAGS + ("grid_res", "hash_log2_size", "hash_max_res", "hidden")
+    p = _nerf_args.parser(
+        __doc__.splitlines()[0], "out/10_occupancy_grid", flags, grid_res=32, hash_log2_size=12,
+        hash_max_res=32, hidden=32, lr=1e-2, lr_final=1e-3, batch=512, builtin_size=24,
+    )  # fmt: skip
     p.add_argument("--march-step", type=float, default=0.0, help="0: box diagonal / 256")
-    p.add_argument("--hash-log2-size", type=_nerf_args.positive, default=12)
-    p.add_argument("--hash-max-res", type=_nerf_args.positive, default=32)
-    p.add_argument("--hidden", type=_nerf_args.positive, default=32)
-    p.set_defaults(lr=1e-2, lr_final=1e-3, batch=512, builtin_size=24)
     args = p.parse_args(argv)
+    if not args.grid_res:
+        p.error("--grid-res must be positive (the demo compares the grid against none)")
     out = Path(args.out)
     common = dict(
         field="hash",
         hash_levels=4 if args.data == "builtin" else 16,
-        hash_log2_size=args.hash_log2_size,
         hash_base_res=4 if args.data == "builtin" else 16,
-        hash_max_res=args.hash_max_res,
-        hidden=args.hidden,
     )
     rows = {}
     try:
@@ -74,7 +72,7 @@ def main(argv=None) -> int:
             rows[name] = train_and_evaluate(cfg, out / name, max_images=args.eval_images)
             hist = json.loads((out / name / "history.json").read_text())
             rows[name]["samples_per_ray"] = (
-                hist["samples_per_ray"][-1] if grid_res else float(args.samples)
+                hist["samples_per_ray"][-1] if grid_res else float(args.n_coarse)
             )
     except UserError as e:
         print(f"10_occupancy_grid: error: {e}", file=sys.stderr)

@@ -1,40 +1,33 @@
-"""Shared flags of the NeRF demos (03, 04, 05): data, sizes and the model, mapped to NeRFConfig."""
+"""Shared flags of the NeRF demos (03, 04, 05, 10): data, sizes and the model, built from
+NeRFConfig's fields (warpnerf.options) with the demos' smaller defaults."""
 
 from __future__ import annotations
 
 import argparse
-import math
+import dataclasses
 from pathlib import Path
 
 import torch
 
+from warpnerf.options import CHECKS, add_flags, from_flags
 from warpnerf.train import NeRFConfig
 
+positive = CHECKS[("int", "positive")]
 
-def positive(text):
-    v = int(text)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
-    return v
+# the NeRFConfig fields the demos show, and the demos' own (smaller, faster) defaults
+FLAGS = ("data", "iters", "batch", "n_coarse", "n_layers", "width", "lr", "lr_final", "downscale",
+         "near", "far", "builtin_size", "device")  # fmt: skip
+DEFAULTS = dict(iters=500, n_coarse=32, n_layers=4, width=64, lr=5e-3, lr_final=5e-4,
+                builtin_size=32)  # fmt: skip
 
 
-def parser(description: str, out: str) -> argparse.ArgumentParser:
+def parser(description: str, out: str, flags=FLAGS, **defaults) -> argparse.ArgumentParser:
+    """The demo's flags, built from NeRFConfig (warpnerf.options): ``flags`` (field names) with
+    the demos' defaults, updated by ``defaults``."""
     p = argparse.ArgumentParser(description=description)
-    p.add_argument("--data", default="builtin", help="dataset folder (default: built-in scene)")
     p.add_argument("--out", default=out)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--iters", type=positive, default=500)
-    p.add_argument("--batch", type=positive, default=1024)
-    p.add_argument("--samples", type=positive, default=32)
-    p.add_argument("--layers", type=positive, default=4)
-    p.add_argument("--width", type=positive, default=64)
-    p.add_argument("--lr", type=float, default=5e-3)
-    p.add_argument("--lr-final", type=float, default=5e-4)
-    p.add_argument("--downscale", type=positive, default=1)
-    p.add_argument("--near", type=float, default=None)
-    p.add_argument("--far", type=float, default=None)
-    p.add_argument("--builtin-size", type=positive, default=32)
     p.add_argument("--eval-images", type=int, default=8, help="val images scored (0 = all)")
+    add_flags(p, NeRFConfig, include=flags, defaults={**DEFAULTS, **defaults})
     return p
 
 
@@ -47,23 +40,9 @@ def config(args, **overrides) -> NeRFConfig:
         raise SystemExit("error: --eval-images must be >= 0")
     if Path(args.out).exists() and not Path(args.out).is_dir():
         raise SystemExit(f"error: --out {args.out} is a file")
-    if not all(math.isfinite(v) for v in (args.near, args.far, args.lr, args.lr_final) if v):
-        raise SystemExit("error: --near, --far, --lr and --lr-final must be finite")
-    kw = dict(
-        data=args.data,
-        iters=args.iters,
-        batch=args.batch,
-        n_coarse=args.samples,
-        n_layers=args.layers,
-        width=args.width,
-        skip=max(1, args.layers // 2),
-        lr=args.lr,
-        lr_final=args.lr_final,
-        downscale=args.downscale,
-        near=args.near,
-        far=args.far,
-        builtin_size=args.builtin_size,
-        device=args.device,
+    kw = from_flags(NeRFConfig, args, include=[f.name for f in dataclasses.fields(NeRFConfig)])
+    kw.update(
+        skip=max(1, args.n_layers // 2),
         val_every=max(args.iters, 1),
         val_images=0,
         ckpt_every=max(args.iters, 1),

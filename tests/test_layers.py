@@ -13,6 +13,7 @@ LAYERS = {
     "kernels": 0,
     "errors": 1,
     "trace": 1,
+    "options": 1,
     "reference": 2,
     "ops": 2,
     "io": 2,

@@ -6,21 +6,17 @@ import argparse
 import sys
 
 from ..errors import Diverged, Interrupted, UserError, describe_failure
-from ..train.box_fit import BoxFitConfig
-from ..train.sdf import SDFConfig
 from ._common import (
     _data_format_flags,
     _finite,
     _nonnegative,
-    _nonnegative_float,
     _positive,
-    _seed,
     _sigterm_exits,
     _size,
 )
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_mesh, cmd_render
-from .train import _grid_flags, _nerf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
+from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,71 +43,22 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
     tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
-    tb.add_argument("--data", help="folder with transforms*.json and PNG images")
-    tb.add_argument("--out", required=True, help="run folder (config, checkpoint, result)")
-    tb.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
-    tb.add_argument(
-        "--device",
-        default=None,
-        help="cpu (default for a new fit) or cuda; on --resume, default the run's own",
-    )
-    tb.add_argument(
-        "--iters", type=_positive(int), default=None, help=f"total steps ({BoxFitConfig.iters})"
-    )
-    tb.add_argument("--batch", type=_positive(int), default=4096)
-    tb.add_argument("--samples", type=_positive(int), default=64)
-    tb.add_argument("--near", type=_finite, default=0.0)
-    tb.add_argument("--far", type=_finite, default=5.0)
-    tb.add_argument("--lr", type=_positive(float), default=0.02)
-    tb.add_argument("--ckpt-every", type=_positive(int), default=BoxFitConfig.ckpt_every)
-    tb.add_argument("--seed", type=_seed, default=0)
-    tb.add_argument(
-        "--max-seconds",
-        type=float,
-        default=0.0,
-        help="stop after this much fitting time (0: run all --iters)",
-    )
-    tb.add_argument("--frames", type=_nonnegative, default=40, help="spiral video frames (0: none)")
-    tb.add_argument("--quiet", action="store_true")
+    _box_flags(tb)
     tb.set_defaults(func=cmd_train_box, subparser=tb)
 
     tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
-    _nerf_flags(tn)
-    _grid_flags(tn)
+    _nerf_flags(tn, "nerf")
     tn.set_defaults(func=cmd_train_nerf, subparser=tn)
 
     tv = tsub.add_parser(
         "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
         "--field volsdf with VolSDF's defaults"
     )  # fmt: skip
-    _nerf_flags(tv)
-    tv.add_argument("--beta", type=_positive(float), default=0.1, help="initial Laplace scale")
-    tv.add_argument("--beta-min", type=_positive(float), default=1e-4)
-    tv.add_argument("--fixed-beta", action="store_true", help="keep beta at --beta")
-    tv.add_argument("--eikonal-weight", type=_finite, default=0.1)
-    tv.set_defaults(
-        func=cmd_train_nerf, field="volsdf", pos_freqs=6, coarse_fine=True, subparser=tv
-    )
+    _nerf_flags(tv, "volsdf")
+    tv.set_defaults(func=cmd_train_nerf, subparser=tv)
 
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
-    ts.add_argument("--points", help="FILE.npz (verts|points [, normals]) or FILE.ply, or builtin")
-    ts.add_argument("--out", required=True, help="run folder")
-    ts.add_argument("--resume", action="store_true")
-    ts.add_argument("--device", default=None)
-    ts.add_argument(
-        "--iters", type=_positive(int), default=None, help=f"total steps ({SDFConfig.iters})"
-    )
-    ts.add_argument("--batch", type=_positive(int), default=4096, help="points per step")
-    ts.add_argument("--lr", type=_positive(float), default=1e-3)
-    ts.add_argument("--eikonal-weight", type=_finite, default=0.1)
-    ts.add_argument("--normal-weight", type=_finite, default=1.0, help="when normals are given")
-    ts.add_argument("--layers", type=_positive(int), default=6)
-    ts.add_argument("--width", type=_positive(int), default=128)
-    ts.add_argument("--pos-freqs", type=_nonnegative, default=6)
-    ts.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
-    ts.add_argument("--max-seconds", type=_nonnegative_float, default=0.0)
-    ts.add_argument("--seed", type=_seed, default=0)
-    ts.add_argument("--quiet", action="store_true")
+    _sdf_flags(ts)
     ts.set_defaults(func=cmd_train_sdf, subparser=ts)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")

@@ -34,6 +34,7 @@ from ..io import (
     write_video,
 )
 from ..ops import generate_rays, random_pixels
+from ..options import option
 from ..render import render_rays, render_views
 from .loop import LoopSettings, Task, lock_run, resume_checks, run_loop
 
@@ -56,21 +57,29 @@ _RUN_KEYS = ("data", "device", "model")  # saved in config.json beside the BoxFi
 
 @dataclass
 class BoxFitConfig:
-    iters: int = 400
-    batch: int = 4096  # rays per step, drawn uniformly across all images
-    n_samples: int = 64  # stratified samples per ray (jittered while fitting)
-    near: float = 0.0
-    far: float = 5.0
-    lr: float = 0.02  # Adam, decayed exponentially to lr * lr_final_ratio at lr_decay_steps
-    lr_final_ratio: float = 0.1
-    lr_decay_steps: int = 0  # 0: iters (a run folder saves its first invocation's value)
-    beta: float = 0.05
-    alpha: float = 1.0
-    background: float = 0.0  # black, as the seed's box task
-    ckpt_every: int = 100  # run folders: steps between checkpoints
-    max_seconds: float = 0.0  # stop (a run folder checkpoints) after this much fitting time in
-    # this call; a resume gets a fresh budget; 0 = no limit
-    seed: int = 0
+    """The box fit's settings, defaults and help (`warpnerf train box` builds its flags from
+    these fields: warpnerf.options)."""
+
+    iters: int = option(400, "total steps", check="positive")
+    batch: int = option(4096, "rays per step, drawn uniformly across all images",
+                        check="positive")  # fmt: skip
+    n_samples: int = option(64, "stratified samples per ray (jittered while fitting)",
+                            flag="--samples", check="positive")  # fmt: skip
+    near: float = option(0.0, "near bound of the rays", check="finite")
+    far: float = option(5.0, "far bound of the rays", check="finite")
+    # Adam, decayed exponentially to lr * lr_final_ratio at lr_decay_steps
+    lr: float = option(0.02, "Adam's learning rate", check="positive")
+    lr_final_ratio: float = option(0.1, flag=None)
+    lr_decay_steps: int = option(0, flag=None)  # 0: iters (a run saves its first invocation's)
+    beta: float = option(0.05, flag=None)
+    alpha: float = option(1.0, flag=None)
+    background: float = option(0.0, flag=None)  # black, as the seed's box task
+    ckpt_every: int = option(100, "steps between checkpoints", check="positive")
+    max_seconds: float = option(
+        0.0, "stop (a run folder checkpoints) after this much fitting time in this call (a "
+        "resume gets a fresh budget; 0: run all --iters)", check="nonnegative",
+    )  # fmt: skip
+    seed: int = option(0, "random seed", check="seed")
 
     def to_dict(self):
         return asdict(self)

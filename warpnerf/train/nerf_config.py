@@ -11,74 +11,131 @@ from pathlib import Path
 import torch
 
 from ..errors import UserError
+from ..options import option
 
-__all__ = ["NeRFConfig"]
+__all__ = ["NeRFConfig", "VolSDFConfig"]
+
+
+FORMATS = ("auto", "blender", "nerfstudio", "colmap", "llff")  # (data.datasets.FORMATS)
+FIELDS = ("mlp", "hash", "volsdf")
+FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
+GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
 
 
 @dataclass
 class NeRFConfig:
-    data: str = "builtin"  # a dataset folder, or "builtin" for the small synthetic scene
-    data_format: str = "auto"  # auto (detect), blender, nerfstudio, colmap or llff
-    holdout: int = 8  # COLMAP/LLFF: every holdout-th image is val/test (0: none)
-    ndc: str = "auto"  # COLMAP/LLFF: NDC rays on/off; auto: on for forward-facing captures
-    scene: dict | None = None  # COLMAP/LLFF, resolved at the start: format, transform (world ->
-    # normalised [4][4]), ndc camera (fx, fy, W, H) or None, near, far, aabb
-    iters: int = 20000
-    batch: int = 1024  # rays per step, uniform across all training images
-    field: str = "mlp"  # "mlp": NeRF's MLP; "hash": hash-grid encoding + small MLPs (fast);
-    # "volsdf": a neural SDF rendered through VolSDF's Laplace density
-    lr: float | None = None  # None: 5e-4 (mlp) or 1e-2 (hash)
-    lr_final: float | None = None  # lr decays exponentially to this at lr_decay_steps;
-    # None: lr / 10 (mlp) or lr / 20 (hash)
-    lr_decay_steps: int = 0  # 0: the run's first `iters` (resolved and saved at the start)
-    n_coarse: int = 64
-    n_fine: int = 0  # > 0 turns on the fine network (coarse/fine hierarchical sampling)
-    view_dependence: bool = True
-    n_layers: int = 8
-    width: int = 256
-    skip: int = 4
-    pos_freqs: int = 10
-    dir_freqs: int = 4
-    density_activation: str = "softplus"
-    hash_levels: int = 16  # hash field: grid levels, table rows per level (log2), resolutions
-    hash_log2_size: int = 19
-    hash_base_res: int = 16
-    hash_max_res: int = 2048
-    hidden: int = 64  # hash field: width of its MLPs
-    beta: float = 0.1  # volsdf: initial Laplace scale (world units), its floor, learned or fixed
-    beta_min: float = 1e-4
-    learn_beta: bool = True
-    eikonal_weight: float = 0.1  # volsdf: weight of (|grad d| - 1)^2 (samples + random points)
-    grid_res: int | None = None  # occupancy grid cells per axis (even; 0 = no grid, dense
-    # stratified/hierarchical samples); None: 128 for the hash field, 0 otherwise
-    grid_every: int = 16  # steps between grid updates
-    grid_warmup: int = 256  # steps during which every update evaluates all cells
-    occ_threshold: float = 0.01  # a cell is empty when one step through it has opacity below this
-    march_step: float = 0.0  # marching step with a grid; 0: the box diagonal / 1024
-    max_samples: int = 1024  # samples per ray at most with a grid
-    round_samples: int = 0  # with a grid, rendering (no gradients) marches in rounds of this
-    # many samples per live ray; 0: one round over all marched samples
-    render_half: bool = False  # with a grid on CUDA, rendering runs the MLPs in float16
-    target_samples: int = 0  # > 0: rays per step adapt so each step composites ~this many
-    # samples (starting from --batch); 0: fixed --batch
-    aabb: float = 0.0  # hash field: half-size of the scene cube at the origin (samples are
-    # restricted to it); 0: 1.5 for datasets (lego), the built-in scene's own for builtin
-    near: float | None = None  # None: 2 for datasets (lego), the built-in scene's own for builtin
-    far: float | None = None  # None: 6 for datasets, the built-in scene's own for builtin
-    background: float = 1.0  # white, as the NeRF-synthetic evaluation
-    downscale: int = 1
-    max_images: int = 0  # 0 = all
-    builtin_size: int = 48
-    t_threshold: float = 1e-4  # early termination (training and rendering)
-    val_every: int = 1000
-    val_images: int = 2
-    ckpt_every: int = 1000
-    chunk: int = 8192  # rays per chunk when rendering whole images
-    max_seconds: float = 0.0  # stop (and checkpoint) after this much training time in this
-    # invocation (a resume gets a fresh budget); 0 = no limit
-    tf32: bool = False  # TF32 matrix products for the MLPs on CUDA (kernels stay float32)
-    seed: int = 0
-    device: str = "cpu"
+    """Every setting of a NeRF (or VolSDF) run, its default and its help; the flags of `warpnerf
+    train nerf|volsdf` and of the NeRF demos are built from these fields (warpnerf.options).
+    Values left None (and aabb/march_step 0) are filled in from the data and the field by
+    :meth:`resolve`, called once by :meth:`validate` at the start of training; the result is
+    saved in the run's config.json."""
+
+    data: str = option(
+        "builtin", "Blender, nerfstudio, COLMAP or LLFF folder, or 'builtin' (the built-in scene)"
+    )
+    data_format: str = option(
+        "auto", "data format (auto: detect)", flag="--format", choices=FORMATS
+    )
+    holdout: int = option(
+        8, "COLMAP/LLFF: every Nth image (sorted names) is val/test; 0 = none",
+        check="nonnegative",
+    )  # fmt: skip
+    ndc: str = option(
+        "auto", "COLMAP/LLFF: NDC rays (auto: on for forward-facing captures)",
+        choices=("auto", "on", "off"),
+    )  # fmt: skip
+    # COLMAP/LLFF, resolved at the start: format, transform (world -> normalised [4][4]), ndc
+    # camera (fx, fy, W, H) or None, near, far, aabb
+    scene: dict | None = option(None, flag=None)
+    iters: int = option(20000, "total steps", check="positive")
+    batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
+    field: str = option(
+        "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
+        "volsdf: neural SDF with VolSDF's density (see `train volsdf`)", choices=FIELDS,
+    )  # fmt: skip
+    lr: float | None = option(None, "5e-4 (mlp), 1e-2 (hash)", check="positive")
+    lr_final: float | None = option(
+        None, "lr decays exponentially to this at lr_decay_steps (default lr/10 (mlp), lr/20)",
+        check="positive",
+    )  # fmt: skip
+    # 0: the run's first `iters` (resolved and saved at the start)
+    lr_decay_steps: int = option(0, flag=None)
+    n_coarse: int = option(64, "coarse samples per ray", flag="--samples", check="positive")
+    n_fine: int = option(0, flag=None)  # > 0: the fine network (--coarse-fine --fine-samples N)
+    view_dependence: bool = option(True, "colour depends on the viewing direction")
+    n_layers: int = option(8, "MLP layers", flag="--layers", check="positive")
+    width: int = option(256, "MLP width", check="positive")
+    skip: int = option(4, flag=None)
+    pos_freqs: int = option(10, "positional-encoding frequencies", check="nonnegative")
+    dir_freqs: int = option(4, "direction-encoding frequencies", check="nonnegative")
+    density_activation: str = option("softplus", flag=None)
+    hash_levels: int = option(16, "hash field: grid levels", check="positive")
+    hash_log2_size: int = option(19, "hash field: log2 of the rows per level", check="positive")
+    hash_base_res: int = option(16, flag=None)
+    hash_max_res: int = option(2048, "hash field: finest grid resolution", check="positive")
+    hidden: int = option(64, "hash field MLP width", check="positive")
+    # volsdf: the Laplace scale (world units), its floor, learned or fixed; the eikonal weight
+    beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
+    beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
+    learn_beta: bool = option(True, "keep beta at --beta", negate="--fixed-beta", groups=VOLSDF)
+    eikonal_weight: float = option(
+        0.1, "weight of (|grad d| - 1)^2 (samples + random points)", check="finite",
+        groups=VOLSDF,
+    )  # fmt: skip
+    grid_res: int | None = option(
+        None, "occupancy grid cells per axis, even (default 128 with --field hash; 0: no grid, "
+        "stratified/hierarchical samples instead)", check="nonnegative", groups=GRID,
+    )  # fmt: skip
+    grid_every: int = option(16, "steps between grid updates", check="positive", groups=GRID)
+    grid_warmup: int = option(
+        256, "steps during which every update evaluates all cells", check="nonnegative",
+        groups=GRID,
+    )  # fmt: skip
+    occ_threshold: float = option(
+        0.01, "a cell is empty when one step through it has opacity below this",
+        check="positive", groups=GRID,
+    )  # fmt: skip
+    march_step: float = option(
+        0.0, "marching step with a grid (0: the box diagonal / 1024)", check="nonnegative",
+        groups=GRID,
+    )  # fmt: skip
+    max_samples: int = option(1024, "samples per ray at most, with a grid", check="positive",
+                              groups=GRID)  # fmt: skip
+    round_samples: int = option(
+        0, "with a grid, renders march in rounds of this many samples per live ray (0: one "
+        "round)", check="nonnegative", groups=GRID,
+    )  # fmt: skip
+    render_half: bool = option(False, flag=None)  # grid on CUDA: rendering MLPs in float16
+    target_samples: int = option(
+        0, "with a grid: adapt rays per step to composite about this many samples (0: fixed "
+        "--batch)", check="nonnegative", groups=GRID,
+    )  # fmt: skip
+    aabb: float = option(
+        0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
+        "built-in scene's own for builtin)", check="nonnegative",
+    )  # fmt: skip
+    near: float | None = option(None, "default 2 (the built-in scene's own for builtin)",
+                                check="finite")  # fmt: skip
+    far: float | None = option(None, "default 6 (the built-in scene's own for builtin)",
+                               check="finite")  # fmt: skip
+    background: float = option(1.0, flag=None)  # white, as the NeRF-synthetic evaluation
+    downscale: int = option(1, "image downscale factor", check="positive")
+    max_images: int = option(0, "training images used (0 = all)", check="nonnegative")
+    builtin_size: int = option(48, "image size of the built-in scene", check="positive")
+    t_threshold: float = option(
+        1e-4, "early ray termination below this transmittance (0: off)", check="finite"
+    )
+    val_every: int = option(1000, "steps between validations", check="positive")
+    val_images: int = option(2, "validation images scored", check="nonnegative")
+    ckpt_every: int = option(1000, "steps between checkpoints", check="positive")
+    chunk: int = option(8192, flag=None)  # rays per chunk when rendering whole images
+    max_seconds: float = option(
+        0.0, "stop after this much training time in this invocation (a resume gets a fresh "
+        "budget; 0: run all --iters)", check="nonnegative",
+    )  # fmt: skip
+    tf32: bool = option(False, "TF32 matrix products on CUDA (kernels stay float32)")
+    seed: int = option(0, "random seed", check="seed")
+    device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
 
     def to_dict(self):
         return asdict(self)
@@ -189,9 +246,8 @@ class NeRFConfig:
             raise fail("holdout", f"must be 0 (none) or >= 2, got {self.holdout}")
         if not 0 <= self.seed < 2**31:
             raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
-        choices = {"field": ("mlp", "hash", "volsdf"), "ndc": ("auto", "on", "off"),
-                   "density_activation": ("relu", "softplus"),
-                   "data_format": ("auto", "blender", "nerfstudio", "colmap", "llff")}  # fmt: skip
+        choices = {"field": FIELDS, "ndc": ("auto", "on", "off"),
+                   "density_activation": ("relu", "softplus"), "data_format": FORMATS}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
@@ -293,6 +349,17 @@ class NeRFConfig:
         if self.field not in ("hash", "volsdf"):
             return None
         return [-a, -a, -a, a, a, a]
+
+
+@dataclass
+class VolSDFConfig(NeRFConfig):
+    """`warpnerf train volsdf`: a NeRF run with the volsdf field and VolSDF's defaults (fewer
+    position frequencies, coarse/fine sampling). Saved and loaded as a NeRFConfig."""
+
+    field: str = option("volsdf", NeRFConfig.__dataclass_fields__["field"].metadata["help"],
+                        choices=FIELDS)  # fmt: skip
+    pos_freqs: int = option(6, "positional-encoding frequencies", check="nonnegative")
+    n_fine: int = option(FINE_SAMPLES, flag=None)
 
 
 def _number(v) -> bool:

@@ -27,6 +27,7 @@ from ..io import (
     load_weights,
     write_json,
 )
+from ..options import option
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
@@ -39,25 +40,33 @@ OUTPUTS = ("config.json", CHECKPOINT, "history.json", "metrics.json", "mesh.ply"
 
 @dataclass
 class SDFConfig:
-    points: str = "builtin"  # .npz (verts|points [, normals]) or .ply, or "builtin" (a torus)
-    iters: int = 2000
-    batch: int = 4096  # surface points per step
-    n_random: int = 4096  # eikonal points per step (half uniform in the box, half near points)
-    lr: float = 1e-3
-    lr_final: float = 1e-4  # reached at lr_decay_steps (0: the first invocation's iters, saved)
-    lr_decay_steps: int = 0
-    eikonal_weight: float = 0.1
-    normal_weight: float = 1.0  # used when the point cloud has normals
-    n_layers: int = 6
-    width: int = 128
-    skip: int = 3
-    pos_freqs: int = 6
-    resolution: int = 128  # marching-cubes grid at the end
-    ckpt_every: int = 500
-    max_seconds: float = 0.0
-    seed: int = 0
-    device: str = "cpu"
-    model: str = MODEL
+    """Every setting of a neural-SDF fit, its default and help (`warpnerf train sdf` builds its
+    flags from these fields: warpnerf.options)."""
+
+    points: str = option(
+        "builtin", "FILE.npz (verts|points [, normals]) or FILE.ply, or builtin (a torus)"
+    )
+    iters: int = option(2000, "total steps", check="positive")
+    batch: int = option(4096, "surface points per step", check="positive")
+    # eikonal points per step (half uniform in the box, half near the points); the CLI: = batch
+    n_random: int = option(4096, flag=None)
+    lr: float = option(1e-3, "Adam's learning rate", check="positive")
+    lr_final: float = option(1e-4, flag=None)  # reached at lr_decay_steps
+    lr_decay_steps: int = option(0, flag=None)  # 0: the first invocation's iters, saved
+    eikonal_weight: float = option(0.1, "weight of (|grad f| - 1)^2", check="finite")
+    normal_weight: float = option(1.0, "weight of the normal term, when normals are given",
+                                  check="finite")  # fmt: skip
+    n_layers: int = option(6, "MLP layers", flag="--layers", check="positive")
+    width: int = option(128, "MLP width", check="positive")
+    skip: int = option(3, flag=None)  # the CLI: layers // 2
+    pos_freqs: int = option(6, "positional-encoding frequencies", check="nonnegative")
+    resolution: int = option(128, "marching-cubes grid at the end", check="positive")
+    ckpt_every: int = option(500, "steps between checkpoints", check="positive")
+    max_seconds: float = option(0.0, "stop after this much training time (0: run all --iters)",
+                                check="nonnegative")  # fmt: skip
+    seed: int = option(0, "random seed", check="seed")
+    device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
+    model: str = option(MODEL, flag=None)
 
     def to_dict(self):
         return asdict(self)

@@ -1,0 +1,170 @@
+"""Task configs as the single source of defaults, help and command-line flags.
+
+A config is a dataclass whose fields are declared with :func:`option` (default, help, flag name,
+check, choices, groups). :func:`add_flags` builds the argparse flags of a config class from
+those declarations (so a flag's default *is* the field's default: they cannot drift), and
+:func:`from_flags` builds the config's keyword arguments back from the parsed flags. The CLI
+(``warpnerf train ...``) and the demos use both; the help a flag shows is the field's.
+
+Example::
+
+    @dataclass
+    class MyConfig:
+        iters: int = option(2000, "total steps", check="positive")
+        lr: float = option(1e-3, "Adam's learning rate", check="positive")
+
+    p = argparse.ArgumentParser()
+    add_flags(p, MyConfig)                # --iters, --lr with MyConfig's defaults
+    cfg = MyConfig(**from_flags(MyConfig, p.parse_args()))
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+
+__all__ = ["option", "add_flags", "from_flags", "flag_of", "number_type", "CHECKS"]
+
+_AUTO = "auto"
+
+
+def number_type(kind, ok, rule: str):
+    """An argparse type: ``kind(text)`` (int or float) that must satisfy ``ok`` (``rule`` says
+    how, in the error)."""
+    noun = "an integer" if kind is int else "a number"
+
+    def parse(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {noun}, got {text!r}") from None
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
+        return v
+
+    return parse
+
+
+# the argparse type of each (annotation, check): what the command line accepts before the
+# config's own validation (which knows the other fields) runs
+CHECKS = {
+    ("int", "positive"): number_type(int, lambda v: v > 0, "positive and finite"),
+    ("int", "nonnegative"): number_type(int, lambda v: v >= 0, ">= 0"),
+    ("int", None): number_type(int, lambda v: True, "an integer"),
+    # seeds feed torch generators (64-bit) after offsets and multiplications per step: 31 bits
+    ("int", "seed"): number_type(int, lambda v: 0 <= v < 2**31, "an integer in [0, 2^31)"),
+    ("float", "positive"): number_type(
+        float, lambda v: v > 0 and math.isfinite(v), "positive and finite"
+    ),
+    ("float", "nonnegative"): number_type(
+        float, lambda v: v >= 0 and math.isfinite(v), "finite and >= 0"
+    ),
+    ("float", "finite"): number_type(float, math.isfinite, "finite"),
+    ("float", None): number_type(float, math.isfinite, "finite"),
+    ("str", None): str,
+}
+
+
+def option(
+    default,
+    help: str = "",
+    *,
+    flag: str | None = _AUTO,
+    check: str | None = None,
+    choices=None,
+    groups: tuple = (),
+    negate: str | None = None,
+):
+    """A config field: its ``default``, the ``help`` its flag shows, the ``flag`` (default
+    ``--name-with-dashes``; None: not on the command line), the ``check`` of its value on the
+    command line (positive, nonnegative, finite, seed), its ``choices``, the ``groups`` of
+    commands that show it (empty: every command built from the config), and for a boolean whose
+    default is True, ``negate``: the flag that turns it off (e.g. ``--fixed-beta``)."""
+    meta = dict(help=help, flag=flag, check=check, choices=choices, groups=tuple(groups))
+    meta["negate"] = negate
+    if isinstance(default, (list, dict)):
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
+    return dataclasses.field(default=default, metadata=meta)
+
+
+def _fields(cls, groups=(), include=None, exclude=()):
+    for f in dataclasses.fields(cls):
+        m = f.metadata
+        if "flag" not in m or m["flag"] is None or f.name in exclude:
+            continue
+        if include is not None and f.name not in include:
+            continue
+        if include is None and m["groups"] and not set(m["groups"]) & set(groups):
+            continue
+        yield f
+
+
+def flag_of(f) -> str:
+    """The command-line flag of a config field (``dataclasses.Field``)."""
+    flag = f.metadata.get("flag", _AUTO)
+    return "--" + f.name.replace("_", "-") if flag in (_AUTO, None) else flag
+
+
+def _kind(f) -> str:
+    t = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", str(f.type))
+    return t.replace(" | None", "").replace("Optional[", "").rstrip("]").strip()
+
+
+def _default(f):
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory()
+
+
+def add_flags(parser, cls, *, groups=(), include=None, exclude=(), defaults=None, unset=()) -> None:
+    """Adds the flags of config class ``cls`` to ``parser``: the fields declared with a flag,
+    those of the given ``groups`` too (or exactly the fields named in ``include``). Each
+    flag's default is the field's default, except for those in ``defaults`` (a demo's own,
+    smaller settings: {field: value}) and those in ``unset`` (default None, meaning "not
+    given": the config's default applies, as :func:`from_flags` leaves them out; the help says
+    which default that is). The parsed value lands under the field's name."""
+    defaults = defaults or {}
+    for f in _fields(cls, groups, include, exclude):
+        m, kind = f.metadata, _kind(f)
+        default = defaults.get(f.name, _default(f))
+        help_ = m["help"]
+        kw = dict(dest=f.name, help=help_)
+        if kind == "bool":
+            if m["negate"]:
+                kw.update(action="store_false", default=default)
+                parser.add_argument(m["negate"], **kw)
+                continue
+            action = argparse.BooleanOptionalAction if default else "store_true"
+            parser.add_argument(flag_of(f), action=action, default=default, **kw)
+            continue
+        if (kind, m["check"]) not in CHECKS:
+            raise TypeError(f"{cls.__name__}.{f.name}: no command-line type for {kind!r}")
+        kw["type"] = CHECKS[(kind, m["check"])]
+        if m["choices"] is not None:
+            kw["choices"] = list(m["choices"])
+        else:  # the flag's name, as argparse shows a flag whose dest is its own
+            kw["metavar"] = flag_of(f)[2:].upper().replace("-", "_")
+        if f.name in unset:
+            kw["default"] = None
+            kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
+        else:
+            kw["default"] = default
+            if default is not None and "default" not in help_:
+                kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
+        parser.add_argument(flag_of(f), **kw)
+
+
+def from_flags(cls, args, *, groups=(), include=None, exclude=()) -> dict:
+    """The keyword arguments of config class ``cls`` given on the parsed ``args`` (the flags
+    :func:`add_flags` made with the same ``groups``/``include``); a flag left at None, where
+    the field's own default is not None, is left out (the field's default applies)."""
+    kw = {}
+    for f in _fields(cls, groups, include, exclude):
+        if not hasattr(args, f.name):
+            continue
+        v = getattr(args, f.name)
+        if v is None and _default(f) is not None:
+            continue
+        kw[f.name] = v
+    return kw
