@@ -41,11 +41,11 @@ def main(argv=None) -> int:
             cfg = _nerf_args.config(args, pos_freqs=L, dir_freqs=min(L, 4))
             run = out / f"freqs_{L}"
             rows[L] = train_and_evaluate(cfg, run, max_images=args.eval_images)
-            cfg_, fields_, _ = load_run(run)
+            cfg_, model, _ = load_run(run)
             val = load_data(cfg_, "val")
             if not tiles:
                 tiles.append(val["images"][0].cpu())
-            tiles.append(render_dataset_image(fields_, cfg_, val, 0)[0].cpu())
+            tiles.append(render_dataset_image(model, cfg_, val, 0)[0].cpu())
     except UserError as e:
         print(f"05_positional_encoding: error: {e}", file=sys.stderr)
         return 2

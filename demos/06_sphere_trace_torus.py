@@ -25,6 +25,9 @@ from warpnerf.ops import generate_rays
 from warpnerf.ops.sphere_trace import sphere_trace
 from warpnerf.trace import shade
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
+
 
 def render_frames(scene, cams, size, device, omega=1.0, eps=1e-4, max_iters=256, normal_map=True):
     """(frames, stats): shaded frames [H, W(*2), 3] and totals of rays, time, iterations, hits."""
@@ -58,13 +61,7 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=160)
     p.add_argument("--iters", type=int, default=256, help="sphere-tracing iteration cap")
     args = p.parse_args(argv)
-    if args.frames < 1 or args.size < 2 or args.iters < 1:
-        p.error("--frames >= 1, --size >= 2 and --iters >= 1 are required")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda: no CUDA device available")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        p.error(f"--out {out} is a file")
+    out = _common.check_args(p, args, frames=1, size=2, iters=1)
 
     scene = torus_scene()
     cams = spiral_path(args.frames, radius=3.6, elevation=(20.0, 60.0))

@@ -17,8 +17,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
 from warpnerf.fields.sdf_scene import many_primitives_scene
 from warpnerf.io import write_image, write_json, write_video
@@ -30,6 +28,9 @@ _spec = importlib.util.spec_from_file_location(
 )
 demo06 = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(demo06)
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
 
 
 def disagreement(scene, cams, size, device, omegas=(1.0, 1.6), max_iters=256) -> float:
@@ -54,13 +55,9 @@ def main(argv=None) -> int:
     p.add_argument("--iters", type=int, default=256, help="sphere-tracing iteration cap")
     p.add_argument("--omega", type=float, default=1.6, help="over-relaxation factor to compare")
     args = p.parse_args(argv)
-    if args.frames < 1 or args.size < 2 or args.iters < 1 or not 1.0 < args.omega < 2.0:
-        p.error("--frames >= 1, --size >= 2, --iters >= 1 and 1 < --omega < 2 are required")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda: no CUDA device available")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        p.error(f"--out {out} is a file")
+    if not 1.0 < args.omega < 2.0:
+        p.error("1 < --omega < 2 is required")
+    out = _common.check_args(p, args, frames=1, size=2, iters=1)
 
     scene = many_primitives_scene()
     cams = spiral_path(args.frames, radius=7.0, elevation=(30.0, 50.0))

@@ -14,18 +14,21 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
 
-import torch
-
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
 from warpnerf.io import write_video
 from warpnerf.ops import generate_rays
+from warpnerf.options import add_flags, from_flags
 from warpnerf.trace import shade, sphere_trace_fn
 from warpnerf.train.sdf import SDFConfig, train_sdf
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
+
+FLAGS = ("points", "iters", "batch", "width", "resolution", "device")  # SDFConfig's, shown here
 
 
 def turntable(model, n_frames, size, device):
@@ -44,29 +47,15 @@ def turntable(model, n_frames, size, device):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--points", default="builtin", help=".npz/.ply point cloud (default: torus)")
     p.add_argument("--out", default="out/08_neural_sdf")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--iters", type=int, default=600)
-    p.add_argument("--batch", type=int, default=2048)
-    p.add_argument("--width", type=int, default=128)
-    p.add_argument("--resolution", type=int, default=128, help="marching-cubes grid")
+    add_flags(p, SDFConfig, include=FLAGS, defaults=dict(iters=600, batch=2048))
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--size", type=int, default=96)
     args = p.parse_args(argv)
-    if min(args.iters, args.batch, args.width, args.frames) < 1 or args.size < 2:
-        p.error("--iters, --batch, --width, --frames >= 1 and --size >= 2 are required")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda: no CUDA device available")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        p.error(f"--out {out} is a file")
-    run = out / "run"
-    if run.exists():
-        shutil.rmtree(run)  # a demo starts fresh; `warpnerf train sdf --resume` continues runs
+    out = _common.check_args(p, args, frames=1, size=2)
+    run = _common.fresh_run(out / "run")
 
-    cfg = SDFConfig(points=args.points, iters=args.iters, batch=args.batch, n_random=args.batch,
-                    width=args.width, resolution=args.resolution, device=args.device)  # fmt: skip
+    cfg = SDFConfig(**from_flags(SDFConfig, args, include=FLAGS), n_random=args.batch)
     from warpnerf.errors import UserError
 
     try:

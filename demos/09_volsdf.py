@@ -14,49 +14,37 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from pathlib import Path
 
-import torch
-
 from warpnerf.errors import UserError
-from warpnerf.train import NeRFConfig, evaluate_run, render_run, train_nerf
+from warpnerf.options import add_flags, from_flags
+from warpnerf.train import evaluate_run, render_run, train_nerf
+from warpnerf.train.nerf_config import VolSDFConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
+
+# VolSDFConfig's fields shown here (--samples: coarse and fine samples per ray), and the demo's
+# smaller defaults
+FLAGS = ("data", "iters", "batch", "n_coarse", "n_layers", "width", "beta", "learn_beta", "aabb",
+         "builtin_size", "device")  # fmt: skip
+DEFAULTS = dict(iters=400, batch=512, n_coarse=32, n_layers=4, width=64, builtin_size=24)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", default="builtin")
     p.add_argument("--out", default="out/09_volsdf")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--iters", type=int, default=400)
-    p.add_argument("--batch", type=int, default=512)
-    p.add_argument("--samples", type=int, default=32, help="coarse and fine samples per ray")
-    p.add_argument("--layers", type=int, default=4)
-    p.add_argument("--width", type=int, default=64)
-    p.add_argument("--beta", type=float, default=0.1, help="initial beta (learned)")
-    p.add_argument("--fixed-beta", action="store_true")
-    p.add_argument("--aabb", type=float, default=0.0, help="scene half-size (0: default)")
-    p.add_argument("--builtin-size", type=int, default=24)
+    add_flags(p, VolSDFConfig, include=FLAGS, defaults=DEFAULTS)
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--eval-images", type=int, default=4)
     args = p.parse_args(argv)
-    if min(args.iters, args.batch, args.samples, args.layers, args.frames) < 1:
-        p.error("--iters, --batch, --samples, --layers and --frames must be >= 1")
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda: no CUDA device available")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        p.error(f"--out {out} is a file")
-    run = out / "run"
-    if run.exists():
-        shutil.rmtree(run)  # a demo starts fresh; `warpnerf train volsdf --resume` continues runs
-    cfg = NeRFConfig(
-        data=args.data, field="volsdf", iters=args.iters, batch=args.batch, n_coarse=args.samples,
-        n_fine=args.samples, n_layers=args.layers, width=args.width, skip=max(1, args.layers // 2),
-        pos_freqs=6, dir_freqs=4, beta=args.beta, learn_beta=not args.fixed_beta, aabb=args.aabb,
-        builtin_size=args.builtin_size, val_every=max(1, args.iters // 4), val_images=2,
-        ckpt_every=args.iters, device=args.device, lr=1e-3 if args.data == "builtin" else None,
+    out = _common.check_args(p, args, frames=1, eval_images=0)
+    run = _common.fresh_run(out / "run")
+    cfg = VolSDFConfig(
+        **from_flags(VolSDFConfig, args, include=FLAGS), n_fine=args.n_coarse,
+        skip=max(1, args.n_layers // 2), val_every=max(1, args.iters // 4), val_images=2,
+        ckpt_every=args.iters, lr=1e-3 if args.data == "builtin" else None,
     )  # fmt: skip
     try:
         hist = train_nerf(cfg, run, progress=False, log=lambda *a: None)
@@ -68,9 +56,9 @@ def main(argv=None) -> int:
     from warpnerf.mesh import extract_mesh, write_ply
     from warpnerf.train.nerf import load_run
 
-    cfg, fields_, _ = load_run(run)
+    cfg, model, _ = load_run(run)
     a = cfg.aabb
-    v, f = extract_mesh(fields_["coarse"].sdf, [-a] * 3, [a] * 3, 96, 0.0, device=cfg.device)
+    v, f = extract_mesh(model.coarse.sdf, [-a] * 3, [a] * 3, 96, 0.0, device=cfg.device)
     if len(f):
         write_ply(out / "mesh.ply", v, f)
     res = {

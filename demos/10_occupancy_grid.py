@@ -31,7 +31,7 @@ import _nerf_args  # noqa: E402
 from warpnerf.errors import UserError  # noqa: E402
 from warpnerf.io import write_image, write_json  # noqa: E402
 from warpnerf.ops.occupancy import unpack_bits  # noqa: E402
-from warpnerf.train.nerf import load_run  # noqa: E402
+from warpnerf.train.nerf import load_run, resolve_data  # noqa: E402
 from warpnerf.train.nerf_eval import train_and_evaluate  # noqa: E402
 
 
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
         for name, grid_res in (("grid", args.grid_res), ("no_grid", 0)):
             cfg = _nerf_args.config(args, grid_res=grid_res, **common)
             if grid_res:
-                cfg.resolve()
+                resolve_data(cfg)  # the box and step the data decides
                 cfg.march_step = args.march_step or 2 * cfg.aabb * 3**0.5 / 256
                 cfg.grid_warmup = min(cfg.grid_warmup, args.iters // 4)
             rows[name] = train_and_evaluate(cfg, out / name, max_images=args.eval_images)
@@ -77,8 +77,8 @@ def main(argv=None) -> int:
     except UserError as e:
         print(f"10_occupancy_grid: error: {e}", file=sys.stderr)
         return 2
-    _, fields_, _ = load_run(out / "grid")
-    grid = fields_["grid"]
+    _, model, _ = load_run(out / "grid")
+    grid = model.grid
     write_image(out / "occupancy.png", slices(grid))
     summary = {
         "psnr_grid": rows["grid"]["psnr"],

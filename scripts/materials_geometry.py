@@ -63,8 +63,8 @@ def main():
     ap.add_argument("--json", default=None)
     ap.add_argument("--val-images", type=int, default=20)
     args = ap.parse_args()
-    cfg, fields_, _ = load_run(args.run)
-    field = fields_["coarse"]
+    cfg, model, _ = load_run(args.run)
+    field = model.coarse
     b = 1.7
     v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-b, -b, -0.4], [b, b, 1.0],
                         args.resolution, 0.0, device=cfg.device)  # fmt: skip
@@ -81,7 +81,7 @@ def main():
     with torch.no_grad():
         for i in range(min(args.val_images, val["images"].shape[0])):
             o, d = generate_rays(val["c2w"][i], val["intrinsics"][i], val["width"], val["height"])
-            out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
+            out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
             t_gt = analytic_depth(o, d)
             # expected depth over opacity: the depth of the visible surface
             dep = out["depth"] / out["opacity"].clamp_min(1e-6)

@@ -19,7 +19,7 @@ def main():
     p.add_argument("run")
     p.add_argument("--rounds", default="0,4,8,16,32,64")
     a = p.parse_args()
-    cfg, fields_, _ = load_run(a.run)
+    cfg, model, _ = load_run(a.run)
     ds = load_data(cfg, "val")
     o, d = generate_rays(ds["c2w"][0], ds["intrinsics"][0], ds["width"], ds["height"])
     gt = ds["images"][0].reshape(-1, 3)
@@ -41,7 +41,7 @@ def main():
                 counts["rounds"] = 0
                 torch.cuda.synchronize()
                 t0 = time.perf_counter()
-                out = render_rays_of(fields_, cfg, o, d, chunk=1 << 20)
+                out = render_rays_of(model, cfg, o, d, chunk=1 << 20)
                 torch.cuda.synchronize()
                 times.append(1e3 * (time.perf_counter() - t0))
         psnr = -10 * math.log10(float(((out["rgb"] - gt) ** 2).mean()))

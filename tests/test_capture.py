@@ -18,6 +18,7 @@ from warpnerf.data.cameras import camera_rays, look_at, ndc_rays
 from warpnerf.data.capture import capture_info, normalised_to_world
 from warpnerf.data.colmap import Camera, Image, read_model, rotmat_to_qvec, write_model
 from warpnerf.errors import UserError
+from warpnerf.train.nerf import resolve_data
 
 W, H = 24, 16
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -323,7 +324,7 @@ def test_image_without_points_and_ndc_on_an_object_capture(tmp_path):
     assert math.isfinite(info["near"]) and math.isfinite(info["far"])
     _colmap_capture(tmp_path / "obj", _object_cameras(5))
     with pytest.raises(UserError, match="forward-facing"):
-        NeRFConfig(data=str(tmp_path / "obj"), field="hash", ndc="on").validate()
+        resolve_data(NeRFConfig(data=str(tmp_path / "obj"), field="hash", ndc="on"))
     _colmap_capture(tmp_path / "wide", _object_cameras(3), "RADIAL", [8.0, 12.0, 8.0, -0.3, 0.0])
     with pytest.raises(UserError, match="not converge"):
         capture_info(tmp_path / "wide")

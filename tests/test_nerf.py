@@ -116,8 +116,8 @@ def test_runs_from_before_the_grid_load_without_one(tmp_path):
     saved = json.loads(cfg_path.read_text())
     del saved["grid_res"], saved["max_samples"]  # as written before the grid existed
     cfg_path.write_text(json.dumps(saved))
-    cfg, fields_, _ = load_run(tmp_path / "r")
-    assert cfg.grid_res == 0 and fields_.get("grid") is None and fields_["fine"] is not None
+    cfg, model, _ = load_run(tmp_path / "r")
+    assert cfg.grid_res == 0 and model.grid is None and model.fine is not None
     with pytest.raises(UserError, match="max-samples"):
         train_nerf(tiny(**dict(GRID, max_samples=3)), tmp_path / "x", progress=False)
     with pytest.raises(UserError, match="occupancy grid"):  # a grid-only rendering setting

@@ -235,7 +235,7 @@ def _r():
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     ball = _Ball()
     grid = OccupancyGrid(BOX, 4, dt=0.1, warmup=1)
-    return SimpleNamespace(o=o, d=d, ball=ball, grid=grid, fields={"coarse": ball, "fine": ball})
+    return SimpleNamespace(o=o, d=d, ball=ball, grid=grid)
 
 
 def _marched(r, **kw):
@@ -274,9 +274,9 @@ SIZES = {  # name: (argument named in the error, call)
     "render_rays chunk 0": ("chunk", lambda r: render_rays(
         r.o, r.d, 0.0, 6.0, r.ball, n_samples=4, chunk=0)),
     "render_nerf chunk bool": ("chunk", lambda r: render_nerf(
-        r.fields, r.o, r.d, 0.0, 6.0, n_coarse=4, chunk=True)),
+        r.ball, r.o, r.d, 0.0, 6.0, n_coarse=4, chunk=True)),
     "render_nerf n_fine float": ("n_fine", lambda r: render_nerf(
-        r.fields, r.o, r.d, 0.0, 6.0, n_coarse=4, n_fine=1.5)),
+        r.ball, r.o, r.d, 0.0, 6.0, fine=r.ball, n_coarse=4, n_fine=1.5)),
     "render_marched max_samples float": ("max_samples", lambda r: _marched(r, max_samples=2.0)),
     "render_marched round_samples -1": ("round_samples", lambda r: _marched(r, round_samples=-1)),
     "render_marched sample_budget float": ("sample_budget", lambda r: _marched(
@@ -676,8 +676,8 @@ def test_library_renderers_skip_the_checks_and_still_work(monkeypatch):
     assert torch.isfinite(ball.scale.grad) and out["n_kept"] > 0
     with torch.no_grad():
         outs = [out, render_marched(grid, ball, o, d, 0.0, 6.0, round_samples=4)]
-        outs.append(render_nerf({"coarse": ball, "fine": ball}, o, d, 0.5, 5.0, n_coarse=8,
-                                n_fine=4, aabb=BOX))  # fmt: skip
+        outs.append(render_nerf(ball, o, d, 0.5, 5.0, fine=ball, n_coarse=8, n_fine=4,
+                                aabb=BOX))  # fmt: skip
         outs.append(render_rays(o, d, 0.5, 5.0, ball, n_samples=8, chunk=2))
     for r in outs:
         assert r["rgb"].shape == (3, 3) and r["depth"].shape == (3,)

@@ -39,7 +39,7 @@ def test_field_and_render_finite_for_small_beta(device, beta):
     o = torch.tensor([[0.0, 0.0, 3.0]], device=device).repeat(64, 1)
     toward = torch.tensor([0.0, 0.0, -1.0], device=device)
     d = torch.nn.functional.normalize(torch.randn(64, 3, device=device) * 0.2 + toward, dim=-1)
-    out = render_nerf({"coarse": f, "fine": f}, o, d, 1.0, 5.0, n_coarse=32, n_fine=32,
+    out = render_nerf(f, o, d, 1.0, 5.0, fine=f, n_coarse=32, n_fine=32,
                       perturb=True, aabb=[-1, -1, -1, 1, 1, 1])  # fmt: skip
     loss = (
         out["rgb"].square().mean()

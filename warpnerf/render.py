@@ -92,12 +92,13 @@ def render_views(c2w, intrinsics, width: int, height: int, near, far, field_fn, 
 
 
 def render_nerf(
-    fields: dict,
+    coarse,
     origins: torch.Tensor,  # [n_rays, 3]
     directions: torch.Tensor,  # [n_rays, 3] unit length
     near: float,
     far: float,
     *,
+    fine=None,
     n_coarse: int = 64,
     n_fine: int = 0,
     perturb: bool = False,
@@ -109,9 +110,10 @@ def render_nerf(
 ):
     """NeRF's hierarchical volume rendering through the Warp kernels.
 
-    ``fields["coarse"]`` is evaluated at ``n_coarse`` stratified samples per ray; with
-    ``fields["fine"]`` and ``n_fine > 0``, ``n_fine`` more positions are drawn from the coarse
-    weights (inverse CDF) and the fine field is evaluated on the union of coarse and fine intervals.
+    ``coarse(positions, directions) -> (sigmas, rgbs)`` is evaluated at ``n_coarse`` stratified
+    samples per ray; with a ``fine`` callable and ``n_fine > 0``, ``n_fine`` more positions are
+    drawn from the coarse weights (inverse CDF) and ``fine`` is evaluated on the union of coarse
+    and fine intervals.
     When both are the same network, the coarse pass runs without gradients (it only places the
     fine samples). ``aabb`` [6] restricts samples to the box (rays that miss it get none).
     Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
@@ -131,17 +133,17 @@ def render_nerf(
             nr = torch.maximum(nr, t0)
             fr = torch.where(hit, torch.minimum(fr, t1), nr)
         smp = stratified_samples(nr, fr, n_coarse, perturb=perturb, seed=seed + s, packed=True)
-        shared = fields.get("fine") is fields["coarse"] and n_fine > 0
+        shared = fine is coarse and n_fine > 0
         with torch.set_grad_enabled(torch.is_grad_enabled() and not shared):
-            res = _shade(fields["coarse"], o, d, smp, background, t_threshold, want_weights=True)
+            res = _shade(coarse, o, d, smp, background, t_threshold, want_weights=True)
         out = {"rgb_coarse": res[0]}
-        if fields.get("fine") is not None and n_fine > 0:
+        if fine is not None and n_fine > 0:
             from .ops.sampling import importance_samples
 
-            fine = importance_samples(
+            smp_fine = importance_samples(
                 smp, res[3].detach(), n_fine, perturb=perturb, seed=seed + s + 7919
             )
-            res = _shade(fields["fine"], o, d, fine, background, t_threshold, want_weights=False)
+            res = _shade(fine, o, d, smp_fine, background, t_threshold, want_weights=False)
         out.update(rgb=res[0], depth=res[1], opacity=res[2])
         outs.append(out)
     return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}

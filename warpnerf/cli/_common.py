@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import math
 import signal
 import threading
 from pathlib import Path
 
 from ..errors import UserError
+from ..options import CHECKS
 
 
 def _device(name: str) -> str:
@@ -23,32 +23,14 @@ def _device(name: str) -> str:
     return name
 
 
-def _number(kind, ok, rule: str):
-    """An argparse type: ``kind(text)`` (int or float) that must satisfy ``ok`` (``rule`` says
-    how, in the error)."""
-    noun = "an integer" if kind is int else "a number"
-
-    def parse(text):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {noun}, got {text!r}") from None
-        if not ok(v):
-            raise argparse.ArgumentTypeError(f"must be {rule}, got {text}")
-        return v
-
-    return parse
-
-
 def _positive(kind):
-    return _number(kind, lambda v: v > 0 and math.isfinite(v), "positive and finite")
+    return CHECKS[(kind.__name__, "positive")]
 
 
-_nonnegative = _number(int, lambda v: v >= 0, ">= 0")
-# Seeds feed torch generators (64-bit) after offsets and multiplications per step: 31 bits.
-_seed = _number(int, lambda v: 0 <= v < 2**31, "an integer in [0, 2^31)")
-_finite = _number(float, math.isfinite, "finite")
-_nonnegative_float = _number(float, lambda v: v >= 0 and math.isfinite(v), "finite and >= 0")
+_nonnegative = CHECKS[("int", "nonnegative")]
+_seed = CHECKS[("int", "seed")]
+_finite = CHECKS[("float", "finite")]
+_nonnegative_float = CHECKS[("float", "nonnegative")]
 
 
 def _check_out(path, flag: str = "--out", file: bool = False) -> None:

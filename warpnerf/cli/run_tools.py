@@ -91,8 +91,8 @@ def _mesh_source(args) -> _MeshSource:
         back = lambda v: v / s + np.asarray(c)  # noqa: E731  (the point cloud's units)
         level = args.level or 0.0
         return _MeshSource(fn, [-b] * 3, [b] * 3, level, level, f"sdf run {run}", back, cfg.device)
-    cfg, fields_, _ = load_run(run, dev if args.device else None)
-    field = fields_["fine"] or fields_["coarse"]
+    cfg, model, _ = load_run(run, dev if args.device else None)
+    field = model.field
     b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
     back = None
     if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units

@@ -2,6 +2,7 @@
 
 from .encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
 from .hash_nerf import HashNeRFField
+from .model import FIELDS, RadianceModel, build_model, register_field
 from .nerf import NeRFField
 from .sdf_volume import SDFVolume, laplace_cdf, sdf_box, sdf_sphere, sdf_torus
 
@@ -16,4 +17,8 @@ __all__ = [
     "SphericalHarmonics",
     "NeRFField",
     "HashNeRFField",
+    "RadianceModel",
+    "FIELDS",
+    "register_field",
+    "build_model",
 ]

@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from ..errors import UserError
-from ..fields.nerf import NeRFField
+from ..fields.model import RadianceModel, build_model
 from ..io import (
     load_checkpoint,
     load_weights,
@@ -21,76 +21,23 @@ from ..io import (
 from ..ops import random_pixels
 from ..render import render_marched, render_nerf
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
-from .nerf_config import NeRFConfig
+from .nerf_config import NeRFConfig, scene_settings
 
-__all__ = ["NeRFConfig", "train_nerf", "load_run", "build_fields", "load_data", "render_rays_of"]
+__all__ = [
+    "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
+    "resolve_data",
+]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
 OUTPUTS = ("config.json", CHECKPOINT, "history.json")  # what a NeRF run writes in its folder
 
 
-def build_fields(cfg: NeRFConfig) -> dict:
-    """{"coarse": field, "fine": field or None}. The hash field is one network used for both
-    passes (the coarse pass only places the fine samples, without gradients)."""
-    if cfg.field == "volsdf":
-        from ..fields.volsdf import VolSDFField
-
-        torch.manual_seed(cfg.seed)
-        cfg.resolve()
-        f = VolSDFField(
-            cfg.aabb,
-            cfg.n_layers,
-            cfg.width,
-            cfg.skip,
-            cfg.pos_freqs,
-            cfg.dir_freqs,
-            n_features=cfg.width,
-            color_width=cfg.width,
-            view_dependence=cfg.view_dependence,
-            beta=cfg.beta,
-            beta_min=cfg.beta_min,
-            learn_beta=cfg.learn_beta,
-        ).to(cfg.device)
-        return {"coarse": f, "fine": f if cfg.n_fine > 0 else None}
-    if cfg.field == "hash":
-        from ..fields.hash_nerf import HashNeRFField
-        from ..ops.encoding import HashGrid
-
-        torch.manual_seed(cfg.seed)
-        f = HashNeRFField(
-            cfg.resolve().aabb_box(),
-            HashGrid(**cfg._grid_kwargs()),
-            cfg.hidden,
-            cfg.view_dependence,
-        ).to(cfg.device)
-        out = {"coarse": f, "fine": f if cfg.n_fine > 0 and not cfg.grid_res else None}
-        if cfg.grid_res:
-            from ..occupancy import OccupancyGrid
-
-            out["grid"] = OccupancyGrid(
-                cfg.aabb_box(),
-                cfg.grid_res,
-                dt=cfg.march_step,
-                occ_threshold=cfg.occ_threshold,
-                warmup=-(-cfg.grid_warmup // cfg.grid_every),
-            ).to(cfg.device)
-        return out
-
-    def make():
-        return NeRFField(
-            cfg.n_layers,
-            cfg.width,
-            cfg.skip,
-            cfg.pos_freqs,
-            cfg.dir_freqs,
-            cfg.view_dependence,
-            cfg.density_activation,
-        )
-
-    torch.manual_seed(cfg.seed)
-    out = {"coarse": make()}
-    out["fine"] = make() if cfg.n_fine > 0 else None
-    return {k: (v.to(cfg.device) if v is not None else None) for k, v in out.items()}
+def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
+    """The one step that settles a new run's data-dependent settings: reads what the data
+    decides (a COLMAP/LLFF capture's poses: transform, NDC camera, near/far, box), then fills in
+    and checks the config (:meth:`NeRFConfig.validate`). A loaded run has them in its
+    config.json already."""
+    return cfg.validate(scene_settings(cfg))
 
 
 def load_data(cfg: NeRFConfig, split: str):
@@ -137,18 +84,18 @@ def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int
 
 
 def render_rays_of(
-    fields_, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None
+    model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None
 ):
-    """Renders rays with the run's fields: grid marching when the run has an occupancy grid
+    """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``), otherwise
     stratified (+ hierarchical) samples."""
-    if fields_.get("grid") is not None:
+    if model.grid is not None:
         n = o.shape[0]
         chunk = chunk or max(n, 1)
         outs = [
             render_marched(
-                fields_["grid"],
-                fields_["coarse"],
+                model.grid,
+                model.coarse,
                 o[s : s + chunk],
                 d[s : s + chunk],
                 cfg.near,
@@ -167,12 +114,13 @@ def render_rays_of(
         out.update({k: sum(x[k] for x in outs) for k in ("n_marched", "n_kept")})
         return out
     return render_nerf(
-        fields_,
+        model.coarse,
         o,
         d,
         cfg.near,
         cfg.far,
         n_coarse=cfg.n_coarse,
+        fine=model.fine,
         n_fine=cfg.n_fine,
         perturb=perturb,
         seed=seed,
@@ -184,29 +132,16 @@ def render_rays_of(
 
 
 @torch.no_grad()
-def render_dataset_image(fields_, cfg, ds, i):
+def render_dataset_image(model, cfg, ds, i):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
     h, w = ds["height"], ds["width"]
     o, d = dataset_rays(cfg, ds, image=i)
-    out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
+    out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
     return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
 
 
 def _psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
-
-
-def _unique(fields_) -> dict:
-    """The fields with a shared network listed once (the hash field serves both passes)."""
-    out, seen = {}, set()
-    for k, f in fields_.items():
-        out[k] = f if f is not None and id(f) not in seen else None
-        seen.add(id(f))
-    return out
-
-
-def _parameters(fields_):
-    return [p for f in _unique(fields_).values() if f is not None for p in f.parameters()]
 
 
 def _optimizer(cfg, params):
@@ -250,15 +185,15 @@ def load_run(run, device: str | None = None):
         )
     if cfg.device.startswith("cuda"):  # matrix products as in training
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    fields_ = build_fields(cfg)
+    model = build_model(cfg)
     keys = ("step", "fields", "optimizer", "generator", "history")
     ckpt = load_checkpoint(ckpt_path, cfg.device, keys)
     if not isinstance(ckpt["fields"], dict):
         raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
-    for k, f in _unique(fields_).items():
+    for k, f in model.parts().items():
         if f is not None and k in ckpt["fields"]:  # (runs before the grid existed have none)
             load_weights(f, ckpt["fields"][k], ckpt_path, f"{k} field's weights")
-    return cfg, fields_, ckpt
+    return cfg, model, ckpt
 
 
 def train_nerf(
@@ -281,18 +216,18 @@ def train_nerf(
 def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     if resume:
         lock_run(run, locks)
-        saved_cfg, fields_, ckpt = load_run(run, device)
+        saved_cfg, model, ckpt = load_run(run, device)
         resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
         saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved_cfg
         cfg.validate()
     else:
-        cfg.validate()
+        resolve_data(cfg)
         if (run / CHECKPOINT).exists():
             raise UserError(
                 f"{run}: already holds a run; pass --resume to continue it or choose another --out"
             )
-        fields_, ckpt = build_fields(cfg), None
+        model, ckpt = build_model(cfg), None
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad dataset stops the run before anything is written.
@@ -301,7 +236,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
-    task = NeRFTask(cfg, fields_, train, val, log)
+    task = NeRFTask(cfg, model, train, val, log)
     if ckpt is not None:
         task.resume(ckpt, run, log)
     if cfg.device.startswith("cuda"):
@@ -320,12 +255,12 @@ class NeRFTask(Task):
     history_keys = ("psnr", "val_step", "val_psnr")
     validation_keys = ("val_psnr",)
 
-    def __init__(self, cfg, fields_, train, val, log=print):
-        self.cfg, self.fields, self.train, self.val = cfg, fields_, train, val
+    def __init__(self, cfg, model: RadianceModel, train, val, log=print):
+        self.cfg, self.model, self.train, self.val = cfg, model, train, val
         self.n_img, self.h, self.w = train["images"].shape[:3]
         self.flat = train["images"].reshape(-1, 3)
         self.gen = torch.Generator().manual_seed(cfg.seed)
-        self.grid = fields_.get("grid")
+        self.grid = model.grid
         # The grid's updates and lattice jitter draw from a generator on the device (saved too).
         self.grid_gen = None
         if self.grid is not None:
@@ -343,21 +278,21 @@ class NeRFTask(Task):
                     "from the seed (the continuation is not bit-exact)")  # fmt: skip
 
     def parameters(self):
-        return _parameters(self.fields)
+        return list(self.model.parameters())
 
     def optimizer(self, params, lr):
         return _optimizer(self.cfg, params)
 
     def loss(self, step):
-        cfg, fields_, grid = self.cfg, self.fields, self.grid
+        cfg, model, grid = self.cfg, self.model, self.grid
         if grid is not None and step % cfg.grid_every == 0:
-            grid.update(lambda x: fields_["coarse"].density(x)[0], self.grid_gen)
+            grid.update(lambda x: model.coarse.density(x)[0], self.grid_gen)
         cam, px, py, idx = random_pixels(
             self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device
         )
         o, d = dataset_rays(cfg, self.train, cam, px, py)
         seed = cfg.seed * 1000003 + step
-        out = render_rays_of(fields_, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
+        out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
         terms = {}
         if grid is not None:
             terms["samples_per_ray"] = out["n_kept"] / self.batch
@@ -370,12 +305,12 @@ class NeRFTask(Task):
         terms["psnr"] = loss_fine
         loss = loss_fine
         coarse = out.get("rgb_coarse")
-        if coarse is not None and coarse.requires_grad and fields_.get("fine") is not None:
+        if coarse is not None and coarse.requires_grad and model.fine is not None:
             loss = loss + torch.mean((coarse - target) ** 2)
         if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
-            f = fields_["coarse"]
+            f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            eik = 0.5 * (f.aux_losses()["eikonal"] + f.eikonal(box))
+            eik = 0.5 * (model.aux_losses()["eikonal"] + f.eikonal(box))
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
@@ -385,7 +320,7 @@ class NeRFTask(Task):
         super().record(history, terms)
 
     def validate(self, step):
-        return {"val_psnr": validate(self.fields, self.cfg, self.val)}
+        return {"val_psnr": validate(self.model, self.cfg, self.val)}
 
     def validation_text(self, history):
         return f"train psnr {history['psnr'][-1]:.2f}, val psnr {history['val_psnr'][-1]:.2f}"
@@ -395,9 +330,9 @@ class NeRFTask(Task):
 
     def state(self):
         state = {
-            "fields": {
+            "fields": {  # (the layout of runs from before the model object)
                 k: (v.state_dict() if v is not None else None)
-                for k, v in _unique(self.fields).items()
+                for k, v in self.model.parts().items()
             },
             "generator": self.gen.get_state(),
             "config": self.cfg.to_dict(),
@@ -409,11 +344,11 @@ class NeRFTask(Task):
         return state
 
 
-def validate(fields_, cfg, val) -> float:
+def validate(model, cfg, val) -> float:
     """Mean PSNR over the first cfg.val_images validation images."""
     n = min(cfg.val_images, val["images"].shape[0])
     mses = []
     for i in range(n):
-        rgb, _, _ = render_dataset_image(fields_, cfg, val, i)
+        rgb, _, _ = render_dataset_image(model, cfg, val, i)
         mses.append(float(((rgb - val["images"][i]) ** 2).mean()))
     return sum(_psnr(m) for m in mses) / max(n, 1)

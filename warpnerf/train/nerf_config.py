@@ -11,13 +11,14 @@ from pathlib import Path
 import torch
 
 from ..errors import UserError
+from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..options import option
 
-__all__ = ["NeRFConfig", "VolSDFConfig"]
+__all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings"]
 
 
 FORMATS = ("auto", "blender", "nerfstudio", "colmap", "llff")  # (data.datasets.FORMATS)
-FIELDS = ("mlp", "hash", "volsdf")
+FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
 GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
 
@@ -152,13 +153,17 @@ class NeRFConfig:
         cfg = cls(**check_fields(cls, d, where))
         return cfg.check_values(where)
 
-    def resolve(self):
-        """Fills in defaults that depend on the data and the field (near/far, lr, aabb)."""
+    def resolve(self, scene: dict | None = None):
+        """Fills in the defaults that depend on the data and the field (near/far, lr, aabb, the
+        grid's step). ``scene``: what the data decides for a COLMAP/LLFF capture (see
+        :func:`scene_settings`, which reads it), kept unless one is saved already. Reads no
+        files: the one explicit step that reads the data is ``train.nerf.resolve_data``."""
+        if self.scene is None and scene is not None:
+            self.scene = scene
         if self.lr is None:
             self.lr = 1e-2 if self.field == "hash" else 5e-4
         if self.lr_final is None:
             self.lr_final = self.lr / (20.0 if self.field == "hash" else 10.0)
-        self._resolve_scene()
         if self.aabb <= 0 and self.scene is not None:
             self.aabb = self.scene["aabb"]
         if self.aabb <= 0 and self.field in ("hash", "volsdf"):
@@ -172,7 +177,6 @@ class NeRFConfig:
             self.grid_res = 128 if self.field == "hash" else 0
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
-        self._resolve_scene()
         if self.near is None or self.far is None:
             if self.scene is not None:
                 NEAR, FAR = self.scene["near"], self.scene["far"]
@@ -183,39 +187,6 @@ class NeRFConfig:
             self.near = NEAR if self.near is None else self.near
             self.far = FAR if self.far is None else self.far
         return self
-
-    def _resolve_scene(self):
-        """Reads a COLMAP/LLFF folder's poses once (no pixels) into ``scene``."""
-        if self.scene is not None or self.data == "builtin" or not Path(self.data).is_dir():
-            return  # (a missing folder is reported by the loader)
-        from ..data.capture import capture_info
-        from ..data.datasets import FORMATS, detect_format
-
-        if self.data_format not in FORMATS or self.ndc not in ("auto", "on", "off"):
-            raise UserError(
-                f"--format must be one of {', '.join(FORMATS)} and --ndc auto, on or off; "
-                f"got {self.data_format!r}, {self.ndc!r}"
-            )
-        fmt = self.data_format if self.data_format != "auto" else detect_format(self.data)
-        if fmt not in ("colmap", "llff"):
-            if self.ndc == "on":
-                raise UserError("--ndc on needs a forward-facing COLMAP or LLFF capture")
-            return
-        info = capture_info(self.data, fmt, self.downscale, self.holdout)
-        ndc = info["forward_facing"] if self.ndc == "auto" else self.ndc == "on"
-        if ndc and not info["forward_facing"]:  # NDC needs the forward-facing normalisation
-            raise UserError(
-                f"{self.data}: --ndc on needs a forward-facing capture (every viewing axis within "
-                "45 degrees of their mean); this one is not"
-            )
-        self.scene = {
-            "format": fmt,
-            "transform": info["transform"],
-            "ndc": info["ndc_camera"] if ndc else None,
-            "near": 0.0 if ndc else info["near"],
-            "far": 4.0 if ndc else info["far"],
-            "aabb": 1.5 if ndc else info["aabb"],
-        }
 
     def ndc_camera(self):
         """(fx, fy, W, H) of the NDC camera, or None when rays stay in world space."""
@@ -308,11 +279,12 @@ class NeRFConfig:
             _check_scene(self.scene, lambda rule: fail("scene", rule))
         return self
 
-    def validate(self):
+    def validate(self, scene: dict | None = None):
         """All checks (:meth:`check_values`, then those that need the resolved data-dependent
-        settings and the device); fills in the data-dependent defaults (:meth:`resolve`)."""
+        settings and the device); fills in the data-dependent defaults (:meth:`resolve`, with
+        the capture's ``scene`` settings if any)."""
         self.check_values()
-        self.resolve()
+        self.resolve(scene)
         self.check_values()  # the resolved grid, near/far and scene too
         if self.grid_res:
             # lattice intervals across the diagonal (the default step gives exactly 1024)
@@ -349,6 +321,44 @@ class NeRFConfig:
         if self.field not in ("hash", "volsdf"):
             return None
         return [-a, -a, -a, a, a, a]
+
+
+def scene_settings(cfg: NeRFConfig) -> dict | None:
+    """What a COLMAP/LLFF capture decides for a run (format, world -> normalised transform, NDC
+    camera or None, near, far, aabb), read from its poses (no pixels); None for other data, for
+    the built-in scene, for a missing folder (its loader reports it) and when the run has its
+    scene already."""
+    if cfg.scene is not None or cfg.data == "builtin" or not Path(cfg.data).is_dir():
+        return None
+    from ..data.capture import capture_info
+    from ..data.datasets import FORMATS as _FORMATS
+    from ..data.datasets import detect_format
+
+    if cfg.data_format not in _FORMATS or cfg.ndc not in ("auto", "on", "off"):
+        raise UserError(
+            f"--format must be one of {', '.join(_FORMATS)} and --ndc auto, on or off; "
+            f"got {cfg.data_format!r}, {cfg.ndc!r}"
+        )
+    fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(cfg.data)
+    if fmt not in ("colmap", "llff"):
+        if cfg.ndc == "on":
+            raise UserError("--ndc on needs a forward-facing COLMAP or LLFF capture")
+        return None
+    info = capture_info(cfg.data, fmt, cfg.downscale, cfg.holdout)
+    ndc = info["forward_facing"] if cfg.ndc == "auto" else cfg.ndc == "on"
+    if ndc and not info["forward_facing"]:  # NDC needs the forward-facing normalisation
+        raise UserError(
+            f"{cfg.data}: --ndc on needs a forward-facing capture (every viewing axis within "
+            "45 degrees of their mean); this one is not"
+        )
+    return {
+        "format": fmt,
+        "transform": info["transform"],
+        "ndc": info["ndc_camera"] if ndc else None,
+        "near": 0.0 if ndc else info["near"],
+        "far": 4.0 if ndc else info["far"],
+        "aabb": 1.5 if ndc else info["aabb"],
+    }
 
 
 @dataclass

@@ -55,8 +55,8 @@ def evaluate_run(
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
-    cfg, fields_, ckpt = load_run(run, device)
-    grid = fields_.get("grid")
+    cfg, model, ckpt = load_run(run, device)
+    grid = model.grid
     for key, value in render.items():
         if key not in RENDER_SETTINGS:
             raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
@@ -75,17 +75,17 @@ def evaluate_run(
         check_foreign([out_dir / x for x in names])  # another program's files stay untouched
         # a previous, possibly larger, evaluation's images (only those warpnerf wrote)
         remove_own(out_dir, sorted({p.name for p in out_dir.glob(f"{split}_*.png")} - set(names)))
-        return _evaluate(cfg, fields_, ckpt, grid, ds, split, n, out_dir)
+        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir)
 
 
-def _evaluate(cfg, fields_, ckpt, grid, ds, split, n, out_dir):
+def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
     with_ssim = min(ds["height"], ds["width"]) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     for i in range(n):
         sync()
         tr = time.perf_counter()
-        rgb, depth, opacity = render_dataset_image(fields_, cfg, ds, i)
+        rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
         sync()
         render_ms = 1e3 * (time.perf_counter() - tr)
         gt = ds["images"][i]
@@ -156,7 +156,7 @@ def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
 def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=None, fps=20):
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
     RUN/render_{path}/. ``size`` = (W, H), default the training resolution."""
-    cfg, fields_, _ = load_run(run, device)
+    cfg, model, _ = load_run(run, device)
     train = load_data(cfg, "train")
     w0, h0 = train["width"], train["height"]
     w, h = size or (w0, h0)
@@ -178,14 +178,14 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     names += [f"{kind}.{x}" for kind in kinds for x in ("gif", "mp4")]
     with output_lock(out_dir, "render folder"):
         check_foreign([out_dir / x for x in names])
-        return _render_frames(cfg, fields_, cams, k, w, h, frames, fps, out_dir)
+        return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir)
 
 
-def _render_frames(cfg, fields_, cams, k, w, h, frames, fps, out_dir):
+def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
     rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
     for f in range(frames):
         o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
-        out = render_rays_of(fields_, cfg, o, d, chunk=cfg.chunk)
+        out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep = _depth_image(
             out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu(), cfg.far
@@ -195,7 +195,7 @@ def _render_frames(cfg, fields_, cams, k, w, h, frames, fps, out_dir):
         rgbs.append(rgb)
         depths.append(dep)
         if cfg.field == "volsdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
-            geo.append(to_uint8(_geometry_image(fields_["coarse"], cfg, o, d).reshape(h, w, 3)))
+            geo.append(to_uint8(_geometry_image(model.coarse, cfg, o, d).reshape(h, w, 3)))
             write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
     mp4 = True
     for name, seq in (("rgb", rgbs), ("depth", depths), ("geometry", geo)):
@@ -241,11 +241,8 @@ def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progre
 
     hist = train_nerf(cfg, run, progress=progress, log=lambda *a: None)
     m = evaluate_run(run, split, max_images=max_images)
-    _, fields_, _ = load_run(run)
-    from .nerf import _unique
-
-    uniq = _unique(fields_).values()  # a network shared by both passes counts once
-    n_params = sum(p.numel() for f in uniq if f is not None for p in f.parameters())
+    _, model, _ = load_run(run)
+    n_params = sum(p.numel() for p in model.parameters())  # a shared network counts once
     return {
         "psnr": m["psnr"],
         "ssim": m["ssim"],

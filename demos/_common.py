@@ -1,0 +1,34 @@
+"""What every demo checks before it starts (its flags' minimums, the device, --out) and how a
+demo that trains starts its run afresh without deleting anything warpnerf did not write."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from warpnerf.io import owned_files, remove_own
+
+
+def check_args(p, args, **minimum) -> Path:
+    """argparse errors (exit status 2) for a flag below its minimum (``name=value``), --device
+    cuda without CUDA, and an --out that is a file; returns --out as a Path."""
+    low = [f"--{k.replace('_', '-')} >= {v}" for k, v in minimum.items() if getattr(args, k) < v]
+    if low:
+        p.error(f"{', '.join(low)} required")
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        p.error("--device cuda: no CUDA device available")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        p.error(f"--out {out} is a file")
+    return out
+
+
+def fresh_run(run: Path) -> Path:
+    """Empties ``run`` (and its subfolders) of the files warpnerf wrote there, so the demo trains
+    afresh; files of other programs stay, and training then refuses them by name. (`warpnerf
+    train ... --resume` continues a run instead.)"""
+    if run.is_dir():
+        for folder in [run, *(p for p in sorted(run.rglob("*")) if p.is_dir())]:
+            remove_own(folder, owned_files(folder))
+    return run

@@ -1,0 +1,134 @@
+"""The model object and the field registry (warpnerf/fields/model.py): what each registered field
+builds, what a checkpoint holds, old checkpoints, and a new field added with one registry entry
+training through the unchanged pipeline."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from torch import nn
+
+from warpnerf.errors import UserError
+from warpnerf.fields import FIELDS, RadianceModel, build_model, register_field
+from warpnerf.fields.nerf import NeRFField
+from warpnerf.train import evaluate_run, train_nerf
+from warpnerf.train.nerf import load_run
+from warpnerf.train.nerf_config import NeRFConfig
+
+from .test_nerf import GRID, HASH, VOLSDF, tiny
+
+
+def quiet(*a):
+    pass
+
+
+def test_registry_lists_the_builtin_fields():
+    assert list(FIELDS)[:3] == ["mlp", "hash", "volsdf"]
+    with pytest.raises(ValueError, match="registered already"):
+        register_field("mlp")(lambda cfg: None)
+    with pytest.raises(ValueError, match="unknown field"):
+        build_model(tiny(field="nope"))
+    with pytest.raises(UserError, match="--field must be one of mlp, hash, volsdf"):
+        tiny(field="nope").check_values()
+
+
+@pytest.mark.parametrize(
+    "kw, fine, grid, shared",
+    [
+        (dict(field="mlp"), False, False, False),
+        (dict(field="mlp", n_fine=8), True, False, False),
+        (dict(HASH, n_fine=8), True, False, True),
+        (GRID, False, True, False),
+        (dict(VOLSDF, n_fine=8), True, False, True),
+    ],
+)
+def test_what_each_field_builds(kw, fine, grid, shared):
+    m = build_model(tiny(**kw))
+    assert isinstance(m, RadianceModel)
+    assert (m.fine is not None, m.grid is not None, m.fine is m.coarse) == (fine, grid, shared)
+    parts = m.parts()
+    assert list(parts) == ["coarse", "fine", "grid"]
+    assert (parts["fine"] is not None) == (fine and not shared)  # a shared network: saved once
+    n = sum(p.numel() for p in m.parameters())
+    want = sum(p.numel() for f in parts.values() if f is not None for p in f.parameters())
+    assert n == want and n > 0
+    assert m.field is (m.fine if fine else m.coarse)
+    assert m.kind == ("sdf" if kw.get("field") == "volsdf" else "density")
+    again = build_model(tiny(**kw))  # the seed fixes the initial weights
+    for a, b in zip(m.parameters(), again.parameters()):
+        assert torch.equal(a, b)
+
+
+def test_checkpoint_layout_and_old_checkpoints_without_grid_key(tmp_path):
+    run = tmp_path / "r"
+    train_nerf(tiny(iters=3, n_fine=8), run, progress=False, log=quiet)
+    ck = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert set(ck["fields"]) == {"coarse", "fine", "grid"} and ck["fields"]["grid"] is None
+    del ck["fields"]["grid"]  # as runs wrote it before the model object
+    torch.save(ck, run / "checkpoint.pt")
+    cfg, m, _ = load_run(run)
+    for k, v in ck["fields"]["fine"].items():
+        assert torch.equal(m.fine.state_dict()[k], v)
+    assert evaluate_run(run, max_images=1)["psnr"] > 0
+
+
+class _Blob(nn.Module):
+    """A field written by a user: a learned density blob with a learned colour."""
+
+    kind = "density"
+
+    def __init__(self):
+        super().__init__()
+        self.log_sigma = nn.Parameter(torch.tensor(0.0))
+        self.radius = nn.Parameter(torch.tensor(0.6))
+        self.rgb = nn.Parameter(torch.zeros(3))
+
+    def density(self, x):
+        s = torch.nn.functional.softplus(self.radius - x.norm(dim=-1)) * self.log_sigma.exp() * 20
+        return s, x
+
+    def color(self, x, d, features):
+        return torch.sigmoid(self.rgb).expand(x.shape[0], 3)
+
+    def aux_losses(self):
+        return {}
+
+    def forward(self, x, d=None):
+        s, h = self.density(x)
+        return s, self.color(x, d, h)
+
+
+def test_a_new_field_is_one_module_and_one_registry_entry(tmp_path):
+    @register_field("blob")
+    def _blob(cfg):
+        return RadianceModel(_Blob())
+
+    try:
+        cfg = tiny(field="blob", iters=4)
+        hist = train_nerf(cfg, tmp_path / "r", progress=False, log=quiet)
+        assert len(hist["loss"]) == 4 and all(map(torch.isfinite, torch.tensor(hist["loss"])))
+        saved = json.loads((tmp_path / "r" / "config.json").read_text())
+        assert saved["field"] == "blob"
+        cfg2, m, _ = load_run(tmp_path / "r")
+        assert isinstance(m.coarse, _Blob) and cfg2.field == "blob"
+        assert evaluate_run(tmp_path / "r", max_images=1)["psnr"] > 0
+        from warpnerf.cli.parser import build_parser
+
+        args = build_parser().parse_args(["train", "nerf", "--out", "x", "--field", "blob"])
+        assert args.field == "blob"
+    finally:
+        FIELDS.pop("blob", None)
+
+
+def test_model_is_what_renders(tmp_path):
+    m = RadianceModel(NeRFField(2, 16, 1, 2, 1, True, "softplus"))
+    from warpnerf.train.nerf import render_rays_of
+
+    cfg = NeRFConfig(near=1.0, far=4.0, n_coarse=8)
+    o = torch.zeros(5, 3)
+    o[:, 2] = -3
+    d = torch.tensor([[0.0, 0.0, 1.0]]).repeat(5, 1)
+    out = render_rays_of(m, cfg, o, d)
+    assert out["rgb"].shape == (5, 3) and torch.isfinite(out["rgb"]).all()
