@@ -475,6 +475,16 @@ def test_demo_08_neural_sdf_tiny(tmp_path):
     res = last_json(p.stdout)
     assert (tmp_path / "o" / "turntable.gif").exists() and res["trace_mean_iters"] >= 1
     assert res["chamfer"] > 0 and (tmp_path / "o" / "run" / "mesh.ply").exists()
+    # run again: the demo starts afresh, removing only what warpnerf wrote in its run folder
+    (tmp_path / "o" / "run" / "notes.txt").write_text("mine")
+    (tmp_path / "o" / "run" / "sub").mkdir()
+    (tmp_path / "o" / "run" / "sub" / "data.bin").write_bytes(b"x")
+    p = run([str(ROOT / "demos" / "08_neural_sdf.py"), "--out", "o", "--iters", "3", "--batch",
+             "128", "--width", "48", "--resolution", "24", "--frames", "1", "--size", "16"],
+            tmp_path)  # fmt: skip
+    assert last_json(p.stdout)["iters"] == 3  # a fresh run (a resume would refuse iters 3 < 5)
+    assert (tmp_path / "o" / "run" / "notes.txt").read_text() == "mine"
+    assert (tmp_path / "o" / "run" / "sub" / "data.bin").read_bytes() == b"x"
 
 
 def test_cli_train_volsdf_render_mesh_and_demo_09(tmp_path):
