@@ -8,7 +8,6 @@ kernel. Writes a colour video (mp4 + gif), a depth video and a depth PNG normali
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -17,14 +16,21 @@ from pathlib import Path
 import torch
 
 from warpnerf.demo import GT_BOX, write_spiral
+from warpnerf.errors import exit_status
 from warpnerf.fields import SDFVolume
 from warpnerf.train import BoxFitConfig
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common  # noqa: E402
+
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/01_render_volume")
-    p.add_argument("--device", default="cpu")
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("01_render_volume", _main, argv)
+
+
+def _main(argv) -> int:
+    p = _common.parser(__doc__, "out/01_render_volume")
     p.add_argument("--shape", default="box", choices=SDFVolume.SHAPES)
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--size", type=int, default=128)

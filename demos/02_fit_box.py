@@ -22,7 +22,7 @@ import torch
 
 from warpnerf.data import intrinsics_from_fov, orbit_views
 from warpnerf.demo import CAMERA_RADIUS, FOV_X, GT_BOX
-from warpnerf.errors import UserError
+from warpnerf.errors import exit_status
 from warpnerf.fields import SDFVolume
 from warpnerf.io import write_image, write_json
 from warpnerf.train import BoxFitConfig, fit_box, render_box_views
@@ -52,6 +52,11 @@ def fit_builtin(cfg: BoxFitConfig, out: Path, device: str, views: int, size: int
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("02_fit_box", _main, argv)
+
+
+def _main(argv) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="Blender-format folder (default: built-in scene)")
     p.add_argument("--out", default="out/02_fit_box")
@@ -83,16 +88,12 @@ def main(argv=None) -> int:
         lr=args.lr,
     )
     out = Path(args.out)  # created by the writers, only once the data has loaded
-    try:
-        if args.data:
-            res = run_box_fit_on_folder(
-                args.data, out, cfg, args.device, frames=args.frames, progress=True
-            )
-        else:
-            res = fit_builtin(cfg, out, args.device, args.views, args.size)
-    except UserError as e:
-        print(f"02_fit_box: error: {e}", file=sys.stderr)
-        return 2
+    if args.data:
+        res = run_box_fit_on_folder(
+            args.data, out, cfg, args.device, frames=args.frames, progress=True
+        )
+    else:
+        res = fit_builtin(cfg, out, args.device, args.views, args.size)
     print(json.dumps(res))
     return 0
 

@@ -18,11 +18,16 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _nerf_args  # noqa: E402
 
-from warpnerf.errors import UserError  # noqa: E402
+from warpnerf.errors import exit_status  # noqa: E402
 from warpnerf.train.nerf_eval import render_run, train_and_evaluate  # noqa: E402
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("03_nerf_lego", _main, argv)
+
+
+def _main(argv) -> int:
     p = _nerf_args.parser(__doc__.splitlines()[0], "out/03_nerf_lego")
     p.add_argument("--coarse-fine", action="store_true")
     p.add_argument("--fine-samples", type=_nerf_args.positive, default=64)
@@ -32,13 +37,9 @@ def main(argv=None) -> int:
         args, pos_freqs=10, dir_freqs=4, n_fine=args.fine_samples if args.coarse_fine else 0
     )
     out = Path(args.out)
-    try:
-        res = train_and_evaluate(cfg, out / "run", max_images=args.eval_images, progress=True)
-        if args.frames > 0:
-            res["video"] = render_run(out / "run", "spiral", args.frames)["out"]
-    except UserError as e:
-        print(f"03_nerf_lego: error: {e}", file=sys.stderr)
-        return 2
+    res = train_and_evaluate(cfg, out / "run", max_images=args.eval_images, progress=True)
+    if args.frames > 0:
+        res["video"] = render_run(out / "run", "spiral", args.frames)["out"]
     print(json.dumps(res))
     return 0
 

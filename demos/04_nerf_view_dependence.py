@@ -27,11 +27,16 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _nerf_args  # noqa: E402
 
-from warpnerf.errors import UserError  # noqa: E402
+from warpnerf.errors import exit_status  # noqa: E402
 from warpnerf.train.nerf_eval import train_and_evaluate  # noqa: E402
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("04_nerf_view_dependence", _main, argv)
+
+
+def _main(argv) -> int:
     p = _nerf_args.parser(__doc__.splitlines()[0], "out/04_view_dependence")
     p.add_argument("--pos-freqs", type=int, default=None, help="default 6 built-in, 10 data")
     p.add_argument("--dir-freqs", type=int, default=None, help="default 1 built-in, 4 data")
@@ -41,15 +46,11 @@ def main(argv=None) -> int:
     dirs = args.dir_freqs if args.dir_freqs is not None else (1 if builtin else 4)
     out = Path(args.out)
     rows = {}
-    try:
-        for vd in (False, True):
-            cfg = _nerf_args.config(args, view_dependence=vd, pos_freqs=pos, dir_freqs=dirs)
-            rows["with" if vd else "without"] = train_and_evaluate(
-                cfg, out / ("view_dependent" if vd else "lambertian"), max_images=args.eval_images
-            )
-    except UserError as e:
-        print(f"04_nerf_view_dependence: error: {e}", file=sys.stderr)
-        return 2
+    for vd in (False, True):
+        cfg = _nerf_args.config(args, view_dependence=vd, pos_freqs=pos, dir_freqs=dirs)
+        rows["with" if vd else "without"] = train_and_evaluate(
+            cfg, out / ("view_dependent" if vd else "lambertian"), max_images=args.eval_images
+        )
     print("| view dependence | val PSNR | val SSIM | train s | parameters |")
     print("|---|---|---|---|---|")
     for k, r in rows.items():

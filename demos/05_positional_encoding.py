@@ -23,7 +23,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _nerf_args  # noqa: E402
 
-from warpnerf.errors import UserError  # noqa: E402
+from warpnerf.errors import exit_status  # noqa: E402
 from warpnerf.io import write_image  # noqa: E402
 from warpnerf.train.nerf import load_data, load_run, render_dataset_image  # noqa: E402
 from warpnerf.train.nerf_eval import train_and_evaluate  # noqa: E402
@@ -32,23 +32,24 @@ FREQS = (0, 3, 6)
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("05_positional_encoding", _main, argv)
+
+
+def _main(argv) -> int:
     p = _nerf_args.parser(__doc__.splitlines()[0], "out/05_positional_encoding")
     args = p.parse_args(argv)
     out = Path(args.out)
     rows, tiles = {}, []
-    try:
-        for L in FREQS:
-            cfg = _nerf_args.config(args, pos_freqs=L, dir_freqs=min(L, 4))
-            run = out / f"freqs_{L}"
-            rows[L] = train_and_evaluate(cfg, run, max_images=args.eval_images)
-            cfg_, model, _ = load_run(run)
-            val = load_data(cfg_, "val")
-            if not tiles:
-                tiles.append(val["images"][0].cpu())
-            tiles.append(render_dataset_image(model, cfg_, val, 0)[0].cpu())
-    except UserError as e:
-        print(f"05_positional_encoding: error: {e}", file=sys.stderr)
-        return 2
+    for L in FREQS:
+        cfg = _nerf_args.config(args, pos_freqs=L, dir_freqs=min(L, 4))
+        run = out / f"freqs_{L}"
+        rows[L] = train_and_evaluate(cfg, run, max_images=args.eval_images)
+        cfg_, model, _ = load_run(run)
+        val = load_data(cfg_, "val")
+        if not tiles:
+            tiles.append(val["images"][0].cpu())
+        tiles.append(render_dataset_image(model, cfg_, val, 0)[0].cpu())
     write_image(out / "grid.png", torch.cat(tiles, 1))
     print("| frequencies | val PSNR | val SSIM | train s |")
     print("|---|---|---|---|")

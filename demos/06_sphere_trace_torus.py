@@ -10,7 +10,6 @@ iterations per ray as the last JSON line.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 import torch
 
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
+from warpnerf.errors import exit_status
 from warpnerf.fields.sdf_scene import torus_scene
 from warpnerf.io import write_image, write_json, write_video
 from warpnerf.ops import generate_rays
@@ -54,11 +54,12 @@ def render_frames(scene, cams, size, device, omega=1.0, eps=1e-4, max_iters=256,
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/06_sphere_trace_torus")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--size", type=int, default=160)
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("06_sphere_trace_torus", _main, argv)
+
+
+def _main(argv) -> int:
+    p = _common.parser(__doc__, "out/06_sphere_trace_torus", frames=40, size=160)
     p.add_argument("--iters", type=int, default=256, help="sphere-tracing iteration cap")
     args = p.parse_args(argv)
     out = _common.check_args(p, args, frames=1, size=2, iters=1)

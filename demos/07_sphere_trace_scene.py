@@ -11,13 +11,13 @@ per ray and the fraction of rays on which the two disagree (hit/miss or depth > 
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
 import sys
 from pathlib import Path
 
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
+from warpnerf.errors import exit_status
 from warpnerf.fields.sdf_scene import many_primitives_scene
 from warpnerf.io import write_image, write_json, write_video
 from warpnerf.ops import generate_rays
@@ -47,11 +47,12 @@ def disagreement(scene, cams, size, device, omegas=(1.0, 1.6), max_iters=256) ->
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/07_sphere_trace_scene")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--frames", type=int, default=24)
-    p.add_argument("--size", type=int, default=200)
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("07_sphere_trace_scene", _main, argv)
+
+
+def _main(argv) -> int:
+    p = _common.parser(__doc__, "out/07_sphere_trace_scene", frames=24, size=200)
     p.add_argument("--iters", type=int, default=256, help="sphere-tracing iteration cap")
     p.add_argument("--omega", type=float, default=1.6, help="over-relaxation factor to compare")
     args = p.parse_args(argv)

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
+from warpnerf.errors import exit_status
 from warpnerf.io import write_video
 from warpnerf.ops import generate_rays
 from warpnerf.options import add_flags, from_flags
@@ -46,8 +47,13 @@ def turntable(model, n_frames, size, device):
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("08_neural_sdf", _main, argv)
+
+
+def _main(argv) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/08_neural_sdf")
+    p.add_argument("--out", default="out/08_neural_sdf")  # (--device: SDFConfig's flag)
     add_flags(p, SDFConfig, include=FLAGS, defaults=dict(iters=600, batch=2048))
     p.add_argument("--frames", type=int, default=12)
     p.add_argument("--size", type=int, default=96)
@@ -56,13 +62,7 @@ def main(argv=None) -> int:
     run = _common.fresh_run(out / "run")
 
     cfg = SDFConfig(**from_flags(SDFConfig, args, include=FLAGS), n_random=args.batch)
-    from warpnerf.errors import UserError
-
-    try:
-        m = train_sdf(cfg, run, progress=False)
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    m = train_sdf(cfg, run, progress=False)
     from warpnerf.train.sdf import load_sdf_run
 
     _, model, _ = load_sdf_run(run)

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from warpnerf.errors import UserError
+from warpnerf.errors import exit_status
 from warpnerf.options import add_flags, from_flags
 from warpnerf.train import evaluate_run, render_run, train_nerf
 from warpnerf.train.nerf_config import VolSDFConfig
@@ -33,6 +33,11 @@ DEFAULTS = dict(iters=400, batch=512, n_coarse=32, n_layers=4, width=64, builtin
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("09_volsdf", _main, argv)
+
+
+def _main(argv) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="out/09_volsdf")
     add_flags(p, VolSDFConfig, include=FLAGS, defaults=DEFAULTS)
@@ -46,13 +51,9 @@ def main(argv=None) -> int:
         skip=max(1, args.n_layers // 2), val_every=max(1, args.iters // 4), val_images=2,
         ckpt_every=args.iters, lr=1e-3 if args.data == "builtin" else None,
     )  # fmt: skip
-    try:
-        hist = train_nerf(cfg, run, progress=False, log=lambda *a: None)
-        m = evaluate_run(run, "val", max_images=args.eval_images)
-        r = render_run(run, "spiral", args.frames)
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    hist = train_nerf(cfg, run, progress=False, log=lambda *a: None)
+    m = evaluate_run(run, "val", max_images=args.eval_images)
+    r = render_run(run, "spiral", args.frames)
     from warpnerf.mesh import extract_mesh, write_ply
     from warpnerf.train.nerf import load_run
 

@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _nerf_args  # noqa: E402
 
-from warpnerf.errors import UserError  # noqa: E402
+from warpnerf.errors import exit_status  # noqa: E402
 from warpnerf.io import write_image, write_json  # noqa: E402
 from warpnerf.ops.occupancy import unpack_bits  # noqa: E402
 from warpnerf.train.nerf import load_run, resolve_data  # noqa: E402
@@ -46,6 +46,11 @@ def slices(grid) -> np.ndarray:
 
 
 def main(argv=None) -> int:
+    """Runs the demo; a user error or a refusal of the machine: one line on stderr, status 2."""
+    return exit_status("10_occupancy_grid", _main, argv)
+
+
+def _main(argv) -> int:
     flags = _nerf_args.FLAGS + ("grid_res", "hash_log2_size", "hash_max_res", "hidden")
     p = _nerf_args.parser(
         __doc__.splitlines()[0], "out/10_occupancy_grid", flags, grid_res=32, hash_log2_size=12,
@@ -62,21 +67,17 @@ def main(argv=None) -> int:
         hash_base_res=4 if args.data == "builtin" else 16,
     )
     rows = {}
-    try:
-        for name, grid_res in (("grid", args.grid_res), ("no_grid", 0)):
-            cfg = _nerf_args.config(args, grid_res=grid_res, **common)
-            if grid_res:
-                resolve_data(cfg)  # the box and step the data decides
-                cfg.march_step = args.march_step or 2 * cfg.aabb * 3**0.5 / 256
-                cfg.grid_warmup = min(cfg.grid_warmup, args.iters // 4)
-            rows[name] = train_and_evaluate(cfg, out / name, max_images=args.eval_images)
-            hist = json.loads((out / name / "history.json").read_text())
-            rows[name]["samples_per_ray"] = (
-                hist["samples_per_ray"][-1] if grid_res else float(args.n_coarse)
-            )
-    except UserError as e:
-        print(f"10_occupancy_grid: error: {e}", file=sys.stderr)
-        return 2
+    for name, grid_res in (("grid", args.grid_res), ("no_grid", 0)):
+        cfg = _nerf_args.config(args, grid_res=grid_res, **common)
+        if grid_res:
+            resolve_data(cfg)  # the box and step the data decides
+            cfg.march_step = args.march_step or 2 * cfg.aabb * 3**0.5 / 256
+            cfg.grid_warmup = min(cfg.grid_warmup, args.iters // 4)
+        rows[name] = train_and_evaluate(cfg, out / name, max_images=args.eval_images)
+        hist = json.loads((out / name / "history.json").read_text())
+        rows[name]["samples_per_ray"] = (
+            hist["samples_per_ray"][-1] if grid_res else float(args.n_coarse)
+        )
     _, model, _ = load_run(out / "grid")
     grid = model.grid
     write_image(out / "occupancy.png", slices(grid))

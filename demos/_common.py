@@ -32,3 +32,16 @@ def fresh_run(run: Path) -> Path:
         for folder in [run, *(p for p in sorted(run.rglob("*")) if p.is_dir())]:
             remove_own(folder, owned_files(folder))
     return run
+
+
+def parser(doc: str, out: str, **sizes):
+    """The demo's parser with the flags every demo has: --out (default ``out``), --device, and
+    integer flags such as frames=40, size=160 (``--frames``, ``--size``) with these defaults."""
+    import argparse
+
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--out", default=out)
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    for name, default in sizes.items():
+        p.add_argument("--" + name.replace("_", "-"), type=int, default=default)
+    return p

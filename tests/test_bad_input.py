@@ -616,3 +616,18 @@ def test_demo_missing_data(world, tmp_path, monkeypatch, capsys, demo):
     argv = [DATA_FLAG[demo[:2]], "nope", "--out", str(out), "--iters", "1"]
     _demo_fails_cleanly(demo, argv, capsys, ["nope"])
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "demo, args",
+    [
+        ("01_render_volume.py", ["--frames", "1", "--size", "8", "--samples", "4"]),
+        ("06_sphere_trace_torus.py", ["--frames", "1", "--size", "8", "--iters", "8"]),
+    ],
+)
+def test_demo_os_refusal_is_one_line(tmp_path, monkeypatch, capsys, demo, args):
+    """A path the file system refuses (a name longer than NAME_MAX) is a one-line error with
+    status 2 in the demos too, as in the `warpnerf` command (they share errors.exit_status)."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / ("x" * 300)
+    _demo_fails_cleanly(demo, ["--out", str(out), *args], capsys, ["ENAMETOOLONG"])

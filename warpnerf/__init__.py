@@ -10,30 +10,21 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 - :class:`NeRFField`, :class:`PositionalEncoding`, :func:`render_nerf`, :func:`psnr`, :func:`ssim`
 - :class:`HashGrid`, :func:`hash_encode` (hash-grid encoding), :class:`HashEncoding`,
   :class:`SphericalHarmonics`, :class:`HashNeRFField` (the fast NeRF field)
+- :class:`RadianceModel` (a run's fields and occupancy grid; ``warpnerf.fields.FIELDS`` registers
+  fields by name)
 - :class:`OccupancyGrid`, :func:`march_rays` (packed marching through occupied cells),
   :func:`render_marched` (grid marching + early termination + compositing)
 """
 
-from . import data
+from . import data, ops
 from .fields.encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
 from .fields.hash_nerf import HashNeRFField
+from .fields.model import RadianceModel
 from .fields.nerf import NeRFField
 from .fields.sdf_volume import SDFVolume, laplace_cdf
 from .metrics import psnr, ssim
 from .occupancy import OccupancyGrid
-from .ops import (
-    HashGrid,
-    Samples,
-    generate_rays,
-    hash_encode,
-    importance_samples,
-    packed_info_from_ray_indices,
-    random_pixels,
-    ray_aabb_intersect,
-    render_dense,
-    render_packed,
-    stratified_samples,
-)
+from .ops import *  # noqa: F403  (the public ops: ops.__all__)
 from .ops.occupancy import march_rays
 from .render import render_image, render_marched, render_nerf, render_rays, render_views
 
@@ -41,15 +32,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "data",
-    "generate_rays",
-    "random_pixels",
-    "ray_aabb_intersect",
-    "stratified_samples",
-    "importance_samples",
-    "Samples",
-    "render_packed",
-    "render_dense",
-    "packed_info_from_ray_indices",
+    *ops.__all__,
     "SDFVolume",
     "laplace_cdf",
     "render_rays",
@@ -58,11 +41,10 @@ __all__ = [
     "render_nerf",
     "PositionalEncoding",
     "NeRFField",
-    "HashGrid",
-    "hash_encode",
     "HashEncoding",
     "SphericalHarmonics",
     "HashNeRFField",
+    "RadianceModel",
     "OccupancyGrid",
     "march_rays",
     "render_marched",

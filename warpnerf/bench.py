@@ -29,6 +29,16 @@ def _sync(dev):
         torch.cuda.synchronize(dev)
 
 
+def _warp_vs_torch(row: dict, run, warp_fn, torch_fn, dev, repeats: int) -> None:
+    """Adds the forward and forward+backward times (ms) of the Warp op and its PyTorch twin, and
+    the speed-ups, to ``row``; ``run(fn, backward)`` returns the timed closure."""
+    for name, fn in (("warp", warp_fn), ("torch", torch_fn)):
+        row[f"{name}_fwd_ms"] = 1e3 * _time(run(fn, False), dev, repeats)
+        row[f"{name}_fwdbwd_ms"] = 1e3 * _time(run(fn, True), dev, repeats)
+    row["speedup_fwd"] = row["torch_fwd_ms"] / row["warp_fwd_ms"]
+    row["speedup_fwdbwd"] = row["torch_fwdbwd_ms"] / row["warp_fwdbwd_ms"]
+
+
 def _time(fn, dev, repeats: int, warmup: int = 2) -> float:
     """Median seconds of ``fn()`` over ``repeats`` runs (CUDA events on GPU)."""
     for _ in range(warmup):
@@ -97,11 +107,7 @@ def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, check_error:
         return go
 
     row = {"n_rays": n_rays, "samples_per_ray": n_samples, "n_samples": n}
-    for name, fn in (("warp", render_packed), ("torch", reference.render_packed)):
-        row[f"{name}_fwd_ms"] = 1e3 * _time(run(fn, False), dev, repeats)
-        row[f"{name}_fwdbwd_ms"] = 1e3 * _time(run(fn, True), dev, repeats)
-    row["speedup_fwd"] = row["torch_fwd_ms"] / row["warp_fwd_ms"]
-    row["speedup_fwdbwd"] = row["torch_fwdbwd_ms"] / row["warp_fwdbwd_ms"]
+    _warp_vs_torch(row, run, render_packed, reference.render_packed, dev, repeats)
     row["samples_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
     row["bytes_fwd"] = composite_bytes(n_rays, n, False)
     row["bytes_fwdbwd"] = composite_bytes(n_rays, n, True)
@@ -162,11 +168,7 @@ def _encoding_case(n: int, grid, dev, repeats: int):
         return go
 
     row = {"kernel": "hash_encode", "n_points": n, "levels": grid.n_levels, "rows": grid.n_rows}
-    for name, fn in (("warp", hash_encode), ("torch", ref_encode)):
-        row[f"{name}_fwd_ms"] = 1e3 * _time(run(fn, False), dev, repeats)
-        row[f"{name}_fwdbwd_ms"] = 1e3 * _time(run(fn, True), dev, repeats)
-    row["speedup_fwd"] = row["torch_fwd_ms"] / row["warp_fwd_ms"]
-    row["speedup_fwdbwd"] = row["torch_fwdbwd_ms"] / row["warp_fwdbwd_ms"]
+    _warp_vs_torch(row, run, hash_encode, ref_encode, dev, repeats)
     row["points_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
     row["bytes_fwd"] = encoding_bytes(n, grid, False)
     row["bytes_fwdbwd"] = encoding_bytes(n, grid, True)

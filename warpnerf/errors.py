@@ -116,3 +116,41 @@ def check_fits(nbytes: float, device: str, what: str) -> None:
             f"{what} needs about {_human(nbytes)}, more than the {_human(total)} of {device}; "
             "choose smaller sizes"
         )
+
+
+def exit_status(prog: str, fn, *args, **kwargs) -> int:
+    """Runs ``fn(*args, **kwargs)`` and turns the library's outcomes into an exit status, with
+    one line ``PROG: error: ...`` on stderr instead of a traceback: its return value (None: 0);
+    2 for a :class:`UserError`, input nested too deeply, or a refusal of the machine (an OS
+    error naming its path, memory that cannot be had: :func:`describe_failure`); 3 for
+    :class:`Diverged`; 128 + the signal for :class:`Interrupted` (training checkpointed its last
+    step); 130 for Ctrl-C. Anything else is a bug and keeps its traceback. The ``warpnerf``
+    command and the demos use it."""
+    import sys
+
+    def say(text: str) -> None:
+        print(f"{prog}: {text}", file=sys.stderr)
+
+    try:
+        return int(fn(*args, **kwargs) or 0)
+    except UserError as e:
+        say(f"error: {e}")
+        return 2
+    except Interrupted as e:
+        say(f"interrupted by {e}")
+        return 128 + e.signum
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Diverged as e:
+        say(f"error: {e}")
+        return 3
+    except RecursionError:
+        say("error: input nested too deeply")
+        return 2
+    except (OSError, MemoryError, RuntimeError) as e:
+        line = describe_failure(e)
+        if line is None:
+            raise
+        say(f"error: {line}")
+        return 2

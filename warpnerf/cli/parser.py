@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from ..errors import Diverged, Interrupted, UserError, describe_failure
+from ..errors import exit_status
 from ._common import (
     _data_format_flags,
     _finite,
@@ -126,29 +125,9 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    try:
+
+    def run():
         with _sigterm_exits():
-            return int(args.func(args) or 0)
-    except UserError as e:
-        print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except Interrupted as e:  # training checkpointed its last step before stopping
-        print(f"warpnerf {args.command}: interrupted by {e}", file=sys.stderr)
-        return 128 + e.signum
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except Diverged as e:
-        print(f"warpnerf {args.command}: error: {e}", file=sys.stderr)
-        return 3
-    except RecursionError:
-        print(f"warpnerf {args.command}: error: input nested too deeply", file=sys.stderr)
-        return 2
-    except (OSError, MemoryError, RuntimeError) as e:
-        # The machine refused (a path, the disk, memory): one line, status 2. Anything else is
-        # a bug and keeps its traceback.
-        line = describe_failure(e)
-        if line is None:
-            raise
-        print(f"warpnerf {args.command}: error: {line}", file=sys.stderr)
-        return 2
+            return args.func(args)
+
+    return exit_status(f"warpnerf {args.command}", run)

@@ -73,6 +73,12 @@ def check_float(name: str, t: torch.Tensor, shape: tuple, dtype=None, device=Non
         raise ValueError(f"{name} must be float32 or float64, got {t.dtype}")
     if dtype is not None and t.dtype != dtype:
         raise ValueError(f"{name} has dtype {t.dtype}, expected {dtype} like the other inputs")
+    _check_placement(name, t, shape, device)
+
+
+def _check_placement(name: str, t: torch.Tensor, shape: tuple, device) -> None:
+    """ValueError naming the argument when ``t`` is not on ``device`` (None: any) or its shape is
+    not ``shape`` (None entries match any size)."""
     if device is not None and t.device != device:
         raise ValueError(f"{name} is on {t.device}, expected {device} like the other inputs")
     if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
@@ -119,11 +125,7 @@ def check_index(name: str, t, shape: tuple, device=None) -> None:
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
     if t.dtype not in INTS:
         raise IndexDtypeError(f"{name} must be an int32 or int64 tensor of indices, got {t.dtype}")
-    if device is not None and t.device != device:
-        raise ValueError(f"{name} is on {t.device}, expected {device} like the other inputs")
-    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
-        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
-        raise ValueError(f"{name} must have shape {want}, got {list(t.shape)}")
+    _check_placement(name, t, shape, device)
 
 
 def host_flags(*flags: torch.Tensor) -> list:

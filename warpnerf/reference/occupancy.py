@@ -8,19 +8,13 @@ from __future__ import annotations
 
 import torch
 
+from warpnerf.ops import occupancy as _op
 from warpnerf.ops.occupancy import unpack_bits  # pure torch: shared, not twinned
 from warpnerf.ops.sampling import Samples
 
 from .rays import ray_aabb_intersect
 
-__all__ = [
-    "march_rays",
-    "grid_cell_points",
-    "grid_ema_update",
-    "grid_pack_bits",
-    "live_samples",
-    "unpack_bits",
-]
+__all__ = list(_op.__all__)  # the twin of each public op, by the same name
 
 
 def _geometry(aabb, res, dtype, device):
