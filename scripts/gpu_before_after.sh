@@ -4,16 +4,9 @@
 # each then evaluated on every val image by its own code. Base tree as in gpu_overhead.sh
 # (.gpu/base = the base commit's warpnerf/ with kernels/ copied to warpnerf/kernels).
 # Usage: DATA=.gpu/lego SECS=120 bash scripts/gpu_before_after.sh   (writes $OUT/before_after.md)
-set -u
-OUT=${OUT:-/tmp/out}
-mkdir -p "$OUT"
-export PYTHONUNBUFFERED=1
-DATA=$PWD/${DATA:-.gpu/lego}
+source "$(dirname "$0")/_gpu_ab.sh"  # OUT, DATA, run_version
 SECS=${SECS:-120}
 args="train nerf --data $DATA --field hash --device cuda --tf32 --batch 4096 --target-samples 262144 --iters 100000 --max-seconds $SECS --val-images 0 --quiet"
-run_version() {  # version, argv...
-  if [ "$1" = base ]; then shift; (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -m warpnerf.cli "$@"); else shift; python3 -m warpnerf.cli "$@"; fi
-}
 for v in ${ORDER:-base new}; do
   rm -rf /tmp/ba_$v
   run_version $v $args --out /tmp/ba_$v > "$OUT/train_$v.json" 2>> "$OUT/log.txt" || echo "train $v failed" | tee -a "$OUT/log.txt"

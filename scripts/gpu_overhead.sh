@@ -8,18 +8,11 @@
 # `eval` (20 val images) of one run rendered by each version. The order within a repetition
 # alternates (ORDER=alt, the default: the second run of a pair measured a few % slower on the
 # H100); ORDER="base new" or "new base" fixes it.
-set -u
-OUT=${OUT:-/tmp/out}
-mkdir -p "$OUT"
-export PYTHONUNBUFFERED=1
-DATA=$PWD/${DATA:-.gpu/lego}
+source "$(dirname "$0")/_gpu_ab.sh"  # OUT, DATA, run_version
 ITERS=${ITERS:-1000}
 args="train nerf --data $DATA --field hash --batch 4096 --target-samples 262144 --tf32 --iters $ITERS --val-images 0 --device cuda --quiet"
 order() {  # the versions' order in repetition $1: ORDER="base new", "new base" or "alt" (default)
   case ${ORDER:-alt} in alt) if [ $(($1 % 2)) = 1 ]; then echo base new; else echo new base; fi ;; *) echo $ORDER ;; esac
-}
-run_version() {  # version, argv...
-  if [ "$1" = base ]; then shift; (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -m warpnerf.cli "$@"); else shift; python3 -m warpnerf.cli "$@"; fi
 }
 (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -c "import warpnerf; print('base code:', warpnerf.__file__)")
 python3 -c "import warpnerf; print('new code:', warpnerf.__file__)"
