@@ -10,4 +10,3 @@ python3 -c "import torch, warp; print('torch', torch.__version__, 'warp', warp._
 git log -1 --format='commit %H' 2>/dev/null | tee -a "$OUT/gpu.txt"
 python3 -m pytest tests -q -k "cuda" -p no:cacheprovider ${PYTEST_ARGS:-} 2>&1 | tail -25 | tee "$OUT/pytest_cuda.txt"
 python3 -m warpnerf.cli bench composite --device cuda --json "$OUT/bench_cuda.json" 2>&1 | tee "$OUT/bench_cuda.md"
-python3 scripts/debug_err.py cuda 2>&1 | tee "$OUT/debug_err.txt"
