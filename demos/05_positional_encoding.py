@@ -48,7 +48,7 @@ def _main(argv) -> int:
         cfg_, model, _ = load_run(run)
         val = load_data(cfg_, "val")
         if not tiles:
-            tiles.append(val["images"][0].cpu())
+            tiles.append(val.images[0].cpu())
         tiles.append(render_dataset_image(model, cfg_, val, 0)[0].cpu())
     write_image(out / "grid.png", torch.cat(tiles, 1))
     print("| frequencies | val PSNR | val SSIM | train s |")

@@ -79,8 +79,8 @@ def main():
     val = load_data(cfg, "val")
     errs = []
     with torch.no_grad():
-        for i in range(min(args.val_images, val["images"].shape[0])):
-            o, d = generate_rays(val["c2w"][i], val["intrinsics"][i], val["width"], val["height"])
+        for i in range(min(args.val_images, val.images.shape[0])):
+            o, d = generate_rays(val.c2w[i], val.intrinsics[i], val.width, val.height)
             out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
             t_gt = analytic_depth(o, d)
             # expected depth over opacity: the depth of the visible surface

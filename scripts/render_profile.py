@@ -21,8 +21,8 @@ def main():
     a = p.parse_args()
     cfg, model, _ = load_run(a.run)
     ds = load_data(cfg, "val")
-    o, d = generate_rays(ds["c2w"][0], ds["intrinsics"][0], ds["width"], ds["height"])
-    gt = ds["images"][0].reshape(-1, 3)
+    o, d = generate_rays(ds.c2w[0], ds.intrinsics[0], ds.width, ds.height)
+    gt = ds.images[0].reshape(-1, 3)
     counts = {"rounds": 0}
     import warpnerf.render as R
 

@@ -21,13 +21,13 @@ def box_folder(tmp_path_factory):
 
 
 def test_loader_reads_generated_folder(box_folder):
-    ds = load_blender(box_folder, background=(0, 0, 0))
+    ds = load_blender(box_folder, holdout=0, background=(0, 0, 0))
     assert ds["images"].shape == (3, 16, 16, 3) and ds["c2w"].shape == (3, 4, 4)
     fx = 0.5 * 16 / np.tan(0.35)
     assert np.allclose(ds["intrinsics"][0].numpy(), [fx, fx, 8, 8], rtol=1e-6)
-    white = load_blender(box_folder, background=(1, 1, 1))["images"]
+    white = load_blender(box_folder, holdout=0, background=(1, 1, 1))["images"]
     assert float(white.mean()) > float(ds["images"].mean())  # alpha compositing applied
-    half = load_blender(box_folder, downscale=2)
+    half = load_blender(box_folder, holdout=0, downscale=2)
     assert half["images"].shape == (3, 8, 8, 3)
     assert np.allclose(half["intrinsics"][0].numpy(), [fx / 2, fx / 2, 4, 4], rtol=1e-6)
 
@@ -75,7 +75,7 @@ def test_loader_errors_name_file_and_field(tmp_path, box_folder, content, needle
     (root / "train" / "r_0.png").write_bytes((box_folder / "train" / "r_0.png").read_bytes())
     _write(root, content)
     with pytest.raises(UserError) as e:
-        load_blender(root)
+        load_blender(root, holdout=0)
     assert needle in str(e.value) and "transforms.json" in str(e.value)
 
 
@@ -91,7 +91,7 @@ def test_loader_missing_folder_and_corrupt_image(tmp_path):
         },
     )
     with pytest.raises(UserError, match="cannot read image"):
-        load_blender(tmp_path)
+        load_blender(tmp_path, holdout=0)
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):

@@ -12,8 +12,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from warpnerf.data import load_blender, load_dataset, load_nerfstudio, look_at
+from warpnerf.data import (
+    Dataset,
+    detect_format,
+    holdout_indices,
+    load_blender,
+    load_dataset,
+    load_nerfstudio,
+    look_at,
+    register_format,
+)
 from warpnerf.errors import UserError
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -120,7 +130,10 @@ def test_single_blender_transforms_json_uses_holdout_rule(tmp_path):
     (tmp_path / "transforms_train.json").rename(tmp_path / "transforms.json")
     assert len(load_dataset(tmp_path, "train")["paths"]) == 8
     assert [Path(p).name for p in load_dataset(tmp_path, "val")["paths"]] == ["r_0.png", "r_8.png"]
-    assert len(load_blender(tmp_path, "val")["paths"]) == 10  # legacy: every frame, every split
+    # one hold-out rule: load_blender splits a single file as load_dataset does; 0 = no hold-out
+    assert [Path(p).name for p in load_blender(tmp_path, "val").paths] == ["r_0.png", "r_8.png"]
+    assert len(load_blender(tmp_path, "val", holdout=0)) == 10
+    assert len(load_dataset(tmp_path, "val", holdout=5).paths) == 2  # r_0, r_5
 
 
 # --------------------------------------------------------------------------------- nerfstudio
@@ -332,6 +345,94 @@ def test_error_image_not_found_and_unreadable(tmp_path):
 def test_error_bad_arguments(tmp_path, fmt, kw, needle):
     make_blender(tmp_path, n=1) if fmt == "blender" else make_nerfstudio(tmp_path, n=2)
     _raises(tmp_path, needle, **kw)
+
+
+# ------------------------------------------------- the typed dataset, the registry, one rule
+
+
+def test_dataset_is_typed_and_keeps_the_dict_view(tmp_path):
+    ds = load_dataset(make_nerfstudio(tmp_path, n=10), "val")
+    assert isinstance(ds, Dataset) and ds.format == "nerfstudio" and ds.split == "val"
+    assert len(ds) == 2 and (ds.height, ds.width) == (8, 12) and ds.images.shape == (2, 8, 12, 3)
+    assert ds.distortion is None and ds.near is None and ds.ndc is None
+    # code written against the old dict keeps working
+    assert ds["images"] is ds.images and ds["width"] == 12 and ds.get("distortion") is None
+    assert "images" in ds and "ndc" not in ds and "distortion" not in ds.keys()
+    with pytest.raises(KeyError):
+        ds["transform"]
+    assert ds.to("cpu") is ds  # nothing to move
+    assert ds.to(torch.device("cpu")) is ds
+
+
+@pytest.mark.parametrize("every", [0, 2, 3, 8])
+def test_one_holdout_rule_for_every_format_without_split_files(tmp_path, every):
+    """A single transforms.json (Blender), nerfstudio and load_dataset split the same frames."""
+    blender = make_blender(tmp_path / "b", n=10)
+    (blender / "transforms_train.json").rename(blender / "transforms.json")
+    ns = make_nerfstudio(tmp_path / "ns", n=10)
+    for split in ("train", "val", "test"):
+        want = holdout_indices(10, split, every, "x")
+        names = [
+            [int(Path(p).stem.split("_")[-1]) for p in ds.paths]
+            for ds in (
+                load_dataset(blender, split, holdout=every),
+                load_blender(blender, split, holdout=every),
+                load_dataset(ns, split, holdout=every),
+                load_nerfstudio(ns, split, holdout=every),
+            )
+        ]
+        assert names == [want] * 4, (split, every)
+    held = set(holdout_indices(10, "val", every, "x"))
+    assert held == (set(range(10)) if every == 0 else {i for i in range(10) if i % every == 0})
+
+
+def test_holdout_rule_refuses_bad_periods_and_empty_splits(tmp_path):
+    ns = make_nerfstudio(tmp_path, n=3)
+    for bad in (1, -1, 2.5):
+        with pytest.raises(UserError, match="holdout must be 0"):
+            load_dataset(ns, "train", holdout=bad)
+    with pytest.raises(UserError, match="split 'val' is empty"):
+        holdout_indices(0, "val", 8, "here")
+    with pytest.raises(TypeError, match="unknown loader option"):
+        load_dataset(ns, "train", bakground=1.0)
+
+
+def test_a_new_format_is_one_loader_and_one_registry_line(tmp_path, monkeypatch):
+    """register_format: detection asks the new format, load_dataset calls its loader."""
+    from warpnerf.data import dataset as dataset_mod
+
+    monkeypatch.setattr(dataset_mod, "REGISTRY", dict(dataset_mod.REGISTRY))
+    import warpnerf.data.datasets as datasets_mod
+
+    monkeypatch.setattr(datasets_mod, "REGISTRY", dataset_mod.REGISTRY)
+    seen = []
+
+    def load(req):
+        seen.append(req)
+        n = 3
+        return Dataset(
+            images=torch.zeros(n, 4, 5, 3),
+            c2w=torch.eye(4).expand(n, 4, 4).clone(),
+            intrinsics=torch.tensor([[5.0, 5.0, 2.5, 2.0]]).expand(n, 4).clone(),
+            format="toy",
+            split=req.split,
+        )
+
+    register_format("toy", load, lambda root, split: (root / "scene.toy").is_file())
+    (tmp_path / "scene.toy").write_text("")
+    assert detect_format(tmp_path) == "toy"
+    ds = load_dataset(tmp_path, "val", downscale=2, holdout=0)
+    assert ds.format == "toy" and (ds.width, ds.height) == (5, 4)
+    assert seen[0].split == "val" and seen[0].downscale == 2 and seen[0].holdout == 0
+    with pytest.raises(ValueError, match="already registered"):
+        register_format("toy", load)
+
+
+def test_builtin_scene_is_a_registered_format():
+    ds = load_dataset("builtin", "val", builtin_size=8, max_images=2)
+    assert ds.format == "builtin" and ds.images.shape == (2, 8, 8, 3)
+    assert (ds.near, ds.far) == (1.0, 4.0) and ds.paths == []
+    assert detect_format("builtin") == "builtin"
 
 
 # --------------------------------------------------------------------------------- real data

@@ -17,6 +17,7 @@ Public API (torch tensors in and out, CPU or CUDA; nothing compiles at import):
 """
 
 from . import data, ops
+from .data import synthetic as _synthetic  # noqa: F401  (registers the built-in scene)
 from .fields.encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
 from .fields.hash_nerf import HashNeRFField
 from .fields.model import RadianceModel

@@ -26,7 +26,7 @@ from .train.box_fit import (
     write_spiral,
 )
 
-__all__ = ["GT_BOX", "run_demo", "write_spiral"]
+__all__ = ["GT_BOX", "CAMERA_RADIUS", "FOV_X", "run_demo", "write_spiral"]
 
 GT_BOX = {"center": (0.15, -0.1, 0.2), "side_lengths": (1.2, 0.8, 0.6)}
 FOV_X = SPIRAL_FOV_X  # radians

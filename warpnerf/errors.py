@@ -1,5 +1,15 @@
 """User-facing errors: the CLI prints their message (no traceback) and exits with status 2."""
 
+__all__ = [
+    "UserError",
+    "Interrupted",
+    "Diverged",
+    "describe_failure",
+    "available_memory",
+    "check_fits",
+    "exit_status",
+]
+
 
 class UserError(Exception):
     """A mistake in the user's input (file, field, flag); the message says what and where."""

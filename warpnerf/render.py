@@ -12,10 +12,40 @@ import torch
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 from .ops._bridge import check_int
 
-__all__ = ["render_rays", "render_image", "render_views", "render_nerf", "render_marched"]
+__all__ = [
+    "render_rays",
+    "render_image",
+    "render_views",
+    "render_nerf",
+    "render_marched",
+    "render_chunks",
+]
 
 
 SAMPLE_BUDGET = 1 << 23  # rendering: most samples the field sees in one call (memory bound)
+
+
+def render_chunks(n_rays: int, chunk: int | None, render_fn):
+    """The one chunked-rendering helper (used by the renderers, eval, render, video, the SDF
+    geometry view and the training loop's validation): calls ``render_fn(sl)`` on consecutive
+    slices ``sl`` of at most ``chunk`` of the ``n_rays`` rays (None: all at once) and joins the
+    outputs, which may be a tensor, a tuple or a dict of them: tensors with one row per ray are
+    concatenated, numbers (ints, floats, 0-d tensors: counters such as ``n_kept``) summed.
+    Zero rays still make one call (with an empty slice), so the outputs keep their shapes."""
+    chunk = max(n_rays, 1) if chunk is None else check_int("chunk", chunk, lo=1, hi=2**62)
+    outs = [render_fn(slice(s, min(s + chunk, n_rays))) for s in range(0, max(n_rays, 1), chunk)]
+    return _join(outs)
+
+
+def _join(outs: list):
+    first = outs[0]
+    if isinstance(first, dict):
+        return {k: _join([o[k] for o in outs]) for k in first}
+    if isinstance(first, tuple):
+        return tuple(_join(list(x)) for x in zip(*outs))
+    if isinstance(first, torch.Tensor) and first.dim() > 0:
+        return first if len(outs) == 1 else torch.cat(outs)
+    return sum(outs[1:], first)
 
 
 def render_rays(
@@ -41,29 +71,21 @@ def render_rays(
     """
     if mode not in ("sigma", "alpha"):
         raise ValueError(f"mode must be 'sigma' or 'alpha', got {mode!r}")
-    chunk = None if chunk is None else check_int("chunk", chunk, lo=1, hi=2**62)
     n_rays = origins.shape[0]
     dev, dt = origins.device, origins.dtype
     near = torch.as_tensor(near, device=dev, dtype=dt).expand(n_rays).contiguous()
     far = torch.as_tensor(far, device=dev, dtype=dt).expand(n_rays).contiguous()
-    chunk = chunk or max(n_rays, 1)
-    outs = []
-    for s in range(0, max(n_rays, 1), chunk):
-        o, d = origins[s : s + chunk], directions[s : s + chunk]
+
+    def chunk_fn(sl):
         smp = stratified_samples(
-            near[s : s + chunk],
-            far[s : s + chunk],
-            n_samples,
-            perturb=perturb,
-            seed=seed + s,
-            packed=True,
+            near[sl], far[sl], n_samples, perturb=perturb, seed=seed + sl.start, packed=True
         )
         bg = background
         if isinstance(bg, torch.Tensor) and bg.dim() == 2:
-            bg = bg[s : s + chunk]
-        rgb, depth, opacity = _shade(field_fn, o, d, smp, bg, t_threshold, False, mode)
-        outs.append((rgb, depth, opacity))
-    rgb, depth, opacity = (torch.cat(x) for x in zip(*outs))
+            bg = bg[sl]
+        return _shade(field_fn, origins[sl], directions[sl], smp, bg, t_threshold, False, mode)
+
+    rgb, depth, opacity = render_chunks(n_rays, chunk, chunk_fn)
     return {"rgb": rgb, "depth": depth, "opacity": opacity}
 
 
@@ -118,13 +140,11 @@ def render_nerf(
     fine samples). ``aabb`` [6] restricts samples to the box (rays that miss it get none).
     Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
     """
-    n_rays = origins.shape[0]
-    chunk = max(n_rays, 1) if chunk is None else check_int("chunk", chunk, lo=1, hi=2**62)
     n_fine = check_int("n_fine", n_fine)
     dev, dt = origins.device, origins.dtype
-    outs = []
-    for s in range(0, max(n_rays, 1), chunk):
-        o, d = origins[s : s + chunk], directions[s : s + chunk]
+
+    def chunk_fn(sl):
+        o, d, s = origins[sl], directions[sl], sl.start
         m = o.shape[0]
         nr = torch.full((m,), float(near), device=dev, dtype=dt)
         fr = torch.full((m,), float(far), device=dev, dtype=dt)
@@ -145,8 +165,9 @@ def render_nerf(
             )
             res = _shade(fine, o, d, smp_fine, background, t_threshold, want_weights=False)
         out.update(rgb=res[0], depth=res[1], opacity=res[2])
-        outs.append(out)
-    return {k: torch.cat([o[k] for o in outs]) for k in outs[0]}
+        return out
+
+    return render_chunks(origins.shape[0], chunk, chunk_fn)
 
 
 def _shade(field, o, d, smp, background, t_threshold, want_weights, mode="sigma"):

@@ -2,11 +2,18 @@
 
 from .blender import load_blender
 from .cameras import intrinsics_from_fov, look_at, orbit_views, spiral_path
-from .datasets import load_dataset
+from .dataset import Dataset, LoadRequest, holdout_indices, register_format
+from .datasets import FORMATS, detect_format, load_dataset
 from .nerfstudio import load_nerfstudio
 
 __all__ = [
+    "Dataset",
+    "LoadRequest",
     "load_dataset",
+    "detect_format",
+    "register_format",
+    "holdout_indices",
+    "FORMATS",
     "load_blender",
     "load_nerfstudio",
     "look_at",

@@ -1,8 +1,10 @@
 """Blender / NeRF-synthetic style folders: transforms JSON + images, validated with clear errors.
 
-Also holds the pieces every transforms-JSON loader shares (argument checks, JSON and field
-validation, image reading, alpha compositing, area downscaling, the hold-out split rule); the
-nerfstudio loader (``nerfstudio.py``) reuses them.
+Also holds the pieces every transforms-JSON loader shares (folder checks, JSON and field
+validation, image reading, alpha compositing, area downscaling); the nerfstudio loader
+(``nerfstudio.py``) reuses them. Options are checked once by
+:class:`~warpnerf.data.dataset.LoadRequest`; the split of a single ``transforms.json`` is the one
+hold-out rule (:func:`~warpnerf.data.dataset.holdout_indices`).
 
 Downscaling by an integer ``d`` averages ``d x d`` pixel blocks (area average, after compositing).
 When the image size is not a multiple of ``d`` the last rows / columns are cropped first (at the
@@ -13,7 +15,6 @@ the intrinsics are the full-resolution ones divided by ``d``.
 from __future__ import annotations
 
 import math
-import numbers
 import os
 from pathlib import Path
 
@@ -23,14 +24,12 @@ import torch
 from ..errors import UserError
 from ._json import read_json
 from .cameras import check_intrinsics, check_poses
+from .dataset import Dataset, LoadRequest, register_format
 
-__all__ = ["load_blender", "find_transforms", "split_indices", "HOLDOUT_EVERY", "SPLITS"]
+__all__ = ["load_blender", "find_transforms", "detect_blender"]
 
-SPLITS = ("train", "val", "test")
-# Folders without per-split files: every HOLDOUT_EVERY-th frame (index 0, 8, 16, ...) is held out
-# for val/test; train gets the others.
-HOLDOUT_EVERY = 8
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+_NERFSTUDIO_KEYS = ("fl_x", "w", "h", "camera_model")
 
 
 def find_transforms(root: Path, split: str) -> Path:
@@ -41,43 +40,7 @@ def find_transforms(root: Path, split: str) -> Path:
     raise UserError(f"{root}: no transforms_{split}.json or transforms.json found")
 
 
-def split_indices(n_frames: int, split: str, path) -> list[int]:
-    """Frame indices of ``split`` for a file without split files: ``val`` and ``test`` are the
-    frames ``i % 8 == 0``, ``train`` all the others (JSON order)."""
-    held = split != "train"
-    idx = [i for i in range(n_frames) if (i % HOLDOUT_EVERY == 0) == held]
-    if not idx:
-        raise UserError(
-            f"{path}: split '{split}' is empty: {n_frames} frame(s), and without split files "
-            f"val/test are the frames i % {HOLDOUT_EVERY} == 0 and train the others"
-        )
-    return idx
-
-
-def _check_args(split, background, downscale, max_images) -> np.ndarray:
-    """Validates the loader arguments; returns the background as a float32 [3] array."""
-    if split not in SPLITS:
-        raise UserError(f"split must be one of {', '.join(SPLITS)}, got {split!r}")
-    if not isinstance(downscale, numbers.Integral) or isinstance(downscale, bool) or downscale < 1:
-        raise UserError(f"downscale must be a positive integer, got {downscale!r}")
-    if max_images is not None and (
-        not isinstance(max_images, numbers.Integral)
-        or isinstance(max_images, bool)
-        or max_images < 1
-    ):
-        raise UserError(f"max_images must be None or a positive integer, got {max_images!r}")
-    try:
-        bg = np.asarray(background, dtype=np.float32).reshape(-1)
-    except (TypeError, ValueError):
-        bg = np.zeros(0, np.float32)
-    if bg.size == 1:
-        bg = bg.repeat(3)
-    if bg.size != 3 or not np.isfinite(bg).all():
-        raise UserError(f"background must be 3 finite numbers (RGB in [0, 1]), got {background!r}")
-    return bg
-
-
-def _check_folder(root) -> Path:
+def check_folder(root) -> Path:
     """``root`` as a Path; UserError unless it is a folder whose files can be listed and read."""
     root = Path(root)
     if not root.is_dir():
@@ -87,10 +50,24 @@ def _check_folder(root) -> Path:
     return root
 
 
-def _open_root(root, split, background, downscale, max_images) -> tuple[Path, np.ndarray]:
-    """(root as a Path, background [3]) after checking the arguments and the folder."""
-    bg = _check_args(split, background, downscale, max_images)
-    return _check_folder(root), bg
+def has_nerfstudio_fields(path: Path) -> bool:
+    """Whether a ``transforms.json`` carries nerfstudio camera fields (``fl_x``, ``w``, ``h`` or
+    ``camera_model``, at the top level or in ``frames[0]``)."""
+    js, frames = _read_json(path)
+    return any(k in js or k in frames[0] for k in _NERFSTUDIO_KEYS)
+
+
+def detect_blender(root: Path, split: str) -> bool:
+    """``transforms_{split}.json``, or a ``transforms.json`` with Blender's ``camera_angle_x``
+    and no nerfstudio camera fields."""
+    if (root / f"transforms_{split}.json").is_file():
+        return True
+    path = root / "transforms.json"
+    return (
+        path.is_file()
+        and not has_nerfstudio_fields(path)
+        and "camera_angle_x" in _read_json(path)[0]
+    )
 
 
 def _read_json(path: Path) -> tuple[dict, list]:
@@ -201,7 +178,7 @@ def _area_downscale(img: np.ndarray, d: int) -> np.ndarray:
     return img[: h * d, : w * d].reshape(h, d, w, d, img.shape[-1]).mean((1, 3))
 
 
-def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
+def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
     """Reads, validates, composites and downscales frames[indices].
 
     ``sizes`` (optional): the declared (h, w) of each selected frame, checked against the file.
@@ -210,6 +187,7 @@ def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
     """
     mats = [_matrix(frames[i], i, path) for i in indices]
     mats = check_poses(mats, path, lambda j: f"frames[{indices[j]}].transform_matrix")
+    bg, downscale = req.bg, req.downscale
     images, paths = [], []
     first = None
     for j, i in enumerate(indices):
@@ -237,30 +215,23 @@ def _load_frames(root, path, frames, indices, bg, downscale, sizes=None):
     return np.stack(images), mats, paths, first[0]
 
 
-def _result(images, c2w, intrinsics, paths, fmt) -> dict:
-    return {
-        "images": torch.from_numpy(np.ascontiguousarray(images)),
-        "c2w": torch.from_numpy(c2w).float(),
-        "intrinsics": torch.as_tensor(intrinsics, dtype=torch.float32),
-        "width": int(images.shape[2]),
-        "height": int(images.shape[1]),
-        "paths": paths,
-        "format": fmt,
-    }
+def make_dataset(req: LoadRequest, images, c2w, intrinsics, paths, fmt: str) -> Dataset:
+    """A transforms-JSON loader's arrays as a :class:`Dataset`."""
+    return Dataset(
+        images=torch.from_numpy(np.ascontiguousarray(images)),
+        c2w=torch.from_numpy(c2w).float(),
+        intrinsics=torch.as_tensor(intrinsics, dtype=torch.float32),
+        paths=paths,
+        format=fmt,
+        split=req.split,
+    )
 
 
-def load_blender(
-    root,
-    split: str = "train",
-    background=(1.0, 1.0, 1.0),
-    downscale: int = 1,
-    max_images: int | None = None,
-    *,
-    holdout: bool = False,
-) -> dict:
+def load_blender(root, split: str = "train", **options) -> Dataset:
     """Loads a Blender-format (NeRF-synthetic) folder.
 
-    Reads ``transforms_{split}.json`` (or ``transforms.json``): ``camera_angle_x`` (horizontal FOV,
+    Reads ``transforms_{split}.json`` (or ``transforms.json``, split by the hold-out rule
+    :func:`warpnerf.data.dataset.holdout_indices`): ``camera_angle_x`` (horizontal FOV,
     radians; focal = 0.5 W / tan(0.5 camera_angle_x), principal point at the centre) or
     ``fl_x``/``fl_y`` (+ optional ``cx``/``cy``) in pixels, and ``frames[]`` with ``file_path``
     (no extension: ``.png`` is added; ``.png``/``.jpg`` accepted) and ``transform_matrix``
@@ -274,26 +245,22 @@ def load_blender(
     Intrinsics (:func:`~warpnerf.data.cameras.check_intrinsics`): ``camera_angle_x`` in (0, pi),
     focal lengths in (0, 1e8] pixels, field of view below about 179.8 degrees.
 
-    Args:
-        split: "train", "val" or "test".
-        max_images: keep the first ``max_images`` frames of the split.
-        holdout: when only ``transforms.json`` exists, apply the hold-out rule (val/test = frames
-            ``i % 8 == 0``, train = the others) instead of returning every frame for every split.
-
-    Returns:
-        dict with images [N, H, W, 3] float32 in [0, 1], c2w [N, 4, 4] float32, intrinsics [N, 4]
-        float32 (fx, fy, cx, cy in pixels of the returned images), width, height, paths,
-        format ("blender").
+    ``options`` are those of :class:`~warpnerf.data.dataset.LoadRequest` (background,
+    downscale, max_images, holdout). Returns a :class:`~warpnerf.data.dataset.Dataset`.
     """
-    root, bg = _open_root(root, split, background, downscale, max_images)
-    path = find_transforms(root, split)
+    return _load(LoadRequest.make(root, split, **options))
+
+
+def _load(req: LoadRequest) -> Dataset:
+    root = check_folder(req.root)
+    path = find_transforms(root, req.split)
     js, frames = _read_json(path)
     if "camera_angle_x" not in js and "fl_x" not in js:
         raise UserError(f"{path}: needs 'camera_angle_x' (radians) or 'fl_x'/'fl_y' (pixels)")
-    indices = list(range(len(frames)))
-    if holdout and path.name == "transforms.json":
-        indices = split_indices(len(frames), split, path)
-    indices = indices[:max_images]
+    if path.name == "transforms.json":
+        indices = req.select(len(frames), path)
+    else:
+        indices = list(range(len(frames)))[: req.max_images]
     # Intrinsics are validated before reading any image.
     if "fl_x" in js:
         fx = _number(js["fl_x"], "fl_x", path)
@@ -302,7 +269,8 @@ def load_blender(
         fov = _number(js["camera_angle_x"], "camera_angle_x", path)
         if fov >= math.pi:
             raise UserError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, got {fov}")
-    images, c2w, paths, (full_h, full_w) = _load_frames(root, path, frames, indices, bg, downscale)
+    downscale = req.downscale
+    images, c2w, paths, (full_h, full_w) = _load_frames(root, path, frames, indices, req)
     if "fl_x" in js:
         cx = _number(js["cx"], "cx", path, positive=False) if "cx" in js else 0.5 * full_w
         cy = _number(js["cy"], "cy", path, positive=False) if "cy" in js else 0.5 * full_h
@@ -312,4 +280,7 @@ def load_blender(
     fields = "fields 'fl_x', 'fl_y', 'cx', 'cy'" if "fl_x" in js else "field 'camera_angle_x'"
     check_intrinsics([[fx, fy, cx, cy]], (full_w, full_h), path, lambda _: fields)
     k = np.array([fx, fy, cx, cy], dtype=np.float64) / downscale
-    return _result(images, c2w, np.tile(k, (len(paths), 1)), paths, "blender")
+    return make_dataset(req, images, c2w, np.tile(k, (len(paths), 1)), paths, "blender")
+
+
+register_format("blender", _load, detect_blender)

@@ -25,8 +25,9 @@ degrees, images at most 65536 pixels a side; LLFF depth bounds 0 < near < far. A
 normalisation the scene must be sane: camera centres within 1e6, 0 < near < far <= 1e6, else the
 capture is refused as degenerate (cameras at one point, absurd bounds).
 
-Hold-out (the LLFF convention): images ``i % holdout == 0`` in sorted order are val/test, the
-others train; ``holdout = 0`` trains on all and validates on all.
+Hold-out: the one rule of :func:`~warpnerf.data.dataset.holdout_indices` (the LLFF convention):
+images ``i % holdout == 0`` in sorted-name order are val/test, the others train; ``holdout = 0``
+trains on all and validates on all.
 """
 
 from __future__ import annotations
@@ -40,10 +41,10 @@ from ..errors import UserError
 from .blender import _area_downscale, _composite
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
+from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, holdout_indices, register_format
 
-__all__ = ["detect_capture", "capture_info", "load_capture", "HOLDOUT", "NDC_NEAR"]
+__all__ = ["detect_capture", "capture_info", "load_capture", "NDC_NEAR"]
 
-HOLDOUT = 8
 NDC_NEAR = 1.0
 FORWARD_FACING_DEGREES = 45.0
 CAMERA_RADIUS = 4.0
@@ -54,10 +55,9 @@ _OPENCV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 def detect_capture(root: Path) -> str | None:
     """ "colmap" (a sparse model under sparse/0, sparse or the folder), "llff"
     (poses_bounds.npy) or None."""
-    if find_model(root) is not None:
-        return "colmap"
-    if (root / "poses_bounds.npy").is_file():
-        return "llff"
+    for name in ("colmap", "llff"):
+        if REGISTRY[name].detect(root, "train"):
+            return name
     return None
 
 
@@ -378,22 +378,11 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
     return sc
 
 
-def _split(n: int, split: str, holdout: int, where) -> list[int]:
-    if holdout == 0:
-        return list(range(n))
-    held = split != "train"
-    idx = [i for i in range(n) if (i % holdout == 0) == held]
-    if not idx:
-        raise UserError(f"{where}: split '{split}' is empty ({n} images, holdout {holdout})")
-    return idx
-
-
 def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT) -> dict:
     """Everything but the pixels: format, splits, image size, intrinsics, near/far, NDC use,
     scene transform and bounds (normalised), camera centres' box. JSON-ready."""
-    if holdout < 0 or holdout == 1:
-        raise UserError(f"holdout must be 0 (none) or >= 2, got {holdout}")
-    sc = _scene(root, fmt, downscale)
+    req = LoadRequest.make(root, downscale=downscale, holdout=holdout)
+    sc = _scene(req.root, fmt, downscale)
     n = len(sc["names"])
     folder = sc["folder"]
     extra = sc["extra"]
@@ -404,7 +393,7 @@ def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT) -> 
         "model": sc["model"],
         "images_folder": str(folder),
         "images": n,
-        "splits": {s: len(_split(n, s, holdout, root)) for s in ("train", "val")},
+        "splits": {s: len(holdout_indices(n, s, holdout, root)) for s in ("train", "val")},
         "holdout": holdout,
         "image_size": [w, h],
         "camera_models": sc["camera_models"],
@@ -437,26 +426,20 @@ def _ndc_camera_info(sc, extra) -> list[float]:
     return [float(k[0]), float(k[1]), sc["size"][0] / extra, sc["size"][1] / extra]
 
 
-def load_capture(
-    root,
-    split: str = "train",
-    background=(1.0, 1.0, 1.0),
-    downscale: int = 1,
-    max_images: int | None = None,
-    fmt: str | None = None,
-    holdout: int = HOLDOUT,
-) -> dict:
-    """A COLMAP or LLFF folder as a dataset dict (see :func:`warpnerf.data.load_dataset`), in the
-    normalised frame, plus ``distortion`` [N, 4], ``transform`` [4, 4] (float64, world ->
-    normalised), ``near``/``far``, ``ndc`` (None, or [fx, fy, W, H] of the NDC camera)."""
-    if holdout < 0 or holdout == 1:
-        raise UserError(f"holdout must be 0 (none) or >= 2, got {holdout}")
-    root = Path(root)
+def load_capture(root, split: str = "train", fmt: str | None = None, **options) -> Dataset:
+    """A COLMAP or LLFF folder (``fmt``: "colmap", "llff" or None to detect) as a
+    :class:`~warpnerf.data.dataset.Dataset` in the normalised frame, with ``distortion`` [N, 4],
+    ``transform`` [4, 4] (float64, world -> normalised), ``near``/``far``, ``ndc`` (None, or
+    [fx, fy, W, H] of the NDC camera) and ``indices``. ``options``: those of
+    :class:`~warpnerf.data.dataset.LoadRequest`."""
+    return _load(LoadRequest.make(root, split, **options), fmt)
+
+
+def _load(req: LoadRequest, fmt: str | None) -> Dataset:
+    root, downscale = req.root, req.downscale
     sc = _scene(root, fmt, downscale)
-    idx = _split(len(sc["names"]), split, holdout, root)
-    if max_images:
-        idx = idx[:max_images]
-    bg = np.asarray(background, dtype=np.float32).reshape(-1)
+    idx = req.select(len(sc["names"]), root)
+    bg = req.bg
     extra = sc["extra"]
     images, paths = [], []
     for i in idx:
@@ -472,21 +455,28 @@ def load_capture(
         images.append(_area_downscale(_composite(img, bg), extra).astype(np.float32))
         paths.append(str(p))
     images = np.stack(images)
-    return {
-        "images": torch.from_numpy(np.ascontiguousarray(images)),
-        "c2w": torch.from_numpy(sc["c2w_norm"][idx]).float(),
-        "intrinsics": torch.from_numpy(sc["intrinsics"][idx] / extra).float(),
-        "distortion": torch.from_numpy(sc["distortion"][idx]).float(),
-        "width": int(images.shape[2]),
-        "height": int(images.shape[1]),
-        "paths": paths,
-        "format": sc["format"],
-        "transform": sc["transform"],
-        "near": sc["near"],
-        "far": sc["far"],
-        "ndc": _ndc_camera_info(sc, extra) if sc["forward_facing"] else None,
-        "indices": idx,
-    }
+    return Dataset(
+        images=torch.from_numpy(np.ascontiguousarray(images)),
+        c2w=torch.from_numpy(sc["c2w_norm"][idx]).float(),
+        intrinsics=torch.from_numpy(sc["intrinsics"][idx] / extra).float(),
+        paths=paths,
+        format=sc["format"],
+        split=req.split,
+        distortion=torch.from_numpy(sc["distortion"][idx]).float(),
+        transform=sc["transform"],
+        near=sc["near"],
+        far=sc["far"],
+        ndc=_ndc_camera_info(sc, extra) if sc["forward_facing"] else None,
+        indices=idx,
+    )
+
+
+register_format(
+    "colmap", lambda req: _load(req, "colmap"), lambda root, _: find_model(root) is not None
+)
+register_format(
+    "llff", lambda req: _load(req, "llff"), lambda root, _: (root / "poses_bounds.npy").is_file()
+)
 
 
 def normalised_to_world(points, transform, ndc=None, near: float = NDC_NEAR) -> np.ndarray:

@@ -14,19 +14,30 @@ before any image is read; the selected frames' poses finite, with rotations with
 orthonormal used as they are, within 0.05 replaced by the nearest rotation (a UserWarning), and
 refused otherwise (degenerate, scaled, mirrored); camera centres within 1e6 of the origin.
 
-Split rule (nerfstudio folders have no split files): in the order of ``frames``, ``val`` and
+Split rule (nerfstudio folders have no split files): the one hold-out rule
+(:func:`~warpnerf.data.dataset.holdout_indices`) in the order of ``frames``: by default ``val`` and
 ``test`` are the frames with index ``i % 8 == 0`` and ``train`` all the others.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..errors import UserError
-from .blender import _load_frames, _number, _open_root, _read_json, _result, split_indices
+from .blender import (
+    _load_frames,
+    _number,
+    _read_json,
+    check_folder,
+    has_nerfstudio_fields,
+    make_dataset,
+)
 from .cameras import check_intrinsics
+from .dataset import Dataset, LoadRequest, register_format
 
-__all__ = ["load_nerfstudio", "CAMERA_MODELS", "DISTORTION_FIELDS"]
+__all__ = ["load_nerfstudio", "detect_nerfstudio", "CAMERA_MODELS", "DISTORTION_FIELDS"]
 
 CAMERA_MODELS = ("PINHOLE", "OPENCV")
 DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -71,35 +82,35 @@ def _frame_camera(js: dict, frame: dict, i: int, path) -> tuple[list[float], tup
     return k, hw
 
 
-def load_nerfstudio(
-    root,
-    split: str = "train",
-    background=(1.0, 1.0, 1.0),
-    downscale: int = 1,
-    max_images: int | None = None,
-) -> dict:
+def detect_nerfstudio(root: Path, split: str) -> bool:
+    """A ``transforms.json`` with nerfstudio camera fields (and no ``transforms_{split}.json``)."""
+    path = root / "transforms.json"
+    return (
+        not (root / f"transforms_{split}.json").is_file()
+        and path.is_file()
+        and has_nerfstudio_fields(path)
+    )
+
+
+def load_nerfstudio(root, split: str = "train", **options) -> Dataset:
     """Loads a nerfstudio folder (``transforms.json``, pinhole cameras; see the module docstring).
 
-    Args:
-        split: "train" (frames ``i % 8 != 0``), "val" or "test" (both: frames ``i % 8 == 0``).
-        background: RGB that RGBA images are composited onto (RGB images are used as they are).
-        downscale: integer area-average factor; sizes not a multiple of it are cropped at the
-            bottom / right; intrinsics are divided by it.
-        max_images: keep the first ``max_images`` frames of the split.
-
-    Returns:
-        dict with images [N, H, W, 3] float32 in [0, 1], c2w [N, 4, 4] float32, intrinsics [N, 4]
-        float32 (fx, fy, cx, cy in pixels of the returned images), width, height, paths,
-        format ("nerfstudio").
+    ``options`` are those of :class:`~warpnerf.data.dataset.LoadRequest` (background: RGB that
+    RGBA images are composited onto, RGB images are used as they are; downscale; max_images;
+    holdout: the split rule). Returns a :class:`~warpnerf.data.dataset.Dataset`.
     """
-    root, bg = _open_root(root, split, background, downscale, max_images)
+    return _load(LoadRequest.make(root, split, **options))
+
+
+def _load(req: LoadRequest) -> Dataset:
+    root = check_folder(req.root)
     path = root / "transforms.json"
     if not path.is_file():
         raise UserError(f"{root}: no transforms.json found (nerfstudio format)")
     js, frames = _read_json(path)
     # Every frame's camera is checked (JSON only, cheap), whichever split is loaded.
     cams = [_frame_camera(js, fr, i, path) for i, fr in enumerate(frames)]
-    indices = split_indices(len(frames), split, path)[:max_images]
+    indices = req.select(len(frames), path)
     cams = [cams[i] for i in indices]
     sizes = [hw for _, hw in cams]
     for i, hw in zip(indices, sizes):
@@ -109,6 +120,9 @@ def load_nerfstudio(
                 f"{sizes[0][1]}x{sizes[0][0]} (fields 'w', 'h'); all images of a split must "
                 "have one size"
             )
-    images, c2w, paths, _ = _load_frames(root, path, frames, indices, bg, downscale, sizes)
-    k = np.array([c for c, _ in cams], dtype=np.float64) / downscale
-    return _result(images, c2w, k, paths, "nerfstudio")
+    images, c2w, paths, _ = _load_frames(root, path, frames, indices, req, sizes)
+    k = np.array([c for c, _ in cams], dtype=np.float64) / req.downscale
+    return make_dataset(req, images, c2w, k, paths, "nerfstudio")
+
+
+register_format("nerfstudio", _load, detect_nerfstudio)

@@ -9,6 +9,7 @@ dependence cannot reproduce it.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import torch
@@ -17,6 +18,7 @@ from torch import nn
 from ..fields.sdf_volume import laplace_cdf, sdf_box, sdf_sphere
 from ..render import render_views
 from .cameras import intrinsics_from_fov, orbit_views
+from .dataset import Dataset, LoadRequest, register_format
 
 __all__ = ["GlossyScene", "make_synthetic_dataset"]
 
@@ -62,9 +64,9 @@ def make_synthetic_dataset(
     n_samples: int = 256,
     device="cpu",
 ):
-    """Renders the built-in scene: (train, val) dicts with the loaders' keys (images [N, H, W, 3],
-    c2w [N, 4, 4], intrinsics [N, 4], width, height) plus near, far; white background. Cached:
-    treat the returned tensors as read-only."""
+    r"""Renders the built-in scene: (train, val) :class:`~warpnerf.data.dataset.Dataset`\ s
+    (images [N, H, W, 3], c2w [N, 4, 4], intrinsics [N, 4], near, far; no paths); white
+    background. Cached: treat the returned tensors as read-only."""
     scene = GlossyScene(view_dependent)
     out = []
     for n, seed in ((n_train, 0), (n_val, 1)):
@@ -74,16 +76,27 @@ def make_synthetic_dataset(
             cams, k, size, size, NEAR, FAR, scene, n_samples=n_samples, mode="sigma", background=1.0
         )["rgb"]
         out.append(
-            {
-                "images": img.clamp(0, 1),
-                "c2w": cams,
-                "intrinsics": k,
-                "width": size,
-                "height": size,
-                "near": NEAR,
-                "far": FAR,
-                "paths": [],
-                "format": "builtin",
-            }
+            Dataset(
+                images=img.clamp(0, 1),
+                c2w=cams,
+                intrinsics=k,
+                format="builtin",
+                split="train" if seed == 0 else "val",
+                near=NEAR,
+                far=FAR,
+            )
         )
     return out[0], out[1]
+
+
+def _load_builtin(req: LoadRequest) -> Dataset:
+    """The ``builtin`` format: a split of the built-in scene (rendered on ``req.device``)."""
+    train, val = make_synthetic_dataset(size=req.builtin_size, device=req.device)
+    ds = train if req.split == "train" else val
+    n = req.max_images or len(ds)
+    return dataclasses.replace(
+        ds, images=ds.images[:n], c2w=ds.c2w[:n], intrinsics=ds.intrinsics[:n]
+    )
+
+
+register_format("builtin", _load_builtin, lambda root, _: str(root) == "builtin")

@@ -329,7 +329,8 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad folder stops the fit before anything is written.
-    ds = load_blender(data, split="train", background=(cfg.background,) * 3)
+    # every frame is fitted (holdout 0: no frames held out of a single transforms.json)
+    ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
     dev = torch.device(device)
     if not resume:
         locks.enter_context(output_lock(out, "run folder"))
@@ -342,9 +343,9 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device,
                                                      "model": MODEL})  # fmt: skip
     fit = fit_box(
-        ds["images"].to(dev),
-        ds["c2w"].to(dev),
-        ds["intrinsics"].to(dev),
+        ds.images.to(dev),
+        ds.c2w.to(dev),
+        ds.intrinsics.to(dev),
         cfg,
         progress=progress,
         run=out,
@@ -356,7 +357,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     extra = {"step": fit["step"], "seconds": fit["seconds"], "losses": fit["losses"]}
     write_json(out / "result.json", result | extra)
     if frames > 0:
-        write_spiral(volume, out, frames, min(ds["width"], 256), cfg)
+        write_spiral(volume, out, frames, min(ds.width, 256), cfg)
     return result
 
 

@@ -19,13 +19,13 @@ from ..io import (
     write_json,
 )
 from ..ops import random_pixels
-from ..render import render_marched, render_nerf
+from ..render import render_chunks, render_marched, render_nerf
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import NeRFConfig, scene_settings
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
-    "resolve_data",
+    "resolve_data", "dataset_rays", "render_dataset_image",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -41,28 +41,21 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
 
 
 def load_data(cfg: NeRFConfig, split: str):
-    """The dataset split as tensors on cfg.device (builtin scene when cfg.data == "builtin")."""
-    if cfg.data == "builtin":
-        from ..data.synthetic import make_synthetic_dataset
+    """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
+    cfg.device (the built-in scene when cfg.data == "builtin")."""
+    from ..data import load_dataset
 
-        train, val = make_synthetic_dataset(size=cfg.builtin_size, device=cfg.device)
-        ds = dict(train if split == "train" else val)
-    else:
-        from ..data import load_dataset
-
-        ds = load_dataset(
-            cfg.data,
-            split=split,
-            background=(cfg.background,) * 3,
-            downscale=cfg.downscale,
-            max_images=cfg.max_images or None,
-            fmt=cfg.data_format,
-            holdout=cfg.holdout,
-        )
-    for k in ("images", "c2w", "intrinsics", "distortion"):
-        if k in ds:
-            ds[k] = ds[k].to(cfg.device)
-    return ds
+    return load_dataset(
+        cfg.data,
+        split,
+        fmt="auto" if cfg.data == "builtin" else cfg.data_format,
+        background=(cfg.background,) * 3,
+        downscale=cfg.downscale,
+        max_images=cfg.max_images or None,
+        holdout=cfg.holdout,
+        builtin_size=cfg.builtin_size,
+        device=cfg.device,
+    ).to(cfg.device)
 
 
 def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None):
@@ -70,15 +63,15 @@ def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int
     when the dataset has distortion, in NDC when the run uses it."""
     from ..data.cameras import camera_rays
 
-    dist = ds.get("distortion")
+    dist = ds.distortion
     if image is not None:
         sl = slice(image, image + 1)
         return camera_rays(
-            ds["c2w"][sl], ds["intrinsics"][sl], ds["width"], ds["height"],
+            ds.c2w[sl], ds.intrinsics[sl], ds.width, ds.height,
             distortion=None if dist is None else dist[sl], ndc=cfg.ndc_camera(),
         )  # fmt: skip
     return camera_rays(
-        ds["c2w"], ds["intrinsics"], cam_idx=cam_idx, px=px, py=py, distortion=dist,
+        ds.c2w, ds.intrinsics, cam_idx=cam_idx, px=px, py=py, distortion=dist,
         ndc=cfg.ndc_camera(),
     )  # fmt: skip
 
@@ -90,14 +83,14 @@ def render_rays_of(
     (``generator``, on the rays' device, jitters the lattice when ``perturb``), otherwise
     stratified (+ hierarchical) samples."""
     if model.grid is not None:
-        n = o.shape[0]
-        chunk = chunk or max(n, 1)
-        outs = [
-            render_marched(
+        return render_chunks(
+            o.shape[0],
+            chunk,
+            lambda sl: render_marched(
                 model.grid,
                 model.coarse,
-                o[s : s + chunk],
-                d[s : s + chunk],
+                o[sl],
+                d[sl],
                 cfg.near,
                 cfg.far,
                 perturb=perturb,
@@ -107,12 +100,8 @@ def render_rays_of(
                 max_samples=cfg.max_samples,
                 round_samples=cfg.round_samples,
                 half=cfg.render_half,
-            )
-            for s in range(0, max(n, 1), chunk)
-        ]
-        out = {k: torch.cat([x[k] for x in outs]) for k in ("rgb", "depth", "opacity")}
-        out.update({k: sum(x[k] for x in outs) for k in ("n_marched", "n_kept")})
-        return out
+            ),
+        )
     return render_nerf(
         model.coarse,
         o,
@@ -134,7 +123,7 @@ def render_rays_of(
 @torch.no_grad()
 def render_dataset_image(model, cfg, ds, i):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
-    h, w = ds["height"], ds["width"]
+    h, w = ds.height, ds.width
     o, d = dataset_rays(cfg, ds, image=i)
     out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
     return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
@@ -257,8 +246,8 @@ class NeRFTask(Task):
 
     def __init__(self, cfg, model: RadianceModel, train, val, log=print):
         self.cfg, self.model, self.train, self.val = cfg, model, train, val
-        self.n_img, self.h, self.w = train["images"].shape[:3]
-        self.flat = train["images"].reshape(-1, 3)
+        self.n_img, self.h, self.w = train.images.shape[:3]
+        self.flat = train.images.reshape(-1, 3)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.grid = model.grid
         # The grid's updates and lattice jitter draw from a generator on the device (saved too).
@@ -346,9 +335,9 @@ class NeRFTask(Task):
 
 def validate(model, cfg, val) -> float:
     """Mean PSNR over the first cfg.val_images validation images."""
-    n = min(cfg.val_images, val["images"].shape[0])
+    n = min(cfg.val_images, val.images.shape[0])
     mses = []
     for i in range(n):
         rgb, _, _ = render_dataset_image(model, cfg, val, i)
-        mses.append(float(((rgb - val["images"][i]) ** 2).mean()))
+        mses.append(float(((rgb - val.images[i]) ** 2).mean()))
     return sum(_psnr(m) for m in mses) / max(n, 1)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..options import option
@@ -17,7 +18,6 @@ from ..options import option
 __all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings"]
 
 
-FORMATS = ("auto", "blender", "nerfstudio", "colmap", "llff")  # (data.datasets.FORMATS)
 FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
 GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
@@ -331,12 +331,11 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
     if cfg.scene is not None or cfg.data == "builtin" or not Path(cfg.data).is_dir():
         return None
     from ..data.capture import capture_info
-    from ..data.datasets import FORMATS as _FORMATS
     from ..data.datasets import detect_format
 
-    if cfg.data_format not in _FORMATS or cfg.ndc not in ("auto", "on", "off"):
+    if cfg.data_format not in FORMATS or cfg.ndc not in ("auto", "on", "off"):
         raise UserError(
-            f"--format must be one of {', '.join(_FORMATS)} and --ndc auto, on or off; "
+            f"--format must be one of {', '.join(FORMATS)} and --ndc auto, on or off; "
             f"got {cfg.data_format!r}, {cfg.ndc!r}"
         )
     fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(cfg.data)

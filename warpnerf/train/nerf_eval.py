@@ -69,7 +69,7 @@ def evaluate_run(
         grid.dt = cfg.march_step
     ds = load_data(cfg, split)
     out_dir = Path(out_dir) if out_dir else Path(run) / f"eval_{split}"
-    n = ds["images"].shape[0] if not max_images else min(max_images, ds["images"].shape[0])
+    n = ds.images.shape[0] if not max_images else min(max_images, ds.images.shape[0])
     with output_lock(out_dir, "evaluation folder"):
         names = ["metrics.json"] + [f"{split}_{i:03d}.png" for i in range(n)]
         check_foreign([out_dir / x for x in names])  # another program's files stay untouched
@@ -79,7 +79,7 @@ def evaluate_run(
 
 
 def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
-    with_ssim = min(ds["height"], ds["width"]) >= 11  # the 11x11 window must fit
+    with_ssim = min(ds.height, ds.width) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     for i in range(n):
@@ -88,7 +88,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
         rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
         sync()
         render_ms = 1e3 * (time.perf_counter() - tr)
-        gt = ds["images"][i]
+        gt = ds.images[i]
         rows.append(
             {
                 "image": i,
@@ -158,17 +158,17 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     RUN/render_{path}/. ``size`` = (W, H), default the training resolution."""
     cfg, model, _ = load_run(run, device)
     train = load_data(cfg, "train")
-    w0, h0 = train["width"], train["height"]
+    w0, h0 = train.width, train.height
     w, h = size or (w0, h0)
-    k = train["intrinsics"][0].clone()
+    k = train.intrinsics[0].clone()
     k[[0, 2]] *= w / w0
     k[[1, 3]] *= h / h0
     if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
         from ..data.cameras import forward_facing_spiral
 
-        cams = forward_facing_spiral(train["c2w"], frames).float().to(cfg.device)
+        cams = forward_facing_spiral(train.c2w, frames).float().to(cfg.device)
     else:
-        cams = camera_path(train["c2w"], path, frames).to(cfg.device)
+        cams = camera_path(train.c2w, path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
     kinds = ("rgb", "depth", "geometry") if cfg.field == "volsdf" else ("rgb", "depth")
     # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
@@ -220,18 +220,19 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
 def _geometry_image(field, cfg, o, d):
     """Shaded normals of the SDF's zero level set (grey albedo, white background) [n, 3]."""
     from ..ops import ray_aabb_intersect
+    from ..render import render_chunks
     from ..trace import shade, sphere_trace_fn
 
     t0, t1, hit = ray_aabb_intersect(o, d, cfg.aabb_box())
     t1 = torch.where(hit, t1, t0)
-    out = []
-    for s in range(0, o.shape[0], cfg.chunk):
-        sl = slice(s, s + cfg.chunk)
+    grey = torch.tensor([[0.8, 0.8, 0.8]], device=o.device)
+
+    def chunk_fn(sl):
         tr = sphere_trace_fn(field.sdf, o[sl], d[sl], t0[sl], t1[sl], eps=1e-3 * cfg.aabb,
                              max_iters=128)  # fmt: skip
-        grey = torch.tensor([[0.8, 0.8, 0.8]], device=o.device)
-        out.append(shade(tr, d[sl], grey, light=None).cpu())
-    return torch.cat(out)
+        return shade(tr, d[sl], grey, light=None).cpu()
+
+    return render_chunks(o.shape[0], cfg.chunk, chunk_fn)
 
 
 def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progress=False):

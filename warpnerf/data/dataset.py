@@ -1,0 +1,225 @@
+"""What every dataset loader returns, what it is asked for, the format registry, and the one
+hold-out rule.
+
+- :class:`Dataset`: one split of a scene as tensors (images, cameras, intrinsics, lens distortion,
+  near/far, the world -> normalised transform, the NDC camera) plus its names and format.
+- :class:`LoadRequest`: the loader options (split, background, downscale, max_images, holdout),
+  validated once; every format's loader takes one and nothing else.
+- :func:`register_format` / :data:`REGISTRY`: format name -> (detect, load). ``load_dataset``
+  (:mod:`warpnerf.data.datasets`) asks each registered format, in registration order, whether a
+  folder is its kind, then calls its loader. A new format is one module with a ``detect`` and a
+  ``load`` plus one ``register_format`` line (docs/ARCHITECTURE.md).
+- :func:`holdout_indices`: the split rule of every format without split files (nerfstudio, a
+  single ``transforms.json``, COLMAP, LLFF): with ``holdout = k``, images ``i % k == 0`` (file /
+  sorted-name order) are val and test, the others train; ``holdout = 0`` puts every image in
+  every split.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+
+__all__ = [
+    "Dataset",
+    "LoadRequest",
+    "Format",
+    "REGISTRY",
+    "register_format",
+    "holdout_indices",
+    "HOLDOUT",
+    "SPLITS",
+]
+
+SPLITS = ("train", "val", "test")
+HOLDOUT = 8  # every 8th image is held out (the LLFF convention, also used by nerfstudio)
+
+_TENSORS = ("images", "c2w", "intrinsics", "distortion")
+
+
+@dataclass
+class Dataset:
+    """One split of a scene.
+
+    Attributes:
+        images: [N, H, W, 3] float32 in [0, 1] (RGBA composited onto the requested background).
+        c2w: [N, 4, 4] float32 camera-to-world, OpenGL convention (x right, y up, looking -z).
+        intrinsics: [N, 4] float32 (fx, fy, cx, cy) in pixels of the returned images.
+        paths: the image files (empty for the built-in scene).
+        format: the format's registry name ("blender", "nerfstudio", "colmap", "llff", "builtin").
+        split: "train", "val" or "test".
+        distortion: [N, 4] (k1, k2, p1, p2) for COLMAP/LLFF, else None.
+        transform: [4, 4] float64 world -> normalised frame of a COLMAP/LLFF capture, else None.
+        near, far: the scene's depth range when the format knows it, else None.
+        ndc: None, or [fx, fy, W, H] of the NDC camera of a forward-facing capture.
+        indices: the images' positions in the whole capture (COLMAP/LLFF), else None.
+
+    Code written against the dict the loaders used to return keeps working: ``ds["images"]``,
+    ``ds.get("distortion")``, ``"ndc" in ds`` (true when the value is not None).
+    """
+
+    images: torch.Tensor
+    c2w: torch.Tensor
+    intrinsics: torch.Tensor
+    paths: list = field(default_factory=list)
+    format: str = "blender"
+    split: str = "train"
+    distortion: torch.Tensor | None = None
+    transform: np.ndarray | None = None
+    near: float | None = None
+    far: float | None = None
+    ndc: list | None = None
+    indices: list | None = None
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    def to(self, device) -> Dataset:
+        """The same split with its tensors on ``device`` (self when they are there already)."""
+        moved = {
+            k: getattr(self, k).to(device)
+            for k in _TENSORS
+            if getattr(self, k) is not None and getattr(self, k).device != torch.device(device)
+        }
+        return dataclasses.replace(self, **moved) if moved else self
+
+    # The mapping view kept for code written against the old dict.
+    def keys(self) -> list[str]:
+        names = [f.name for f in dataclasses.fields(self)] + ["width", "height"]
+        return [k for k in names if getattr(self, k) is not None]
+
+    def __getitem__(self, key: str):
+        if key not in self.keys():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __contains__(self, key) -> bool:
+        return key in self.keys()
+
+    def get(self, key: str, default=None):
+        return self[key] if key in self else default
+
+
+def _positive_int(v) -> bool:
+    return isinstance(v, numbers.Integral) and not isinstance(v, bool) and v >= 1
+
+
+@dataclass(frozen=True)
+class LoadRequest:
+    """The options of every loader, validated by :meth:`make`.
+
+    Attributes:
+        root: the dataset folder (or "builtin").
+        split: "train", "val" or "test".
+        background: RGB that RGBA images are composited onto.
+        downscale: integer area-average factor; sizes not a multiple of it are cropped at the
+            bottom / right; intrinsics are divided by it.
+        max_images: keep the first ``max_images`` images of the split (None: all).
+        holdout: the hold-out period of :func:`holdout_indices` (0: none) for formats without
+            split files.
+        builtin_size: image size of the built-in scene.
+        device: where the built-in scene is rendered (files are always read to the CPU).
+    """
+
+    root: Path
+    split: str = "train"
+    background: tuple = (1.0, 1.0, 1.0)
+    downscale: int = 1
+    max_images: int | None = None
+    holdout: int = HOLDOUT
+    builtin_size: int = 48
+    device: str = "cpu"
+
+    @classmethod
+    def make(cls, root, split: str = "train", **options) -> LoadRequest:
+        """A validated request; a bad option is a UserError naming it and the expected form."""
+        unknown = sorted(set(options) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise TypeError(f"unknown loader option(s): {', '.join(unknown)}")
+        req = cls(Path(root), split, **options)
+        if req.split not in SPLITS:
+            raise UserError(f"split must be one of {', '.join(SPLITS)}, got {req.split!r}")
+        if not _positive_int(req.downscale):
+            raise UserError(f"downscale must be a positive integer, got {req.downscale!r}")
+        if req.max_images is not None and not _positive_int(req.max_images):
+            raise UserError(
+                f"max_images must be None or a positive integer, got {req.max_images!r}"
+            )
+        if not isinstance(req.holdout, numbers.Integral) or req.holdout < 0 or req.holdout == 1:
+            raise UserError(f"holdout must be 0 (none) or >= 2, got {req.holdout!r}")
+        if not _positive_int(req.builtin_size):
+            raise UserError(f"builtin_size must be a positive integer, got {req.builtin_size!r}")
+        try:
+            bg = np.asarray(req.background, dtype=np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            bg = np.zeros(0, np.float32)
+        if bg.size == 1:
+            bg = bg.repeat(3)
+        if bg.size != 3 or not np.isfinite(bg).all():
+            raise UserError(
+                f"background must be 3 finite numbers (RGB in [0, 1]), got {req.background!r}"
+            )
+        return dataclasses.replace(req, background=tuple(float(v) for v in bg))
+
+    @property
+    def bg(self) -> np.ndarray:
+        """The background as a float32 [3] array."""
+        return np.asarray(self.background, dtype=np.float32)
+
+    def select(self, n: int, where) -> list[int]:
+        """The indices of this request's split among ``n`` images in a file without split files
+        (the hold-out rule), cut to ``max_images``."""
+        return holdout_indices(n, self.split, self.holdout, where)[: self.max_images]
+
+
+def holdout_indices(n: int, split: str, every: int, where) -> list[int]:
+    """The one hold-out rule: ``every = k >= 2``: val/test are the images ``i % k == 0``, train
+    the others; ``every = 0``: every split is all ``n`` images. UserError (naming ``where``) when
+    the split comes out empty."""
+    if every == 0:
+        return list(range(n))
+    held = split != "train"
+    idx = [i for i in range(n) if (i % every == 0) == held]
+    if not idx:
+        raise UserError(
+            f"{where}: split '{split}' is empty: {n} image(s), and with holdout {every} val/test "
+            f"are the images i % {every} == 0 and train the others (holdout 0: no hold-out)"
+        )
+    return idx
+
+
+@dataclass(frozen=True)
+class Format:
+    """A dataset format: ``detect(root: Path, split) -> bool`` says whether a folder is of this
+    format (None: only chosen by name); ``load(LoadRequest) -> Dataset`` loads one split."""
+
+    name: str
+    load: Callable[[LoadRequest], Dataset]
+    detect: Callable[[Path, str], bool] | None = None
+
+
+REGISTRY: dict[str, Format] = {}
+
+
+def register_format(name: str, load, detect=None) -> Format:
+    """Adds a format to the registry (detection asks formats in registration order)."""
+    if name in REGISTRY or name == "auto":
+        raise ValueError(f"format {name!r} is already registered")
+    REGISTRY[name] = fmt = Format(name, load, detect)
+    return fmt
