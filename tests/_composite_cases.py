@@ -6,8 +6,12 @@ from types import SimpleNamespace
 
 import torch
 
+import warpnerf as W
+from warpnerf import reference as R
+
+from ._twin import TOL64, assert_matches_twin
+
 F32, F64 = torch.float32, torch.float64
-TOL64 = {"rtol": 1e-10, "atol": 1e-10}
 OUT_NAMES = ("rgb", "depth", "opacity", "weights")
 
 
@@ -153,11 +157,18 @@ def _run(lib, case, background=None, t_threshold=0.0, upstream=None, return_weig
     return [o.detach() for o in out], list(grads)
 
 
-def _close(actual, expected, names, **tol):
-    for a, e, name in zip(actual, expected, names, strict=True):
-        torch.testing.assert_close(a, e, msg=lambda m, name=name: f"{name}: {m}", **tol)
+def _match(case, background=None, t_threshold=0.0, *, return_weights=True, tol=TOL64, **kw):
+    """The Warp compositing (warpnerf.ops) against its float64 twin (warpnerf.reference) on one
+    case: outputs rgb, depth, opacity[, weights] and gradients d/dvalues, d/drgbs[, d/dbackground]
+    (tests/_twin.py; ``kw`` go to assert_matches_twin)."""
 
+    def call(lib):
+        def render(values, rgbs, background):
+            return _render(lib, case, values, rgbs, background, t_threshold, return_weights)
 
-def _grad_names(case, background):
-    names = ["v_alphas" if case.mode == "alpha" else "v_sigmas", "v_rgbs"]
-    return names + ([] if background is None else ["v_background"])
+        return render
+
+    inputs = {"values": case.values, "rgbs": case.rgbs, "background": background}
+    grad = ["values", "rgbs"] + ([] if background is None else ["background"])
+    names = OUT_NAMES if return_weights else OUT_NAMES[:3]
+    return assert_matches_twin(call(W), call(R), inputs, grad=grad, names=names, tol=tol, **kw)

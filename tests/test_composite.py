@@ -10,16 +10,14 @@ import torch
 import warpnerf as W
 from warpnerf import reference as R
 
-from ._composite_cases import (  # noqa: F401
+from ._composite_cases import (
     F32,
     F64,
     OUT_NAMES,
-    TOL64,
     _background,
     _case,
-    _close,
     _dense_case,
-    _grad_names,
+    _match,
     _mk,
     _pack,
     _packed_case,
@@ -28,9 +26,10 @@ from ._composite_cases import (  # noqa: F401
     _to,
     _upstream,
 )
+from ._twin import EXACT, assert_outputs_close, gradcheck_op
 
 # --------------------------------------------------------------------------------------------------
-# 1. forward and gradients vs the float64 reference
+# 1. forward and gradients vs the float64 reference (tests/_twin.py: also finite, non-zero grads)
 
 
 @pytest.mark.parametrize("t_threshold", [0.0, 1e-2, 0.3])
@@ -40,22 +39,17 @@ from ._composite_cases import (  # noqa: F401
 def test_matches_reference_float64(device, layout, mode, bg_kind, t_threshold):
     case = _case(layout, mode, device=device)
     bg = _background(bg_kind, case.n_rays, device)
-    g = _upstream(case)
-    out, grads = _run(W, case, bg, t_threshold, g)
-    ref_out, ref_grads = _run(R, case, bg, t_threshold, g)
-    _close(out, ref_out, OUT_NAMES, **TOL64)
-    _close(grads, ref_grads, _grad_names(case, bg), **TOL64)
-    # The test must exercise something: non-trivial gradients, and termination when asked for.
-    assert all(bool((x != 0).any()) for x in grads)
+    r = _match(case, bg, t_threshold)
+    # The test must exercise something: termination when asked for.
     if t_threshold > 0:
         full, _ = _run(R, case, bg, 0.0)
-        assert bool((full[3] != ref_out[3]).any()), "no ray terminated early: weak test data"
+        assert bool((full[3] != r.ref["weights"]).any()), "no ray terminated early: weak test data"
     # Weights sum to the opacity.
     if layout == "packed":
-        w_sum = torch.zeros_like(out[2]).index_add(0, case.ray_indices, out[3])
+        w_sum = torch.zeros_like(r.out["opacity"]).index_add(0, case.ray_indices, r.out["weights"])
     else:
-        w_sum = out[3].sum(1)
-    torch.testing.assert_close(w_sum, out[2], rtol=0, atol=1e-12)
+        w_sum = r.out["weights"].sum(1)
+    torch.testing.assert_close(w_sum, r.out["opacity"], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("mode", ["sigma", "alpha"])
@@ -63,25 +57,23 @@ def test_matches_reference_float64(device, layout, mode, bg_kind, t_threshold):
 def test_return_weights_false_matches_reference(device, layout, mode):
     case = _case(layout, mode, device=device)
     bg = _background("per_ray", case.n_rays, device)
-    g = _upstream(case, return_weights=False)
-    out, grads = _run(W, case, bg, 0.0, g, return_weights=False)
-    ref_out, ref_grads = _run(R, case, bg, 0.0, g, return_weights=False)
-    assert len(out) == 3
-    _close(out, ref_out, OUT_NAMES[:3], **TOL64)
-    _close(grads, ref_grads, _grad_names(case, bg), **TOL64)
+    r = _match(case, bg, 0.0, return_weights=False)
+    assert list(r.out) == list(OUT_NAMES[:3])
 
 
 @pytest.mark.parametrize("mode", ["sigma", "alpha"])
 @pytest.mark.parametrize("layout", ["packed", "dense"])
 def test_float32_matches_float64(device, layout, mode):
-    case64 = _case(layout, mode, device=device)
-    case32 = _to(case64, device, F32)
-    bg = _background("per_ray", case64.n_rays, device)
-    g = _upstream(case64)
-    out64, grads64 = _run(R, _to(case32, device, F64), bg, 0.0, g)  # same rounded inputs
-    out32, grads32 = _run(W, case32, bg.float(), 0.0, [x.float() for x in g])
-    _close([x.double() for x in out32], out64, OUT_NAMES, rtol=1e-5, atol=1e-6)
-    _close([x.double() for x in grads32], grads64, _grad_names(case64, bg), rtol=1e-5, atol=1e-5)
+    """The float32 kernel against the float64 twin on the same float32-rounded inputs."""
+    case32 = _to(_case(layout, mode, device=device), device, F32)
+    bg = _background("per_ray", case32.n_rays, device, F32)
+    _match(
+        case32,
+        bg,
+        twin_dtype=F64,
+        tol={"rtol": 1e-5, "atol": 1e-6},
+        grad_tol={"rtol": 1e-5, "atol": 1e-5},
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -97,16 +89,15 @@ def test_gradcheck(device, layout, mode, bg_kind, return_weights):
         case = _packed_case([2, 3, 1], mode, sigma_max=3.0, device=device)
     else:
         case = _dense_case(3, 3, mode, sigma_max=3.0, device=device)
-    bg = _background(bg_kind, case.n_rays, device).requires_grad_()
-    values = case.values.clone().requires_grad_()
-    rgbs = case.rgbs.clone().requires_grad_()
+    bg = _background(bg_kind, case.n_rays, device)
     if mode == "alpha":
-        assert bool(((values > 0.05) & (values < 0.95)).all())
+        assert bool(((case.values > 0.05) & (case.values < 0.95)).all())
 
-    def fn(v, c, b):
-        return _render(W, case, v, c, b, 0.0, return_weights)
+    def fn(values, rgbs, background):
+        return _render(W, case, values, rgbs, background, 0.0, return_weights)
 
-    assert torch.autograd.gradcheck(fn, (values, rgbs, bg), eps=1e-6, atol=1e-8, rtol=1e-6)
+    inputs = {"values": case.values, "rgbs": case.rgbs, "background": bg}
+    gradcheck_op(fn, inputs, list(inputs), eps=1e-6, atol=1e-8, rtol=1e-6)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -135,8 +126,8 @@ def test_packed_equals_dense(device, mode, t_threshold):
     d_out[3] = d_out[3].reshape(-1)
     d_grads[0] = d_grads[0].reshape(-1)
     d_grads[1] = d_grads[1].reshape(-1, 3)
-    _close(p_out, d_out, OUT_NAMES, rtol=0, atol=0)
-    _close(p_grads, d_grads, _grad_names(dcase, bg), rtol=0, atol=0)
+    assert_outputs_close(p_out, d_out, tol=EXACT, names=OUT_NAMES)
+    assert_outputs_close(p_grads, d_grads, tol=EXACT, names=("values", "rgbs", "background"))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -156,21 +147,18 @@ def test_early_termination(device, layout, t_threshold, n_live):
     case = _mk("dense", "sigma", 1, t_starts[None], t_starts[None] + 0.5, None, sig, rgbs)
     case = _to(_pack(case) if layout == "packed" else case, device, F64)
     bg = torch.rand(3, dtype=F64, device=device)
-    g = _upstream(case)
-    out, grads = _run(W, case, bg, t_threshold, g)
-    ref_out, ref_grads = _run(R, case, bg, t_threshold, g)
-    w = out[3].reshape(-1)
-    v_sig, v_rgb = grads[0].reshape(-1), grads[1].reshape(-1, 3)
+    r = _match(case, bg, t_threshold)
+    out, grads, g = r.out, r.grads, r.cotangents
+    w = out["weights"].reshape(-1)
+    v_sig, v_rgb = grads["d/dvalues"].reshape(-1), grads["d/drgbs"].reshape(-1, 3)
     assert bool((w[:n_live] > 0).all()) and bool((w[n_live:] == 0).all())
     assert bool((v_sig[:n_live] != 0).all()) and bool((v_sig[n_live:] == 0).all())
     assert bool((v_rgb[n_live:] == 0).all())
     t_m = torch.exp(torch.tensor(-float(n_live), dtype=F64))
-    torch.testing.assert_close(out[2][0], 1 - t_m.to(device), rtol=0, atol=1e-15)
+    torch.testing.assert_close(out["opacity"][0], 1 - t_m.to(device), rtol=0, atol=1e-15)
     expected_rgb = (w[:n_live, None] * case.rgbs.reshape(-1, 3)[:n_live]).sum(0) + t_m * bg
-    torch.testing.assert_close(out[0][0], expected_rgb, rtol=0, atol=1e-15)
-    torch.testing.assert_close(grads[2], t_m * g[0][0], rtol=1e-14, atol=1e-15)
-    _close(out, ref_out, OUT_NAMES, **TOL64)
-    _close(grads, ref_grads, _grad_names(case, bg), **TOL64)
+    torch.testing.assert_close(out["rgb"][0], expected_rgb, rtol=0, atol=1e-15)
+    torch.testing.assert_close(grads["d/dbackground"], t_m * g["rgb"][0], rtol=1e-14, atol=1e-15)
 
 
 @pytest.mark.parametrize("mode", ["sigma", "alpha"])
@@ -178,14 +166,11 @@ def test_early_termination_random_matches_reference(device, mode):
     """Many rays terminating at different samples; the reference masks samples with T_i < thr."""
     case = _dense_case(40, 24, mode, sigma_max=6.0, device=device)
     bg = _background("per_ray", case.n_rays, device)
-    g = _upstream(case)
-    out, grads = _run(W, case, bg, 0.05, g)
-    ref_out, ref_grads = _run(R, case, bg, 0.05, g)
-    _close(out, ref_out, OUT_NAMES, **TOL64)
-    _close(grads, ref_grads, _grad_names(case, bg), **TOL64)
-    dead = out[3] == 0
+    r = _match(case, bg, 0.05)
+    dead = r.out["weights"] == 0
     assert 0 < int(dead.sum()) < dead.numel()
-    assert bool((grads[0][dead] == 0).all()) and bool((grads[1][dead] == 0).all())
+    assert bool((r.grads["d/dvalues"][dead] == 0).all())
+    assert bool((r.grads["d/drgbs"][dead] == 0).all())
     # Once dead, a ray stays dead: no live sample after a dead one.
     assert bool((dead.int().diff(dim=1) >= 0).all())
 

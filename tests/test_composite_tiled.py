@@ -11,6 +11,8 @@ import warpnerf as W
 from warpnerf import reference as R
 from warpnerf.ops import composite as C
 
+from ._twin import assert_finite, assert_outputs_close, run_with_grads
+
 F32, F64 = torch.float32, torch.float64
 
 
@@ -57,27 +59,34 @@ def _case(device, counts, *, tau_values=None, zero_len=False, nan_ray=None, seed
     )
 
 
+NAMES = ("rgb", "depth", "opacity", "weights")
+
+
 def _run(lib, c, dtype, t_threshold):
-    sig = c["sigmas"].to(dtype).requires_grad_()
-    rgbs = c["rgbs"].to(dtype).requires_grad_()
-    bg = c["bg"].to(dtype).requires_grad_()
-    out = lib.render_packed(
-        c["t_starts"].to(dtype),
-        c["t_ends"].to(dtype),
-        c["ray_indices"],
-        sig,
-        rgbs,
-        c["n_rays"],
-        bg,
-        t_threshold=t_threshold,
-        return_weights=True,
-    )
-    up = [u.to(dtype) for u in c["up"]]
-    live = [(o, u) for o, u in zip(out, up) if o.requires_grad]
-    grads = torch.autograd.grad(
-        [o for o, _ in live], (sig, rgbs, bg), [u for _, u in live], allow_unused=True
-    )
-    return [x.detach() for x in out], list(grads)
+    """Outputs and the gradients of the case's upstream gradients, by name (tests/_twin.py);
+    called inside the composite_kernels context, which the backward reads too."""
+
+    def render(t_starts, t_ends, sigmas, rgbs, bg):
+        return lib.render_packed(
+            t_starts,
+            t_ends,
+            c["ray_indices"],
+            sigmas,
+            rgbs,
+            c["n_rays"],
+            bg,
+            t_threshold=t_threshold,
+            return_weights=True,
+        )
+
+    inputs = {k: c[k] for k in ("t_starts", "t_ends", "sigmas", "rgbs", "bg")}
+    grad = ("sigmas", "rgbs", "bg")
+    return run_with_grads(render, inputs, grad, cotangents=c["up"], names=NAMES, dtype=dtype)
+
+
+def _of_max(atol):
+    """An absolute error in units of the output's largest magnitude (at least 1)."""
+    return {"rtol": 0.0, "atol": atol, "relative_to_max": True}
 
 
 COUNTS = [0, 1, 2, 31, 32, 33, 64, 65, 100, 5]
@@ -88,15 +97,13 @@ COUNTS = [0, 1, 2, 31, 32, 33, 64, 65, 100, 5]
 def test_tiled_matches_sequential_and_float64(device, block_dim, t_threshold):
     c = _case(device, COUNTS)
     with impl("tiled", block_dim):
-        out_t, g_t = _run(W, c, F32, t_threshold)
+        t = _run(W, c, F32, t_threshold)
     with impl("sequential"):
-        out_s, g_s = _run(W, c, F32, t_threshold)
-    out_r, g_r = _run(R, c, F64, t_threshold)
-    names = ["rgb", "depth", "opacity", "weights", "v_sigmas", "v_rgbs", "v_bg"]
-    for name, t, s, r in zip(names, out_t + g_t, out_s + g_s, out_r + g_r):
-        scale = max(float(r.abs().max()), 1.0)
-        assert float((t.double() - s.double()).abs().max()) <= 2e-6 * scale, name
-        assert float((t.double() - r).abs().max()) <= 5e-6 * scale, name
+        s = _run(W, c, F32, t_threshold)
+    r = _run(R, c, F64, t_threshold)
+    tiled = {**t.out, **t.grads}
+    assert_outputs_close(tiled, {**s.out, **s.grads}, tol=_of_max(2e-6))
+    assert_outputs_close(tiled, {**r.out, **r.grads}, tol=_of_max(5e-6), other_dtype=True)
 
 
 @pytest.mark.parametrize(
@@ -105,13 +112,14 @@ def test_tiled_matches_sequential_and_float64(device, block_dim, t_threshold):
 def test_tiled_extreme_optical_depths(device, taus):
     c = _case(device, COUNTS, tau_values=taus, zero_len=float("inf") not in taus)
     with impl("tiled"):
-        out_t, g_t = _run(W, c, F32, 0.0)
+        t = _run(W, c, F32, 0.0)
     with impl("sequential"):
-        out_s, g_s = _run(W, c, F32, 0.0)
-    for t, s in zip(out_t + g_t, out_s + g_s):
-        assert bool(torch.isfinite(t).all())
-        torch.testing.assert_close(t, s, rtol=1e-5, atol=2e-6)
-    opacity = out_t[2]
+        s = _run(W, c, F32, 0.0)
+    assert_finite(t)
+    assert_outputs_close(
+        {**t.out, **t.grads}, {**s.out, **s.grads}, tol={"rtol": 1e-5, "atol": 2e-6}
+    )
+    opacity = t.out["opacity"]
     assert bool(((opacity >= 0) & (opacity <= 1 + 1e-6)).all())
 
 
@@ -124,8 +132,7 @@ def test_tiled_huge_tau_does_not_swallow_what_is_in_front(device):
     )
     c["sigmas"][:2] *= 0.05  # taus 0.25, 0.25, 1e8
     with impl("tiled"):
-        (rgb, depth, opacity, weights), _ = _run(W, c, F32, 0.0)
-    w = weights.double().cpu()
+        w = _run(W, c, F32, 0.0).out["weights"].double().cpu()
     expect_t2 = torch.exp(torch.tensor(-0.5, dtype=F64))
     assert abs(float(w[2]) - float(expect_t2)) < 1e-6
 
@@ -134,8 +141,8 @@ def test_tiled_nan_stays_in_its_ray(device):
     c = _case(device, COUNTS, nan_ray=6)
     clean = _case(device, COUNTS)
     with impl("tiled"):
-        out, _ = _run(W, c, F32, 1e-2)
-        ref, _ = _run(W, clean, F32, 1e-2)
+        out = list(_run(W, c, F32, 1e-2).out.values())
+        ref = list(_run(W, clean, F32, 1e-2).out.values())
     for o, r in zip(out[:3], ref[:3]):
         assert bool(torch.isnan(o[6]).all())
         keep = torch.arange(len(COUNTS), device=device) != 6

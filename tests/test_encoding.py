@@ -16,6 +16,8 @@ from warpnerf.fields.hash_nerf import HashNeRFField
 from warpnerf.ops.encoding import HashGrid, hash_encode
 from warpnerf.reference.encoding import hash_encode as ref_hash_encode
 
+from ._twin import assert_matches_twin, gradcheck_op
+
 F32, F64 = torch.float32, torch.float64
 GRIDS = {
     "dense+hashed": HashGrid(n_levels=4, n_features=2, log2_size=10, base_res=3, max_res=40),
@@ -42,25 +44,30 @@ def _table(grid, dtype, device):
 @pytest.mark.parametrize("dtype", [F32, F64])
 def test_forward_and_table_gradient_match_twin(device, name, dtype):
     grid = GRIDS[name]
-    x = _points(600, dtype, device)
-    table = _table(grid, dtype, device).requires_grad_(True)
-    out = hash_encode(x, table, grid)
-    ref = ref_hash_encode(x.double(), table.detach().double().requires_grad_(True), grid)
-    tol = 1e-12 if dtype == F64 else 2e-5  # float32: x * res and the fraction round (res <= 40)
-    assert out.shape == (600, grid.out_dim)
-    torch.testing.assert_close(out.double(), ref, rtol=tol, atol=tol)
-    v_out = torch.randn(out.shape, dtype=F64).to(device)
-    (g,) = torch.autograd.grad(out, table, v_out.to(dtype))
-    t64 = table.detach().double().requires_grad_(True)
-    (g_ref,) = torch.autograd.grad(ref_hash_encode(x.double(), t64, grid), t64, v_out)
-    torch.testing.assert_close(g.double(), g_ref, rtol=tol * 10, atol=tol * 10)
+    # float32: x * res and the fraction round (res <= 40); gradients: 10x the outputs'.
+    tol = {F64: {"rtol": 1e-12, "atol": 1e-12}, F32: {"rtol": 2e-5, "atol": 2e-5}}
+    grad_tol = {F64: {"rtol": 1e-11, "atol": 1e-11}, F32: {"rtol": 2e-4, "atol": 2e-4}}
+    r = assert_matches_twin(
+        lambda x, table: hash_encode(x, table, grid),
+        lambda x, table: ref_hash_encode(x, table, grid),
+        {"x": _points(600, dtype, device), "table": _table(grid, dtype, device)},
+        grad=["table"],
+        tol=tol,
+        grad_tol=grad_tol,
+        twin_dtype=F64,
+    )
+    assert r.out["out"].shape == (600, grid.out_dim) and r.out["out"].dtype == dtype
 
 
 def test_gradcheck_float64(device):
     grid = GRIDS["collisions"]
     x = _points(12, F64, device)
-    table = _table(grid, F64, device).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda t: hash_encode(x, t, grid), (table,), eps=1e-6)
+    gradcheck_op(
+        lambda table: hash_encode(x, table, grid),
+        {"table": _table(grid, F64, device)},
+        ["table"],
+        eps=1e-6,
+    )
 
 
 def test_partition_of_unity_and_exact_vertices(device):

@@ -14,6 +14,8 @@ import warpnerf as W
 from warpnerf.ops.sampling import PDF_PADDING, Samples, importance_samples
 from warpnerf.reference.sampling import importance_samples as ref_importance_samples
 
+from ._twin import assert_matches_twin
+
 F32, F64 = torch.float32, torch.float64
 
 
@@ -56,6 +58,18 @@ def _assert_partition(s: Samples, near, far):
     assert bool((s.t_ends >= s.t_starts).all())
 
 
+def _match(s: Samples, w, n_fine, tol) -> Samples:
+    """importance_samples against its twin (tests/_twin.py): t_starts and t_ends within tol,
+    ray_indices and packed_info exact (None for dense samples, both)."""
+    run = assert_matches_twin(
+        lambda s, w: importance_samples(s, w, n_fine),
+        lambda s, w: ref_importance_samples(s, w, n_fine),
+        {"s": s, "w": w},
+        tol=tol,
+    )
+    return Samples(**run.out)
+
+
 def _tol(device, dtype):
     """float64: exact on the CPU, ~1e-12 on CUDA (FMA contraction, torch's parallel cumsum)."""
     if dtype == F32:
@@ -70,16 +84,9 @@ def _tol(device, dtype):
 def test_eval_matches_reference(device, dtype, packed):
     s, _, _ = _coarse(60, 24, dtype, device, packed=packed, n_miss=4)
     w = _weights(s.t_starts.shape, dtype, device)
-    out = importance_samples(s, w, 40)
-    ref = ref_importance_samples(s, w, 40)
+    out = _match(s, w, 40, _tol(device, dtype))
     assert out.t_starts.dtype == out.t_ends.dtype == dtype
-    assert out.t_starts.shape == ref.t_starts.shape
-    torch.testing.assert_close(out.t_starts, ref.t_starts, **_tol(device, dtype))
-    torch.testing.assert_close(out.t_ends, ref.t_ends, **_tol(device, dtype))
-    if packed:
-        assert torch.equal(out.ray_indices, ref.ray_indices)
-        assert torch.equal(out.packed_info, ref.packed_info)
-    else:
+    if not packed:
         assert out.t_starts.shape == (60, 64)
         assert out.ray_indices is None and out.packed_info is None
 
@@ -197,13 +204,8 @@ def test_packed_variable_counts(device):
     keep = keep.to(device)
     s = Samples(d.t_starts[keep], d.t_ends[keep], ray_indices, info)
     w = _weights((n_rays, 10), F64, device)[keep]
-    out = importance_samples(s, w, 6)
-    ref = ref_importance_samples(s, w, 6)
+    out = _match(s, w, 6, _tol(device, F64))
     assert out.packed_info[:, 1].tolist() == torch.where(counts > 0, counts + 6, 0).tolist()
-    torch.testing.assert_close(out.t_starts, ref.t_starts, **_tol(device, F64))
-    torch.testing.assert_close(out.t_ends, ref.t_ends, **_tol(device, F64))
-    assert torch.equal(out.ray_indices, ref.ray_indices)
-    assert torch.equal(out.packed_info, ref.packed_info)
 
 
 def test_packed_all_rays_empty(device):
@@ -236,10 +238,8 @@ def test_long_rays_match_reference(device):
     w = torch.zeros(4, 2048, dtype=F64, device=device)
     w[:, 1000:1010] = 0.1  # a thin surface
     w[:, 1500] = 0.05
-    out = importance_samples(s, w, 1024)
-    ref = ref_importance_samples(s, w, 1024)
+    out = _match(s, w, 1024, _tol(device, F64))
     _assert_partition(out, near, far)
-    torch.testing.assert_close(out.t_starts, ref.t_starts, **_tol(device, F64))
     in_surface = (out.midpoints() > s.t_starts[:, 1000:1001]) & (
         out.midpoints() < s.t_ends[:, 1009:1010]
     )

@@ -8,12 +8,15 @@ import math
 import pytest
 import torch
 
+import warpnerf as W
 from warpnerf import reference
 from warpnerf.occupancy import OccupancyGrid
 from warpnerf.ops import occupancy as O
 from warpnerf.ops import render_packed, stratified_samples
 from warpnerf.reference import occupancy as R
 from warpnerf.render import render_marched
+
+from ._twin import EXACT, assert_matches_twin
 
 BOX = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
 
@@ -47,14 +50,19 @@ def hard_rays(n, device, seed=0):
 
 def test_pack_unpack_and_twins(device):
     dens = torch.rand(8**3, device=device) * (torch.rand(8**3, device=device) < 0.3)
-    bits = O.grid_pack_bits(dens, 0.1)
-    assert torch.equal(bits, R.grid_pack_bits(dens, 0.1))
+    pack = {"density": dens, "threshold": 0.1}
+    bits = assert_matches_twin(O.grid_pack_bits, R.grid_pack_bits, pack, tol=EXACT).out["out"]
     assert torch.equal(O.unpack_bits(bits), dens > 0.1)
     cells = torch.randint(8**3, (100,), device=device, dtype=torch.int32)
     jit = torch.rand(100, 3, device=device)
     box = [-1.0, -2.0, 0.0, 1.0, 2.0, 3.0]
-    p = O.grid_cell_points(cells, jit, 8, box)
-    torch.testing.assert_close(p, R.grid_cell_points(cells, jit, 8, box))
+    f32_default = {"rtol": 1.3e-6, "atol": 1e-5}  # torch.testing.assert_close's for float32
+    p = assert_matches_twin(
+        lambda cells, jitter: O.grid_cell_points(cells, jitter, 8, box),
+        lambda cells, jitter: R.grid_cell_points(cells, jitter, 8, box),
+        {"cells": cells, "jitter": jit},
+        tol=f32_default,
+    ).out["out"]
     lo, hi = torch.tensor(box[:3], device=device), torch.tensor(box[3:], device=device)
     ijk = torch.floor((p - lo) / (hi - lo) * 8).long()
     assert torch.equal((ijk[:, 0] * 8 + ijk[:, 1]) * 8 + ijk[:, 2], cells.long())
@@ -64,9 +72,12 @@ def test_ema_update_matches_twin_with_duplicate_cells(device):
     density = torch.rand(4**3, device=device)
     cells = torch.tensor([0, 5, 5, 5, 63, 7], device=device, dtype=torch.int32)
     values = torch.tensor([0.1, 3.0, 9.0, 2.0, 0.0, -1.0], device=device)
-    a = O.grid_ema_update(density.clone(), cells, values, 0.9)
-    b = R.grid_ema_update(density.clone(), cells, values, 0.9)
-    assert torch.equal(a, b)
+    a = assert_matches_twin(  # (in place: the harness gives each a copy of density)
+        lambda density: O.grid_ema_update(density, cells, values, 0.9),
+        lambda density: R.grid_ema_update(density, cells, values, 0.9),
+        {"density": density},
+        tol=EXACT,
+    ).out["out"]
     assert a[5] == 9.0 and a[0] == max(0.9 * density[0], 0.1)
     untouched = torch.ones(64, dtype=torch.bool)
     untouched[cells.long().cpu()] = False
@@ -84,13 +95,16 @@ def test_march_equals_brute_force(device, frac):
     o, d = hard_rays(200, device)
     jit = torch.rand(200, device=device)
     for kw in ({}, {"jitter": jit}):
-        s, k = O.march_rays(o, d, 0.5, 9.0, bits, res, BOX, 0.013, **kw)
-        sr, kr = R.march_rays(o, d, 0.5, 9.0, bits, res, BOX, 0.013, **kw)
-        assert torch.equal(s.packed_info, sr.packed_info)
-        assert torch.equal(s.ray_indices, sr.ray_indices)
-        torch.testing.assert_close(s.t_starts, sr.t_starts, rtol=0, atol=2e-6)
-        torch.testing.assert_close(s.t_ends, sr.t_ends, rtol=0, atol=2e-6)
-        assert torch.equal(k, kr) and bool((k == -1).all())
+        # t_starts, t_ends within 2e-6; ray_indices, packed_info and k exact.
+        r = assert_matches_twin(
+            lambda o, d, **kw: O.march_rays(o, d, 0.5, 9.0, bits, res, BOX, 0.013, **kw),
+            lambda o, d, **kw: R.march_rays(o, d, 0.5, 9.0, bits, res, BOX, 0.013, **kw),
+            {"o": o, "d": d, **kw},
+            names=("samples", "k"),
+            tol={"rtol": 0.0, "atol": 2e-6},
+        )
+        s, k = W.Samples(**{n: r.out[f"samples.{n}"] for n in W.Samples._fields}), r.out["k"]
+        assert bool((k == -1).all())
     if frac == 1.0:  # all occupied: every ray that crosses the box gets samples
         assert int(s.packed_info[20:24, 1].sum()) == 0  # misses
         assert bool((s.packed_info[:12, 1] > 0).all())  # (inside rays may exit before near)
@@ -150,9 +164,14 @@ def test_live_samples_match_twin_and_compositing(device):
     sig[:24] = 0.0  # a transparent ray
     sig[24:48] = 1e8  # an opaque one
     for thr in (0.0, 1e-4, 0.5):
-        keep, n_live = O.live_samples(smp, sig, thr)
-        keep_r, n_live_r = R.live_samples(smp, sig.cpu() if device.type == "cpu" else sig, thr)
-        assert torch.equal(keep, keep_r.to(device)) and torch.equal(n_live, n_live_r.to(device))
+        r = assert_matches_twin(
+            lambda sig, thr: O.live_samples(smp, sig, thr),
+            lambda sig, thr: R.live_samples(smp, sig, thr),
+            {"sig": sig, "thr": thr},
+            names=("keep", "n_live"),
+            tol=EXACT,
+        )
+        keep, n_live = r.out["keep"], r.out["n_live"]
         assert n_live[0] == 24 and n_live[1] == (24 if thr == 0 else 1)
         # compositing only the kept samples equals compositing all with the same threshold
         rgbs = torch.rand(sig.shape[0], 3, generator=g).to(device)
@@ -289,10 +308,19 @@ def test_reference_composite_twin_on_marched_samples(device):
     sig = torch.rand(s.t_starts.shape[0], device=device, dtype=torch.float64) * 5
     rgb = torch.rand(s.t_starts.shape[0], 3, device=device, dtype=torch.float64)
     args = (s.t_starts.double(), s.t_ends.double(), s.ray_indices.long())
-    a = render_packed(*args, sig, rgb, 50, 1.0, packed_info=s.packed_info)
-    b = reference.render_packed(*args, sig, rgb, 50, 1.0, packed_info=s.packed_info)
-    for x, y in zip(a, b):
-        torch.testing.assert_close(x, y)
+
+    def call(render):
+        return lambda sig, rgb: render(*args, sig, rgb, 50, 1.0, packed_info=s.packed_info)
+
+    f64_default = {"rtol": 1e-7, "atol": 1e-7}  # torch.testing.assert_close's for float64
+    assert_matches_twin(
+        call(render_packed),
+        call(reference.render_packed),
+        {"sig": sig, "rgb": rgb},
+        names=("rgb", "depth", "opacity"),
+        grad=["sig", "rgb"],  # new: the gradients too
+        tol=f64_default,
+    )
 
 
 def test_render_in_rounds_matches_single_pass(device):

@@ -11,6 +11,8 @@ import torch
 import warpnerf as W
 from warpnerf import reference as R
 
+from ._twin import EXACT, assert_matches_twin
+
 F32, F64 = torch.float32, torch.float64
 NAN = float("nan")
 
@@ -30,6 +32,24 @@ def _random_cameras(n_cams, width, height, rows=4, dtype=F64, device="cpu"):
     return c2w[:, :rows].to(device, dtype), intrinsics.to(device, dtype)
 
 
+RAY_NAMES = ("origins", "directions")
+DIR_TOL = {"directions": {"rtol": 1e-13, "atol": 1e-14}}  # origins: exact
+
+
+def _match_rays(inputs, tols=DIR_TOL, twin_dtype=None, **kw):
+    """W.generate_rays against its twin R.generate_rays (tests/_twin.py), no gradients."""
+    r = assert_matches_twin(
+        lambda **a: W.generate_rays(**a, **kw),
+        lambda **a: R.generate_rays(**a, **kw),
+        inputs,
+        names=RAY_NAMES,
+        tol=EXACT,
+        tols=tols,
+        twin_dtype=twin_dtype,
+    )
+    return r.out["origins"], r.out["directions"]
+
+
 def _random_batch(n, n_cams, width, height, device):
     cam_idx = torch.randint(0, n_cams, (n,))
     px = torch.rand(n, dtype=F64) * width
@@ -46,11 +66,10 @@ def _random_batch(n, n_cams, width, height, device):
 def test_generate_rays_grid_matches_reference(device, normalize, rows):
     width, height = 7, 5
     c2w, k = _random_cameras(3, width, height, rows, device=device)
-    o, d = W.generate_rays(c2w, k, width, height, normalize=normalize)
-    ro, rd = R.generate_rays(c2w, k, width, height, normalize=normalize)
+    o, d = _match_rays(
+        {"c2w": c2w, "intrinsics": k}, width=width, height=height, normalize=normalize
+    )
     assert o.shape == d.shape == (3 * width * height, 3)
-    torch.testing.assert_close(o, ro, rtol=0, atol=0)
-    torch.testing.assert_close(d, rd, rtol=1e-13, atol=1e-14)
     if normalize:
         torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(d), dtype=F64, device=device))
     else:  # the camera-space z component is exactly -1: the world direction's projection on -z_cam
@@ -66,10 +85,8 @@ def test_generate_rays_batch_matches_reference(device, normalize):
     width, height = 64, 48
     c2w, k = _random_cameras(4, width, height, device=device)
     cam_idx, px, py = _random_batch(500, 4, width, height, device)
-    o, d = W.generate_rays(c2w, k, cam_idx=cam_idx, px=px, py=py, normalize=normalize)
-    ro, rd = R.generate_rays(c2w, k, cam_idx=cam_idx, px=px, py=py, normalize=normalize)
-    torch.testing.assert_close(o, ro, rtol=0, atol=0)
-    torch.testing.assert_close(d, rd, rtol=1e-13, atol=1e-14)
+    batch = {"c2w": c2w, "intrinsics": k, "cam_idx": cam_idx, "px": px, "py": py}
+    o, d = _match_rays(batch, normalize=normalize)
     # int32 camera indices work the same.
     o32, d32 = W.generate_rays(c2w, k, cam_idx=cam_idx.int(), px=px, py=py, normalize=normalize)
     assert torch.equal(o32, o) and torch.equal(d32, d)
@@ -96,17 +113,20 @@ def test_grid_order_is_camera_row_column(device):
 def test_generate_rays_float32(device, mode):
     width, height = 32, 24
     c2w, k = _random_cameras(3, width, height, device=device, dtype=F32)
+    tols = {"directions": {"rtol": 0.0, "atol": 1e-6}}  # origins: exact
     if mode == "grid":
-        o, d = W.generate_rays(c2w, k, width, height)
-        ro, rd = R.generate_rays(c2w.double(), k.double(), width, height)
+        o, d = _match_rays({"c2w": c2w, "intrinsics": k}, tols, F64, width=width, height=height)
     else:
         cam_idx, px, py = _random_batch(300, 3, width, height, device)
-        px, py = px.float(), py.float()
-        o, d = W.generate_rays(c2w, k, cam_idx=cam_idx, px=px, py=py)
-        ro, rd = R.generate_rays(c2w.double(), k.double(), cam_idx=cam_idx, px=px, py=py)
+        batch = {
+            "c2w": c2w,
+            "intrinsics": k,
+            "cam_idx": cam_idx,
+            "px": px.float(),
+            "py": py.float(),
+        }
+        o, d = _match_rays(batch, tols, F64)
     assert o.dtype == d.dtype == F32
-    torch.testing.assert_close(o.double(), ro, rtol=0, atol=0)
-    torch.testing.assert_close(d.double(), rd, rtol=0, atol=1e-6)
 
 
 def test_identity_camera(device):
@@ -189,10 +209,14 @@ def _random_rays(n, dtype, device):
 @pytest.mark.parametrize("dtype", [F64, F32])
 def test_ray_aabb_matches_reference(device, dtype, t_min):
     o, d = _random_rays(3000, dtype, device)
-    t_near, t_far, hit = W.ray_aabb_intersect(o, d, BOX, t_min)
-    r_near, r_far, r_hit = R.ray_aabb_intersect(o, d, BOX, t_min)
-    assert torch.equal(hit, r_hit)
-    assert torch.equal(t_near, r_near) and torch.equal(t_far, r_far)
+    r = assert_matches_twin(
+        lambda o, d: W.ray_aabb_intersect(o, d, BOX, t_min),
+        lambda o, d: R.ray_aabb_intersect(o, d, BOX, t_min),
+        {"o": o, "d": d},
+        names=("t_near", "t_far", "hit"),
+        tol=EXACT,
+    )
+    t_near, t_far, hit = r.out.values()
     n_hit = int(hit.sum())
     assert 100 < n_hit < 2900, n_hit  # plenty of both
     assert bool((t_near[hit] >= t_min).all()) and bool((t_near[hit] <= t_far[hit]).all())
