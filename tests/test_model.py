@@ -17,7 +17,7 @@ from warpnerf.train import evaluate_run, train_nerf
 from warpnerf.train.nerf import load_run
 from warpnerf.train.nerf_config import NeRFConfig
 
-from .test_nerf import GRID, HASH, VOLSDF, tiny
+from .test_nerf import GRID, HASH, HASH_SDF, VOLSDF, tiny
 
 
 def quiet(*a):
@@ -42,6 +42,7 @@ def test_registry_lists_the_builtin_fields():
         (dict(HASH, n_fine=8), True, False, True),
         (GRID, False, True, False),
         (dict(VOLSDF, n_fine=8), True, False, True),
+        (HASH_SDF, False, True, False),
     ],
 )
 def test_what_each_field_builds(kw, fine, grid, shared):
@@ -55,7 +56,7 @@ def test_what_each_field_builds(kw, fine, grid, shared):
     want = sum(p.numel() for f in parts.values() if f is not None for p in f.parameters())
     assert n == want and n > 0
     assert m.field is (m.fine if fine else m.coarse)
-    assert m.kind == ("sdf" if kw.get("field") == "volsdf" else "density")
+    assert m.kind == ("sdf" if kw.get("field") in ("volsdf", "hash_sdf") else "density")
     again = build_model(tiny(**kw))  # the seed fixes the initial weights
     for a, b in zip(m.parameters(), again.parameters()):
         assert torch.equal(a, b)

@@ -82,13 +82,15 @@ GRID = dict(HASH, grid_res=8, grid_every=2, grid_warmup=2, march_step=0.05, targ
 
 
 VOLSDF = dict(field="volsdf", n_layers=2, width=24, skip=1, pos_freqs=2, dir_freqs=1)
+HASH_SDF = dict(GRID, field="hash_sdf", c2f_every=2, target_samples=0)
 
 
 @pytest.mark.parametrize(
-    "n_fine, field", [(0, "mlp"), (8, "mlp"), (8, "hash"), (0, "grid"), (8, "volsdf")]
+    "n_fine, field",
+    [(0, "mlp"), (8, "mlp"), (8, "hash"), (0, "grid"), (8, "volsdf"), (0, "hash_sdf")],
 )
 def test_resume_continues_exactly(tmp_path, n_fine, field):
-    kw = {"hash": HASH, "grid": GRID, "volsdf": VOLSDF}.get(field, {})
+    kw = {"hash": HASH, "grid": GRID, "volsdf": VOLSDF, "hash_sdf": HASH_SDF}.get(field, {})
     straight = train_nerf(
         tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
     )

@@ -92,13 +92,15 @@ def _resume_device(args):
 def cmd_train_nerf(args) -> int:
     from ..train.nerf import train_nerf
 
-    if args.model == "volsdf" and args.field != "volsdf":
-        raise UserError("train volsdf trains the volsdf field; use train nerf for --field mlp|hash")
+    if args.model == "volsdf" and args.field not in ("volsdf", "hash_sdf"):
+        raise UserError(
+            "train volsdf trains the volsdf or hash_sdf field; use train nerf for --field mlp|hash"
+        )
     _check_out(args.out)
     if args.resume:
         device = _resume_device(args)
         field = _saved_config(args.out).get("field", "volsdf")
-        if args.model == "volsdf" and field != "volsdf":
+        if args.model == "volsdf" and field not in ("volsdf", "hash_sdf"):
             raise UserError(
                 f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
                 f"`warpnerf train nerf --out {args.out} --resume --iters N`"
@@ -172,7 +174,7 @@ def _sdf_flags(ts) -> None:
     add_flags(ts, SDFConfig, exclude=("points",), unset=("iters", "device"))
 
 
-_GROUPS = {"nerf": GRID, "volsdf": VOLSDF}  # the config fields each command shows
+_GROUPS = {"nerf": GRID, "volsdf": VOLSDF + GRID}  # the config fields each command shows
 
 
 def _nerf_flags(tn, model: str) -> None:

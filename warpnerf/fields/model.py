@@ -137,3 +137,25 @@ def _volsdf(cfg) -> RadianceModel:
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
     )  # fmt: skip
     return RadianceModel(f, f if cfg.n_fine > 0 else None)
+
+
+@register_field("hash_sdf")
+def _hash_sdf(cfg) -> RadianceModel:
+    """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
+    from ..occupancy import OccupancyGrid
+    from ..ops.encoding import HashGrid
+    from .hash_sdf import HashSDFField
+
+    box = cfg.resolve().aabb_box()
+    f = HashSDFField(
+        box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, view_dependence=cfg.view_dependence,
+        beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
+        level_every=cfg.c2f_every,
+    )  # fmt: skip
+    grid = None
+    if cfg.grid_res:
+        grid = OccupancyGrid(
+            box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
+            warmup=-(-cfg.grid_warmup // cfg.grid_every),
+        )  # fmt: skip
+    return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)

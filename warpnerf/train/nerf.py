@@ -21,7 +21,7 @@ from ..io import (
 from ..ops import random_pixels
 from ..render import render_chunks, render_marched, render_nerf
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
-from .nerf_config import NeRFConfig, scene_settings
+from .nerf_config import HASH_FIELDS, SDF_FIELDS, NeRFConfig, scene_settings
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -134,7 +134,7 @@ def _psnr(mse: float) -> float:
 
 
 def _optimizer(cfg, params):
-    if cfg.field == "hash":  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
+    if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
         return torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     return torch.optim.Adam(params, lr=cfg.lr)
 
@@ -274,8 +274,16 @@ class NeRFTask(Task):
 
     def loss(self, step):
         cfg, model, grid = self.cfg, self.model, self.grid
+        field = model.coarse
+        if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
+            field.set_step(step)
         if grid is not None and step % cfg.grid_every == 0:
-            grid.update(lambda x: model.coarse.density(x)[0], self.grid_gen)
+            if hasattr(field, "grid_density"):  # an SDF: the densest point of each cell
+                lo, hi = grid.box[:3], grid.box[3:]
+                r = 0.5 * math.sqrt(sum(((b - a) / grid.res) ** 2 for a, b in zip(lo, hi)))
+                grid.update(lambda x: field.grid_density(x, r), self.grid_gen)
+            else:
+                grid.update(lambda x: field.density(x)[0], self.grid_gen)
         cam, px, py, idx = random_pixels(
             self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device
         )
@@ -296,10 +304,11 @@ class NeRFTask(Task):
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
             loss = loss + torch.mean((coarse - target) ** 2)
-        if cfg.field == "volsdf":  # eikonal on the rendered samples and on random box points
+        if cfg.field in SDF_FIELDS:  # eikonal on the rendered samples and on random box points
             f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            eik = 0.5 * (model.aux_losses()["eikonal"] + f.eikonal(box))
+            aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)
+            eik = f.eikonal(box) if aux is None else 0.5 * (aux + f.eikonal(box))
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms

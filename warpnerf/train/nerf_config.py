@@ -21,6 +21,9 @@ __all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings"]
 FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
 GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
+HASH_FIELDS = ("hash", "hash_sdf")  # fields on the hash encoding (lr, grid, hash flags)
+SDF_FIELDS = ("volsdf", "hash_sdf")  # fields whose geometry is an SDF (beta, eikonal, mesh)
+BOX_FIELDS = ("hash", "volsdf", "hash_sdf")  # fields living in the scene box
 
 
 @dataclass
@@ -52,7 +55,8 @@ class NeRFConfig:
     batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
     field: str = option(
         "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
-        "volsdf: neural SDF with VolSDF's density (see `train volsdf`)", choices=FIELDS,
+        "volsdf: neural SDF with VolSDF's density (see `train volsdf`); hash_sdf: hash-grid SDF "
+        "with VolSDF's density on the occupancy grid", choices=FIELDS,
     )  # fmt: skip
     lr: float | None = option(None, "5e-4 (mlp), 1e-2 (hash)", check="positive")
     lr_final: float | None = option(
@@ -82,6 +86,10 @@ class NeRFConfig:
     eikonal_weight: float = option(
         0.1, "weight of (|grad d| - 1)^2 (samples + random points)", check="finite",
         groups=VOLSDF,
+    )  # fmt: skip
+    c2f_every: int = option(
+        200, "hash_sdf: steps between opening one more hash level (coarse to fine, from 4 "
+        "levels; 0: all levels at once)", check="nonnegative", groups=VOLSDF,
     )  # fmt: skip
     grid_res: int | None = option(
         None, "occupancy grid cells per axis, even (default 128 with --field hash; 0: no grid, "
@@ -161,12 +169,12 @@ class NeRFConfig:
         if self.scene is None and scene is not None:
             self.scene = scene
         if self.lr is None:
-            self.lr = 1e-2 if self.field == "hash" else 5e-4
+            self.lr = 1e-2 if self.field in HASH_FIELDS else 5e-4
         if self.lr_final is None:
-            self.lr_final = self.lr / (20.0 if self.field == "hash" else 10.0)
+            self.lr_final = self.lr / (20.0 if self.field in HASH_FIELDS else 10.0)
         if self.aabb <= 0 and self.scene is not None:
             self.aabb = self.scene["aabb"]
-        if self.aabb <= 0 and self.field in ("hash", "volsdf"):
+        if self.aabb <= 0 and self.field in BOX_FIELDS:
             if self.data == "builtin":
                 from ..data.synthetic import BOUND
 
@@ -174,7 +182,7 @@ class NeRFConfig:
             else:
                 self.aabb = 1.5
         if self.grid_res is None:
-            self.grid_res = 128 if self.field == "hash" else 0
+            self.grid_res = 128 if self.field in HASH_FIELDS else 0
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
         if self.near is None or self.far is None:
@@ -224,17 +232,17 @@ class NeRFConfig:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
-        if self.field == "volsdf":
+        if self.field in SDF_FIELDS:
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
                            f"beta {self.beta}")  # fmt: skip
             d_in = 3 * (1 + 2 * self.pos_freqs)
-            if self.width <= d_in:
+            if self.field == "volsdf" and self.width <= d_in:
                 raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
             ew = self.eikonal_weight
             if not (math.isfinite(ew) and ew >= 0):
                 raise fail("eikonal_weight", f"must be finite and >= 0, got {ew}")
-        if self.field == "hash":
+        if self.field in HASH_FIELDS:
             from ..ops.encoding import HashGrid
 
             try:
@@ -244,8 +252,10 @@ class NeRFConfig:
             if self.hidden < 1:
                 raise fail("hidden", f"must be >= 1, got {self.hidden}")
         if self.grid_res:
-            if self.field != "hash":
-                raise fail("grid_res", "needs --field hash (set --grid-res 0 otherwise)")
+            if self.field not in HASH_FIELDS:
+                raise fail(
+                    "grid_res", "needs --field hash or hash_sdf (set --grid-res 0 otherwise)"
+                )
             if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
                 raise fail("grid_res", f"must be even, in [2, 1024], got {self.grid_res}")
             for name in ("grid_every", "max_samples"):
@@ -318,7 +328,7 @@ class NeRFConfig:
         a = float(self.aabb)
         if self.ndc_camera() is not None:
             return [-a, -a, -1.0, a, a, 1.0]
-        if self.field not in ("hash", "volsdf"):
+        if self.field not in BOX_FIELDS:
             return None
         return [-a, -a, -a, a, a, a]
 

@@ -23,6 +23,7 @@ from ..io import (
 )
 from ..metrics import psnr, ssim
 from .nerf import load_data, load_run, render_dataset_image, render_rays_of
+from .nerf_config import SDF_FIELDS
 
 __all__ = ["evaluate_run", "render_run", "camera_path", "train_and_evaluate"]
 
@@ -170,7 +171,7 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     else:
         cams = camera_path(train.c2w, path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
-    kinds = ("rgb", "depth", "geometry") if cfg.field == "volsdf" else ("rgb", "depth")
+    kinds = ("rgb", "depth", "geometry") if cfg.field in SDF_FIELDS else ("rgb", "depth")
     # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
     check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
     check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
@@ -194,7 +195,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
         write_image(out_dir / f"depth_{f:03d}.png", dep)
         rgbs.append(rgb)
         depths.append(dep)
-        if cfg.field == "volsdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
+        if cfg.field in SDF_FIELDS:  # geometry: sphere-trace the learned SDF, Lambert-shaded
             geo.append(to_uint8(_geometry_image(model.coarse, cfg, o, d).reshape(h, w, 3)))
             write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
     mp4 = True

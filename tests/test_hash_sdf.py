@@ -1,0 +1,127 @@
+"""The hash-grid SDF field (warpnerf/fields/hash_sdf.py): its initial sphere, the tetrahedral
+finite-difference gradient against analytic gradients, the coarse-to-fine schedule, the
+occupancy grid's conservative cell density, hard cases (tiny beta, far points) and the whole
+surface workflow on the built-in scene (train, eval, render, mesh)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from warpnerf.fields.hash_sdf import HashSDFField
+from warpnerf.fields.sdf_volume import laplace_cdf
+from warpnerf.ops.encoding import HashGrid
+
+BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
+
+
+def field(**kw) -> HashSDFField:
+    torch.manual_seed(0)
+    grid = HashGrid(n_levels=6, log2_size=10, base_res=4, max_res=64)
+    return HashSDFField(BOX, grid, hidden=16, **kw)
+
+
+def inside(n=500, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = (torch.rand(n, 3, generator=g) * 2 - 1) * 1.4
+    return x[x.norm(dim=-1) > 0.3]
+
+
+def test_starts_as_the_sphere_sdf():
+    f = field(radius=0.5)
+    x = inside()
+    assert torch.allclose(f.sdf(x), x.norm(dim=-1) - 0.75, atol=1e-3)  # 0.5 box units = 0.75
+
+
+def test_tetrahedral_gradient_matches_analytic_gradients(monkeypatch):
+    """The central difference is exact on linear functions and O(h^2) on smooth ones."""
+    f = field()
+    x = inside(200).double()
+    a = torch.tensor([0.3, -1.2, 0.7], dtype=torch.float64)
+
+    def linear(p):
+        return p.double() @ a
+
+    monkeypatch.setattr(f, "sdf", linear)
+    g = f.gradient(x)
+    assert torch.allclose(g.double(), a.expand_as(g), atol=1e-5)
+
+    def smooth(p):
+        p = p.double()
+        return torch.sin(p[:, 0]) * p[:, 1] + 0.5 * p[:, 2] ** 2
+
+    monkeypatch.setattr(f, "sdf", smooth)
+    xr = x.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(smooth(xr).sum(), xr)
+    err = (f.gradient(x).double() - want).abs().max().item()
+    assert err < 0.5 * f.fd_step**2  # second order (|f'''| <= 1 here: error <= h^2 / 6)
+    assert err > 0  # (a real finite difference, not the analytic gradient)
+
+
+def test_coarse_to_fine_opens_levels_and_shrinks_the_step():
+    f = field(level_every=10, levels_start=2)
+    res = f.resolutions
+    f.set_step(0)
+    assert f.open_levels == 2 and f.fd_step == pytest.approx(3.0 / res[1])
+    x = inside(100)
+    with torch.no_grad():
+        f.sdf_mlp[0].weight[:, 3:] = 1.0  # (the hash inputs start at zero weight)
+        before = f.sdf(x)
+        first_closed = f.grid_spec.levels[2][1]
+        f.encoding.table[first_closed:] += 1.0  # rows of closed levels do not reach the SDF
+        assert torch.equal(f.sdf(x), before)
+    f.set_step(25)
+    assert f.open_levels == 4 and f.fd_step == pytest.approx(3.0 / res[3])
+    assert not torch.equal(f.sdf(x), before)
+    f.set_step(10**6)
+    assert f.open_levels == 6 and f.level_mask.sum() == f.encoding.out_dim
+
+
+def test_grid_density_bounds_the_density_in_the_cell():
+    f = field(beta=0.05)
+    x = inside(300)
+    r = 0.1
+    g = torch.Generator().manual_seed(1)
+    off = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)[: len(x)]
+    off = off * torch.rand(len(x), 1, generator=g) * r
+    sig_near, _ = f.density(x + off)
+    assert (sig_near <= f.grid_density(x, r) * (1 + 1e-5) + 1e-6).all()
+    # a cell whose nearest point is on the surface: the surface density, 0.5 / beta
+    s = torch.tensor([[0.75 + r, 0.0, 0.0]])  # d = r: the cell reaches the surface
+    assert f.grid_density(s, r).item() == pytest.approx(0.5 / 0.05, rel=1e-2)
+
+
+@pytest.mark.parametrize("beta", [1e-4, 1e-2, 1.0])
+def test_hard_cases_stay_finite(beta):
+    """Tiny beta (the floor), points far outside the box and on its faces: finite densities,
+    colours, eikonal term and parameter gradients."""
+    f = field(beta=beta, beta_min=min(beta, 1e-4))
+    x = torch.cat([inside(50), torch.tensor([[100.0, 0, 0], [-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])])
+    d = torch.nn.functional.normalize(torch.randn(len(x), 3), dim=-1)
+    sigma, rgb = f(x, d)
+    loss = sigma.mean() * 1e-4 + rgb.mean() + f.aux_losses()["eikonal"] + f.eikonal(x)
+    loss.backward()
+    assert torch.isfinite(sigma).all() and torch.isfinite(rgb).all()
+    for p in f.parameters():
+        assert p.grad is None or torch.isfinite(p.grad).all()
+    assert f.aux_losses() == {}  # taken once
+    assert torch.isclose(sigma.max(), torch.tensor(1.0 / f.beta.item()), rtol=1e-3) or beta == 1.0
+    want = laplace_cdf(-f.sdf(x), f.beta) / f.beta
+    assert torch.allclose(sigma, want)
+
+
+def test_surface_workflow_on_the_builtin_scene(tmp_path):
+    """train volsdf --field hash_sdf, eval, render (rgb, depth, geometry), mesh: the commands
+    run end to end on a tiny run (quality is measured on the GPU, docs/PERFORMANCE.md)."""
+    from warpnerf.cli.parser import main
+
+    run = tmp_path / "r"
+    common = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16"]
+    assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out", str(run),
+                 "--iters", "4", "--batch", "64", "--grid-res", "8", "--builtin-size", "16",
+                 "--val-images", "1", "--c2f-every", "2", "--quiet", *common]) == 0  # fmt: skip
+    assert main(["eval", str(run), "--max-images", "1", "--out", str(tmp_path / "e")]) == 0
+    assert main(["render", str(run), "--frames", "2", "--size", "16x16"]) == 0
+    assert (run / "render_spiral" / "geometry_001.png").is_file()
+    assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "24"]) == 0
+    assert (tmp_path / "m.ply").stat().st_size > 0
