@@ -117,8 +117,8 @@ def test_bad_flag_values_are_refused_by_name(argv, flag, capsys):
 def test_volsdf_defaults_and_groups():
     _, sub = _subparser("volsdf")
     dests = {a.dest for a in sub._actions}
-    assert {"beta", "beta_min", "learn_beta", "eikonal_weight"} <= dests
-    assert "grid_res" not in dests  # the occupancy grid needs the hash field: `train nerf` only
+    assert {"beta", "beta_min", "learn_beta", "eikonal_weight", "c2f_every"} <= dests
+    assert "grid_res" in dests  # the occupancy grid of --field hash_sdf
     _, sub = _subparser("nerf")
     assert "beta" not in {a.dest for a in sub._actions}
     args = build_parser().parse_args(["train", "volsdf", "--out", "x"])
