@@ -106,16 +106,11 @@ def _mlp(cfg) -> RadianceModel:
     return RadianceModel(coarse, make() if cfg.n_fine > 0 else None)
 
 
-@register_field("hash")
-def _hash(cfg) -> RadianceModel:
-    """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
-    ``cfg.grid_res`` > 0 (then there is no fine pass)."""
+def _on_grid(cfg, f, box) -> RadianceModel:
+    """The model of a hash field ``f``: with the occupancy grid when ``cfg.grid_res`` > 0 (then
+    no fine pass), else ``f`` serves the fine pass too when there is one."""
     from ..occupancy import OccupancyGrid
-    from ..ops.encoding import HashGrid
-    from .hash_nerf import HashNeRFField
 
-    box = cfg.resolve().aabb_box()
-    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence)
     grid = None
     if cfg.grid_res:
         grid = OccupancyGrid(
@@ -123,6 +118,18 @@ def _hash(cfg) -> RadianceModel:
             warmup=-(-cfg.grid_warmup // cfg.grid_every),
         )  # fmt: skip
     return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
+
+
+@register_field("hash")
+def _hash(cfg) -> RadianceModel:
+    """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
+    ``cfg.grid_res`` > 0 (then there is no fine pass)."""
+    from ..ops.encoding import HashGrid
+    from .hash_nerf import HashNeRFField
+
+    box = cfg.resolve().aabb_box()
+    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence)
+    return _on_grid(cfg, f, box)
 
 
 @register_field("volsdf")
@@ -142,7 +149,6 @@ def _volsdf(cfg) -> RadianceModel:
 @register_field("hash_sdf")
 def _hash_sdf(cfg) -> RadianceModel:
     """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
-    from ..occupancy import OccupancyGrid
     from ..ops.encoding import HashGrid
     from .hash_sdf import HashSDFField
 
@@ -152,10 +158,4 @@ def _hash_sdf(cfg) -> RadianceModel:
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
         level_every=cfg.c2f_every,
     )  # fmt: skip
-    grid = None
-    if cfg.grid_res:
-        grid = OccupancyGrid(
-            box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
-            warmup=-(-cfg.grid_warmup // cfg.grid_every),
-        )  # fmt: skip
-    return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
+    return _on_grid(cfg, f, box)
