@@ -5,11 +5,13 @@ surface workflow on the built-in scene (train, eval, render, mesh)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from warpnerf.fields.hash_sdf import HashSDFField
 from warpnerf.fields.sdf_volume import laplace_cdf
+from warpnerf.mesh import read_ply, vertex_colors, write_ply
 from warpnerf.ops.encoding import HashGrid
 
 BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
@@ -123,5 +125,30 @@ def test_surface_workflow_on_the_builtin_scene(tmp_path):
     assert main(["eval", str(run), "--max-images", "1", "--out", str(tmp_path / "e")]) == 0
     assert main(["render", str(run), "--frames", "2", "--size", "16x16"]) == 0
     assert (run / "render_spiral" / "geometry_001.png").is_file()
-    assert main(["mesh", str(run), "--out", str(tmp_path / "m.ply"), "--resolution", "24"]) == 0
-    assert (tmp_path / "m.ply").stat().st_size > 0
+    ply = tmp_path / "m.ply"
+    assert main(["mesh", str(run), "--out", str(ply), "--resolution", "24", "--colors"]) == 0
+    v, f, rgb = read_ply(ply, colors=True)
+    assert len(f) > 0 and rgb.shape == (len(v), 3) and rgb.dtype == np.uint8
+    # the baked colour is the field's colour seen along the inward normal
+    from warpnerf.train.nerf import load_run
+
+    cfg, model, _ = load_run(run)
+    fn = model.field.sdf
+    want = vertex_colors(model.field, fn, v[:50], "cpu")
+    assert np.abs(want.astype(int) - rgb[:50]).max() <= 1
+    assert main(["mesh", "--sdf", "torus", "--out", str(tmp_path / "t.ply"), "--colors"]) == 2
+
+
+def test_ply_with_colors_round_trips(tmp_path):
+    g = np.random.default_rng(0)
+    v = g.normal(size=(7, 3)).astype(np.float32)
+    f = g.integers(0, 7, (5, 3)).astype(np.int32)
+    c = g.integers(0, 256, (7, 3)).astype(np.uint8)
+    write_ply(tmp_path / "c.ply", v, f, colors=c)
+    v2, f2, c2 = read_ply(tmp_path / "c.ply", colors=True)
+    assert np.array_equal(v, v2) and np.array_equal(f, f2) and np.array_equal(c, c2)
+    write_ply(tmp_path / "n.ply", v, f)
+    assert read_ply(tmp_path / "n.ply", colors=True)[2] is None
+    assert all(np.array_equal(a, b) for a, b in zip(read_ply(tmp_path / "n.ply"), (v, f)))
+    with pytest.raises(ValueError, match="colors must be uint8"):
+        write_ply(tmp_path / "x.ply", v, f, colors=c[:3])

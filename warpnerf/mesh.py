@@ -15,7 +15,14 @@ import torch
 
 from .io import atomic_path
 
-__all__ = ["extract_mesh", "write_ply", "read_ply", "screenshot", "sample_surface"]
+__all__ = [
+    "extract_mesh",
+    "write_ply",
+    "read_ply",
+    "vertex_colors",
+    "screenshot",
+    "sample_surface",
+]
 
 
 @torch.no_grad()
@@ -62,13 +69,24 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
     return v, f
 
 
-def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False) -> None:
-    """Binary little-endian PLY (float32 xyz, int32 triangle indices), written atomically."""
+def write_ply(
+    path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False, colors=None
+) -> None:
+    """Binary little-endian PLY (float32 xyz, optional uchar red/green/blue per vertex, int32
+    triangle indices), written atomically."""
     v = np.ascontiguousarray(vertices, dtype="<f4")
     f = np.ascontiguousarray(faces, dtype="<i4")
+    props = "property float x\nproperty float y\nproperty float z\n"
+    if colors is not None:
+        c = np.asarray(colors)
+        if c.shape != (len(v), 3) or c.dtype != np.uint8:
+            raise ValueError(f"colors must be uint8 [{len(v)}, 3], got {c.dtype} {c.shape}")
+        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
+        rows = np.empty(len(v), dtype=[("p", "<f4", (3,)), ("c", "u1", (3,))])
+        rows["p"], rows["c"] = v, c
+        v = rows
     head = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(v)}\nproperty float x\nproperty float y\nproperty float z\n"
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(v)}\n{props}"
         f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
     ).encode()
     body = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
@@ -79,16 +97,46 @@ def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bo
         fh.write(body.tobytes())
 
 
-def read_ply(path):
-    """Reads what :func:`write_ply` writes (vertices [V, 3], faces [F, 3])."""
+def read_ply(path, colors: bool = False):
+    """Reads what :func:`write_ply` writes: (vertices [V, 3], faces [F, 3]), plus the vertex
+    colours uint8 [V, 3] (None when the file has none) when ``colors``."""
     data = open(path, "rb").read()
     end = data.index(b"end_header\n") + len(b"end_header\n")
     head = data[:end].decode().splitlines()
     nv = int(next(x for x in head if x.startswith("element vertex")).split()[-1])
     nf = int(next(x for x in head if x.startswith("element face")).split()[-1])
-    v = np.frombuffer(data, "<f4", nv * 3, end).reshape(nv, 3)
-    body = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + nv * 12)
-    return v.copy(), body["i"].copy()
+    rgb = "property uchar red" in head
+    row = [("p", "<f4", (3,))] + ([("c", "u1", (3,))] if rgb else [])
+    verts = np.frombuffer(data, row, nv, end)
+    body = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + verts.nbytes)
+    out = (verts["p"].copy(), body["i"].copy())
+    return out + ((verts["c"].copy() if rgb else None),) if colors else out
+
+
+def vertex_colors(
+    field, fn, vertices: np.ndarray, device, chunk: int = 1 << 16, h: float = 1e-3
+) -> np.ndarray:
+    """Bakes a radiance field's colour into mesh vertices, uint8 [V, 3]: at each vertex x the
+    outward normal n is the normalised central-difference gradient of the level-set function
+    ``fn`` (an SDF, or minus a density: both grow outwards), and the colour is the field's
+    ``forward(x, -n)`` colour, i.e. seen by a camera looking straight at the surface."""
+    import torch
+
+    out = []
+    e = torch.eye(3, device=device)
+    with torch.no_grad():
+        for s in range(0, len(vertices), chunk):
+            x = torch.as_tensor(vertices[s : s + chunk], dtype=torch.float32, device=device)
+            pts = torch.cat([x + h * e[i] for i in range(3)] + [x - h * e[i] for i in range(3)])
+            d = fn(pts).float().reshape(6, -1)
+            g = ((d[:3] - d[3:]) / (2 * h)).T
+            n = torch.nn.functional.normalize(torch.nan_to_num(g), dim=-1)
+            n = torch.where(
+                n.norm(dim=-1, keepdim=True) > 0, n, torch.tensor([0.0, 0.0, 1.0], device=device)
+            )
+            _, rgb = field(x, -n)
+            out.append((rgb.float().clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu())
+    return torch.cat(out).numpy() if out else np.zeros((0, 3), np.uint8)
 
 
 def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
@@ -104,15 +152,20 @@ def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
     return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
 
 
-def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a") -> None:
-    """Offscreen pyvista render of the mesh (no window), written atomically."""
+def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a", colors=None) -> None:
+    """Offscreen pyvista render of the mesh (no window), written atomically; ``colors`` (uint8
+    [V, 3]) paints the vertices instead of the flat ``color``."""
     import pyvista as pv
 
     pv.OFF_SCREEN = True
     cells = np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel()
     mesh = pv.PolyData(np.asarray(vertices, dtype=np.float64), cells)
     plotter = pv.Plotter(off_screen=True, window_size=list(size))
-    plotter.add_mesh(mesh, color=color, smooth_shading=True)
+    if colors is not None:
+        mesh.point_data["rgb"] = np.asarray(colors, dtype=np.uint8)
+        plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True)
+    else:
+        plotter.add_mesh(mesh, color=color, smooth_shading=True)
     plotter.set_background("white")
     plotter.camera_position = "iso"
     try:

@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument(
         "--device", default=None, help="where to evaluate and march (default: the run's; cpu)"
     )
+    m.add_argument(
+        "--colors", action="store_true", help="runs: bake the radiance field's colour into the "
+        "vertices (seen along the normal, looking at the surface)",
+    )  # fmt: skip
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
 

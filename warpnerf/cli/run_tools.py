@@ -62,6 +62,7 @@ class _MeshSource(NamedTuple):
     what: str
     back: Callable | None  # vertices -> the data's own units
     device: str  # where the grid is evaluated and marched: --device, else the run's device
+    field: object = None  # a radiance field (forward(x, d) -> (sigma, rgb)) for --colors
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -106,7 +107,7 @@ def _mesh_source(args) -> _MeshSource:
     if cfg.field in ("volsdf", "hash_sdf"):  # the SDF's zero level set
         level = args.level or 0.0
         return _MeshSource(lambda p: field.sdf(p.to(cfg.device)), lo, hi, level, level,
-                           f"{cfg.field} {run}", back, cfg.device)  # fmt: skip
+                           f"{cfg.field} {run}", back, cfg.device, field)  # fmt: skip
     level = 10.0 if args.level is None else args.level
 
     def density(p):
@@ -114,13 +115,13 @@ def _mesh_source(args) -> _MeshSource:
 
     # marching cubes of -density at -level: inside (dense) is negative like an SDF
     fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device)
+    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device, field)
 
 
 def cmd_mesh(args) -> int:
     import time
 
-    from ..mesh import extract_mesh, screenshot, write_ply
+    from ..mesh import extract_mesh, screenshot, vertex_colors, write_ply
 
     if args.resolution < 8 or args.resolution > 1024:
         raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
@@ -130,7 +131,9 @@ def cmd_mesh(args) -> int:
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
         check_foreign([png])
-    fn, lo, hi, level, shown_level, what, back, dev = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, back, dev, field = _mesh_source(args)
+    if args.colors and field is None:
+        raise UserError(f"--colors needs a NeRF or VolSDF run (a radiance field); {what} has none")
     t0 = time.perf_counter()
     try:
         v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
@@ -139,6 +142,7 @@ def cmd_mesh(args) -> int:
     secs = time.perf_counter() - t0
     if len(f) == 0:
         raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}")
+    rgb = vertex_colors(field, fn, v, dev) if args.colors else None  # (the field's own frame)
     if back is not None:  # normalised frame -> the data's own units
         v = back(v).astype(np.float32)
         keep = np.isfinite(v).all(1)  # NDC vertices at infinity
@@ -146,12 +150,13 @@ def cmd_mesh(args) -> int:
             remap = np.cumsum(keep) - 1
             f = remap[f[keep[f].all(1)]]
             v = v[keep]
-    write_ply(args.out, v, f, replace_foreign=True)  # the file the user named
+            rgb = None if rgb is None else rgb[keep]
+    write_ply(args.out, v, f, replace_foreign=True, colors=rgb)  # the file the user named
     if args.no_screenshot:  # never leave a screenshot of an older mesh (one warpnerf wrote)
         remove_own(Path(png).parent, [Path(png).name])
     else:
         try:
-            screenshot(png, v, f)
+            screenshot(png, v, f, colors=rgb)
         except ImportError as e:  # pyvista is a dependency; tolerate machines without it
             print(f"warning: no screenshot ({e})", file=sys.stderr)
             png = None
@@ -160,6 +165,7 @@ def cmd_mesh(args) -> int:
         "out": args.out,
         "screenshot": None if args.no_screenshot else png,  # None also when pyvista is missing
         "vertices": len(v),
+        "colors": rgb is not None,
         "faces": len(f),
         "bounds_min": v.min(0).tolist(),
         "bounds_max": v.max(0).tolist(),
