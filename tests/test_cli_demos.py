@@ -504,3 +504,20 @@ def test_cli_train_volsdf_render_mesh_and_demo_09(tmp_path):
              "--frames", "1", "--eval-images", "1"], tmp_path)  # fmt: skip
     res = last_json(p.stdout)
     assert res["iters"] == 2 and res["beta"] > 0 and res["val_psnr"] > 0
+
+
+def test_demo_11_hash_sdf_tiny(tmp_path):
+    """The surface workflow demo: train hash_sdf, eval, spiral renders with geometry, a mesh with
+    baked colours (read back)."""
+    from warpnerf.mesh import read_ply
+
+    p = run([str(ROOT / "demos" / "11_hash_sdf.py"), "--out", "o", "--iters", "3", "--batch",
+             "64", "--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16",
+             "--grid-res", "8", "--builtin-size", "8", "--frames", "1", "--eval-images", "1",
+             "--mesh-resolution", "16"], tmp_path)  # fmt: skip
+    res = last_json(p.stdout)
+    assert res["iters"] == 3 and res["beta"] > 0 and res["val_psnr"] > 0
+    assert (tmp_path / "o" / "run" / "render_spiral" / "geometry_000.png").is_file()
+    if res["mesh_faces"]:
+        v, f, rgb = read_ply(tmp_path / "o" / "mesh.ply", colors=True)
+        assert len(f) == res["mesh_faces"] and rgb.shape == (len(v), 3)
