@@ -3,7 +3,7 @@ through the occupancy grid (``--field hash_sdf``), end to end: train, evaluate, 
 depth and geometry (sphere-traced normals of the learned SDF) along a spiral, and a
 marching-cubes mesh with vertex colours baked from the radiance field (PLY + pyvista screenshot).
 
-    python demos/11_hash_sdf.py --out out/11                       # built-in scene, CPU, ~3 min
+    python demos/11_hash_sdf.py --out out/11                       # built-in scene, CPU
     python demos/11_hash_sdf.py --data ../shared/data/lego --device cuda --max-seconds 300 \\
         --iters 100000 --batch 4096 --target-samples 262144 --hash-levels 16 \\
         --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --eval-images 100
