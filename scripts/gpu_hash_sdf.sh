@@ -2,7 +2,9 @@
 # Surfaces on the fast path, on the lent GPU: lego 400x400 with the hash_sdf field (hash-grid SDF,
 # VolSDF density, occupancy grid) trained for SECS seconds, evaluated on every val image, meshed.
 # Usage: DATA=.gpu/lego SECS=240 [EXTRA="--c2f-every 0"] [TAG=x] bash scripts/gpu_hash_sdf.sh
-# (writes $OUT/surface_$TAG.md, the history, metrics and mesh summary)
+#        DATA=.gpu/materials SECS=300 EXTRA="--aabb 1.7" TAG=materials GEOMETRY=1 bash ...
+# (writes $OUT/surface_$TAG.md, the history, metrics and mesh summary; GEOMETRY=1: the mesh's
+# Chamfer distance and the depth error against materials' analytic geometry, materials_geometry.py)
 source "$(dirname "$0")/_gpu_ab.sh"  # OUT, DATA
 SECS=${SECS:-240}
 TAG=${TAG:-lego}
@@ -14,6 +16,10 @@ python3 -m warpnerf.cli train volsdf --data "$DATA" --field hash_sdf --device cu
 python3 -m warpnerf.cli eval $R --split val --chunk 400000 --out ${R}_eval > "$OUT/eval_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "eval failed" | tee -a "$OUT/log_$TAG.txt"
 python3 -m warpnerf.cli mesh $R --out "$OUT/mesh_$TAG.ply" --resolution 384 > "$OUT/mesh_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "mesh failed" | tee -a "$OUT/log_$TAG.txt"
 rm -f "$OUT/mesh_$TAG.ply"  # (large; the summary and screenshot come back)
+if [ "${GEOMETRY:-0}" = 1 ]; then
+  python3 scripts/materials_geometry.py $R --resolution 384 --val-images 100 --json "$OUT/geometry_$TAG.json" > /dev/null 2>> "$OUT/log_$TAG.txt" || echo "geometry failed" | tee -a "$OUT/log_$TAG.txt"
+  cat "$OUT/geometry_$TAG.json"; echo
+fi
 cp $R/history.json "$OUT/history_$TAG.json"; cp $R/config.json "$OUT/config_$TAG.json"
 cp ${R}_eval/metrics.json "$OUT/metrics_$TAG.json" 2>/dev/null
 ls ${R}_eval | head -3 >> "$OUT/log_$TAG.txt"
