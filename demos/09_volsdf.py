@@ -12,13 +12,12 @@ The last line is JSON: val PSNR/SSIM, final beta, mesh size, time.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
 from warpnerf.errors import exit_status
-from warpnerf.options import add_flags, from_flags
+from warpnerf.options import from_flags
 from warpnerf.train import evaluate_run, render_run, train_nerf
 from warpnerf.train.nerf_config import VolSDFConfig
 
@@ -38,11 +37,8 @@ def main(argv=None) -> int:
 
 
 def _main(argv) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/09_volsdf")
-    add_flags(p, VolSDFConfig, include=FLAGS, defaults=DEFAULTS)
-    p.add_argument("--frames", type=int, default=12)
-    p.add_argument("--eval-images", type=int, default=4)
+    p = _common.config_parser(__doc__, "out/09_volsdf", VolSDFConfig, FLAGS, DEFAULTS, frames=12,
+                              eval_images=4)  # fmt: skip
     args = p.parse_args(argv)
     out = _common.check_args(p, args, frames=1, eval_images=0)
     run = _common.fresh_run(out / "run")

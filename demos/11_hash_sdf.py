@@ -3,7 +3,7 @@ through the occupancy grid (``--field hash_sdf``), end to end: train, evaluate, 
 depth and geometry (sphere-traced normals of the learned SDF) along a spiral, and a
 marching-cubes mesh with vertex colours baked from the radiance field (PLY + pyvista screenshot).
 
-    python demos/11_hash_sdf.py --out out/11                       # built-in scene, CPU
+    python demos/11_hash_sdf.py --out out/11                 # built-in scene, CPU, ~3 min
     python demos/11_hash_sdf.py --data ../shared/data/lego --device cuda --max-seconds 300 \\
         --iters 100000 --batch 4096 --target-samples 262144 --hash-levels 16 \\
         --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --eval-images 100
@@ -15,14 +15,13 @@ The last line is JSON: val PSNR/SSIM, final beta, mesh size, time.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
 from warpnerf.errors import exit_status
 from warpnerf.mesh import extract_mesh, screenshot, vertex_colors, write_ply
-from warpnerf.options import add_flags, from_flags
+from warpnerf.options import from_flags
 from warpnerf.train import evaluate_run, load_run, render_run, train_nerf
 from warpnerf.train.nerf_config import VolSDFConfig
 
@@ -33,7 +32,7 @@ import _common  # noqa: E402
 FLAGS = ("data", "iters", "max_seconds", "batch", "target_samples", "hash_levels",
          "hash_log2_size", "hash_max_res", "grid_res", "eikonal_weight", "aabb", "builtin_size",
          "device")  # fmt: skip
-DEFAULTS = dict(iters=200, batch=1024, hash_levels=8, hash_log2_size=15, hash_max_res=256,
+DEFAULTS = dict(iters=200, batch=256, hash_levels=8, hash_log2_size=14, hash_max_res=256,
                 grid_res=32, builtin_size=32)  # fmt: skip
 
 
@@ -43,12 +42,8 @@ def main(argv=None) -> int:
 
 
 def _main(argv) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", default="out/11_hash_sdf")
-    add_flags(p, VolSDFConfig, include=FLAGS, defaults=DEFAULTS)
-    p.add_argument("--frames", type=int, default=12)
-    p.add_argument("--eval-images", type=int, default=4)
-    p.add_argument("--mesh-resolution", type=int, default=128)
+    p = _common.config_parser(__doc__, "out/11_hash_sdf", VolSDFConfig, FLAGS, DEFAULTS, frames=12,
+                              eval_images=4, mesh_resolution=128)  # fmt: skip
     args = p.parse_args(argv)
     out = _common.check_args(p, args, frames=1, eval_images=0, mesh_resolution=8)
     run = _common.fresh_run(out / "run")

@@ -45,3 +45,18 @@ def parser(doc: str, out: str, **sizes):
     for name, default in sizes.items():
         p.add_argument("--" + name.replace("_", "-"), type=int, default=default)
     return p
+
+
+def config_parser(doc: str, out: str, cls, flags, defaults, **sizes):
+    """The parser of a demo that trains a config ``cls``: --out, the config's ``flags`` (from
+    the dataclass, with the demo's ``defaults``) and the demo's integer ``sizes``."""
+    import argparse
+
+    from warpnerf.options import add_flags
+
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--out", default=out)
+    add_flags(p, cls, include=flags, defaults=defaults)
+    for name, default in sizes.items():
+        p.add_argument("--" + name.replace("_", "-"), type=int, default=default)
+    return p
