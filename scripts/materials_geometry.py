@@ -23,22 +23,19 @@ import torch
 from warpnerf.mesh import extract_mesh, sample_surface
 from warpnerf.ops import generate_rays
 from warpnerf.train.nerf import load_data, load_run, render_rays_of
+from warpnerf.train.nerf_eval import (
+    MATERIALS_DISK,
+    MATERIALS_RADIUS,
+    MATERIALS_SPHERES,
+    materials_reference,
+)
 from warpnerf.train.sdf import chamfer
 
-CENTERS = [(x, y, 0.32) for y in (-0.4, 0.4) for x in (-1.05, -0.35, 0.35, 1.05)]
-R, DISK = 0.32, 1.6
+CENTERS, R, DISK = MATERIALS_SPHERES, MATERIALS_RADIUS, MATERIALS_DISK
 
 
 def analytic_points(n: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    a_sph, a_disk = 8 * 4 * math.pi * R * R, math.pi * DISK * DISK
-    n_s = int(n * a_sph / (a_sph + a_disk))
-    d = rng.normal(size=(n_s, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    sph = np.asarray(CENTERS)[rng.integers(0, 8, n_s)] + R * d
-    r, th = DISK * np.sqrt(rng.random(n - n_s)), rng.random(n - n_s) * 2 * math.pi
-    disk = np.stack([r * np.cos(th), r * np.sin(th), np.zeros_like(r)], 1)
-    return np.concatenate([sph, disk]).astype(np.float32)
+    return materials_reference(n, seed)
 
 
 def analytic_depth(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

@@ -152,3 +152,38 @@ def test_ply_with_colors_round_trips(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(read_ply(tmp_path / "n.ply"), (v, f)))
     with pytest.raises(ValueError, match="colors must be uint8"):
         write_ply(tmp_path / "x.ply", v, f, colors=c[:3])
+
+
+def test_eval_geometry_against_a_reference(tmp_path, capsys):
+    """`eval RUN --geometry REF`: a reference sampled from the run's own surface gives a Chamfer
+    distance near zero, a shifted one the shift; the materials reference and the refusals."""
+    import json
+
+    from warpnerf.cli.parser import main
+    from warpnerf.mesh import extract_mesh, sample_surface
+    from warpnerf.train.nerf import load_run
+    from warpnerf.train.nerf_eval import evaluate_geometry, materials_reference
+
+    run = tmp_path / "r"
+    common = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16"]
+    assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out", str(run),
+                 "--iters", "2", "--batch", "64", "--grid-res", "8", "--builtin-size", "8",
+                 "--val-images", "0", "--quiet", *common]) == 0  # fmt: skip
+    cfg, model, _ = load_run(run)
+    a = cfg.aabb
+    v, f = extract_mesh(model.field.sdf, [-a] * 3, [a] * 3, 64, 0.0)
+    own = sample_surface(v, f, 20000, seed=5).astype(np.float32)
+    np.savez(tmp_path / "own.npz", points=own)
+    np.savez(tmp_path / "shifted.npz", points=own + np.float32([0.0, 0.0, 0.05]))
+    capsys.readouterr()
+    assert main(["eval", str(run), "--geometry", str(tmp_path / "own.npz"),
+                 "--mesh-resolution", "64", "--geometry-points", "20000"]) == 0  # fmt: skip
+    same = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert same["chamfer"] < 0.01 and same["accuracy"] < 0.01 and same["completeness"] < 0.01
+    far = evaluate_geometry(run, tmp_path / "shifted.npz", 64, 20000)
+    assert far["chamfer"] > 2 * same["chamfer"] and far["chamfer"] < 0.05
+    ref = materials_reference(1000)
+    assert ref.shape == (1000, 3) and np.isclose(ref[:, 2].min(), -0.32 + 0.32, atol=0.01)
+    assert main(["eval", str(run), "--geometry", "materials", "--geometry-points", "500"]) == 0
+    assert main(["eval", str(run), "--geometry", str(tmp_path / "nope.npz")]) == 2
+    assert main(["eval", str(run), "--geometry", "materials", "--mesh-resolution", "4"]) == 2

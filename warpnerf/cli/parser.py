@@ -74,6 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--round-samples", type=_nonnegative, default=None, help="grid runs: another")
     e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
     e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
+    e.add_argument(
+        "--geometry", default=None, metavar="REF", help="SDF runs: instead of images, the "
+        "surface's accuracy, completeness and Chamfer distance against REF: 'materials' (its "
+        "analytic shapes) or a point cloud (.npz / .ply)",
+    )  # fmt: skip
+    e.add_argument("--mesh-resolution", type=int, default=256, help="with --geometry")
+    e.add_argument("--geometry-points", type=int, default=50000, help="with --geometry")
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")

@@ -15,8 +15,13 @@ from ._common import _check_out, _device, _saved_config
 
 
 def cmd_eval(args) -> int:
-    from ..train.nerf_eval import evaluate_run
+    from ..train.nerf_eval import evaluate_geometry, evaluate_run
 
+    if args.geometry is not None:  # reads the run, writes nothing: prints the figures
+        device = _device(args.device) if args.device else None
+        print(json_dumps(evaluate_geometry(args.run, args.geometry, args.mesh_resolution,
+                                           args.geometry_points, device)))  # fmt: skip
+        return 0
     if args.out:
         _check_out(args.out)
     elif Path(args.run).is_dir():

@@ -25,7 +25,14 @@ from ..metrics import psnr, ssim
 from .nerf import load_data, load_run, render_dataset_image, render_rays_of
 from .nerf_config import SDF_FIELDS
 
-__all__ = ["evaluate_run", "render_run", "camera_path", "train_and_evaluate"]
+__all__ = [
+    "evaluate_run",
+    "evaluate_geometry",
+    "materials_reference",
+    "render_run",
+    "camera_path",
+    "train_and_evaluate",
+]
 
 # NeRFConfig fields that only affect rendering, so evaluation may override them.
 RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
@@ -252,4 +259,76 @@ def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progre
         "steps": hist["step"][-1],
         "parameters": n_params,
         "run": str(run),
+    }
+
+
+# The materials scene's analytic geometry (its data README): 8 spheres of radius 0.32 at
+# z = 0.32, x in {-1.05, -0.35, 0.35, 1.05}, y in {-0.4, 0.4}; a ground disk of radius 1.6 at z = 0.
+MATERIALS_SPHERES = [(x, y, 0.32) for y in (-0.4, 0.4) for x in (-1.05, -0.35, 0.35, 1.05)]
+MATERIALS_RADIUS, MATERIALS_DISK = 0.32, 1.6
+
+
+def materials_reference(n: int, seed: int = 0):
+    """n points uniformly (by area) on the materials scene's analytic spheres and disk [n, 3]."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    r0, rd = MATERIALS_RADIUS, MATERIALS_DISK
+    a_sph, a_disk = 8 * 4 * math.pi * r0 * r0, math.pi * rd * rd
+    n_s = int(n * a_sph / (a_sph + a_disk))
+    d = rng.normal(size=(n_s, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    sph = np.asarray(MATERIALS_SPHERES)[rng.integers(0, 8, n_s)] + r0 * d
+    r, th = rd * np.sqrt(rng.random(n - n_s)), rng.random(n - n_s) * 2 * math.pi
+    disk = np.stack([r * np.cos(th), r * np.sin(th), np.zeros_like(r)], 1)
+    return np.concatenate([sph, disk]).astype(np.float32)
+
+
+def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None):
+    """Accuracy, completeness and Chamfer distance of an SDF run's surface against a reference.
+
+    The run's zero level set is meshed by marching cubes at ``resolution`` inside its scene cube
+    and ``points`` points are sampled on it (by area); ``reference`` is "materials" (the analytic
+    spheres and disk, sampled the same way) or a point-cloud file (.npz with ``points`` or
+    ``verts``, or .ply vertices; a mesh's vertices serve as its points). Accuracy: mean distance
+    from the run's surface to the reference; completeness: mean distance from the reference to
+    the run's surface; Chamfer: their mean. World units of the data (a COLMAP/LLFF run's mesh is
+    mapped back to the capture's frame first).
+    """
+    import numpy as np
+
+    from ..mesh import extract_mesh, sample_surface
+    from .sdf import chamfer, load_points
+
+    if not 8 <= resolution <= 1024:
+        raise UserError(f"--mesh-resolution must be in [8, 1024], got {resolution}")
+    if not 100 <= points <= 10_000_000:
+        raise UserError(f"--geometry-points must be in [100, 1e7], got {points}")
+    cfg, model, _ = load_run(run, device)
+    if cfg.field not in SDF_FIELDS:
+        raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
+    ref = materials_reference(points) if reference == "materials" else load_points(reference)[0]
+    a, field = cfg.aabb, model.field
+    v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-a] * 3, [a] * 3, resolution,
+                        0.0, device=cfg.device)  # fmt: skip
+    if len(f) == 0:
+        raise UserError(f"{run}: the SDF has no zero level set inside its box; nothing to compare")
+    m = sample_surface(v, f, points, seed=0)
+    if cfg.scene is not None:
+        from ..data.capture import normalised_to_world
+
+        m = normalised_to_world(m, cfg.scene["transform"], cfg.ndc_camera())
+        m = m[np.isfinite(m).all(1)]
+    dev = torch.device(cfg.device)
+    acc, comp = chamfer(torch.as_tensor(m, dtype=torch.float32, device=dev),
+                        torch.as_tensor(ref, dtype=torch.float32, device=dev))  # fmt: skip
+    return {
+        "run": str(run),
+        "reference": str(reference),
+        "accuracy": acc,
+        "completeness": comp,
+        "chamfer": 0.5 * (acc + comp),
+        "mesh_faces": int(len(f)),
+        "points": int(points),
+        "resolution": resolution,
     }
