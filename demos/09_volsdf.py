@@ -58,17 +58,7 @@ def _main(argv) -> int:
     v, f = extract_mesh(model.coarse.sdf, [-a] * 3, [a] * 3, 96, 0.0, device=cfg.device)
     if len(f):
         write_ply(out / "mesh.ply", v, f)
-    res = {
-        "data": args.data,
-        "iters": hist["step"][-1],
-        "train_seconds": hist["seconds"][-1],
-        "val_psnr": m["psnr"],
-        "val_ssim": m["ssim"],
-        "beta": hist["beta"][-1],
-        "mesh_faces": int(len(f)),
-        "renders": r["out"],
-    }
-    print(json.dumps(res))
+    print(json.dumps(_common.surface_summary(args, hist, m, r, len(f))))
     return 0
 
 

@@ -66,18 +66,8 @@ def _main(argv) -> int:
             shot = str(out / "mesh.png")
         except ImportError:  # pyvista missing: the PLY is still written
             pass
-    res = {
-        "data": args.data,
-        "iters": hist["step"][-1],
-        "train_seconds": hist["seconds"][-1],
-        "val_psnr": m["psnr"],
-        "val_ssim": m["ssim"],
-        "render_ms_median": m["render_ms_median"],
-        "beta": hist["beta"][-1],
-        "mesh_faces": int(len(f)),
-        "mesh_screenshot": shot,
-        "renders": r["out"],
-    }
+    res = _common.surface_summary(args, hist, m, r, len(f), mesh_screenshot=shot,
+                                  render_ms_median=m["render_ms_median"])  # fmt: skip
     print(json.dumps(res))
     return 0
 

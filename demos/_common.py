@@ -60,3 +60,19 @@ def config_parser(doc: str, out: str, cls, flags, defaults, **sizes):
     for name, default in sizes.items():
         p.add_argument("--" + name.replace("_", "-"), type=int, default=default)
     return p
+
+
+def surface_summary(args, hist, metrics, renders, mesh_faces: int, **extra) -> dict:
+    """The last JSON line of the surface demos (09, 11): data, steps, time, val figures, final
+    beta, mesh size, renders folder, plus ``extra``."""
+    return {
+        "data": args.data,
+        "iters": hist["step"][-1],
+        "train_seconds": hist["seconds"][-1],
+        "val_psnr": metrics["psnr"],
+        "val_ssim": metrics["ssim"],
+        "beta": hist["beta"][-1],
+        "mesh_faces": int(mesh_faces),
+        "renders": renders["out"],
+        **extra,
+    }

@@ -109,7 +109,7 @@ def _mesh_source(args) -> _MeshSource:
     lo, hi = [-b] * 3, [b] * 3
     if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
         lo[2], hi[2] = -1.0, 0.99
-    if cfg.field in ("volsdf", "hash_sdf"):  # the SDF's zero level set
+    if model.kind == "sdf":  # the SDF's zero level set
         level = args.level or 0.0
         return _MeshSource(lambda p: field.sdf(p.to(cfg.device)), lo, hi, level, level,
                            f"{cfg.field} {run}", back, cfg.device, field)  # fmt: skip

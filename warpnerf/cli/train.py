@@ -6,7 +6,14 @@ from ..errors import UserError
 from ..io import json_dumps
 from ..options import CHECKS, add_flags, from_flags
 from ..train.box_fit import BoxFitConfig
-from ..train.nerf_config import FINE_SAMPLES, GRID, VOLSDF, NeRFConfig, VolSDFConfig
+from ..train.nerf_config import (
+    FINE_SAMPLES,
+    GRID,
+    SDF_FIELDS,
+    VOLSDF,
+    NeRFConfig,
+    VolSDFConfig,
+)
 from ..train.sdf import SDFConfig
 from ._common import (
     _check_out,
@@ -92,7 +99,7 @@ def _resume_device(args):
 def cmd_train_nerf(args) -> int:
     from ..train.nerf import train_nerf
 
-    if args.model == "volsdf" and args.field not in ("volsdf", "hash_sdf"):
+    if args.model == "volsdf" and args.field not in SDF_FIELDS:
         raise UserError(
             "train volsdf trains the volsdf or hash_sdf field; use train nerf for --field mlp|hash"
         )
@@ -100,7 +107,7 @@ def cmd_train_nerf(args) -> int:
     if args.resume:
         device = _resume_device(args)
         field = _saved_config(args.out).get("field", "volsdf")
-        if args.model == "volsdf" and field not in ("volsdf", "hash_sdf"):
+        if args.model == "volsdf" and field not in SDF_FIELDS:
             raise UserError(
                 f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
                 f"`warpnerf train nerf --out {args.out} --resume --iters N`"

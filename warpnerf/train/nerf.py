@@ -21,7 +21,7 @@ from ..io import (
 from ..ops import random_pixels
 from ..render import render_chunks, render_marched, render_nerf
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
-from .nerf_config import HASH_FIELDS, SDF_FIELDS, NeRFConfig, scene_settings
+from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -304,7 +304,7 @@ class NeRFTask(Task):
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
             loss = loss + torch.mean((coarse - target) ** 2)
-        if cfg.field in SDF_FIELDS:  # eikonal on the rendered samples and on random box points
+        if model.kind == "sdf":  # eikonal on the rendered samples and on random box points
             f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
             aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)

@@ -23,7 +23,6 @@ from ..io import (
 )
 from ..metrics import psnr, ssim
 from .nerf import load_data, load_run, render_dataset_image, render_rays_of
-from .nerf_config import SDF_FIELDS
 
 __all__ = [
     "evaluate_run",
@@ -178,7 +177,7 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     else:
         cams = camera_path(train.c2w, path, frames).to(cfg.device)
     out_dir = Path(run) / f"render_{path}"
-    kinds = ("rgb", "depth", "geometry") if cfg.field in SDF_FIELDS else ("rgb", "depth")
+    kinds = ("rgb", "depth", "geometry") if model.kind == "sdf" else ("rgb", "depth")
     # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
     check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
     check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
@@ -202,7 +201,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
         write_image(out_dir / f"depth_{f:03d}.png", dep)
         rgbs.append(rgb)
         depths.append(dep)
-        if cfg.field in SDF_FIELDS:  # geometry: sphere-trace the learned SDF, Lambert-shaded
+        if model.kind == "sdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
             geo.append(to_uint8(_geometry_image(model.coarse, cfg, o, d).reshape(h, w, 3)))
             write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
     mp4 = True
@@ -305,7 +304,7 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
     if not 100 <= points <= 10_000_000:
         raise UserError(f"--geometry-points must be in [100, 1e7], got {points}")
     cfg, model, _ = load_run(run, device)
-    if cfg.field not in SDF_FIELDS:
+    if model.kind != "sdf":
         raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
     ref = materials_reference(points) if reference == "materials" else load_points(reference)[0]
     a, field = cfg.aabb, model.field
