@@ -93,11 +93,12 @@ def test_grid_density_bounds_the_density_in_the_cell():
     assert f.grid_density(s, r).item() == pytest.approx(0.5 / 0.05, rel=1e-2)
 
 
+@pytest.mark.parametrize("density", ["laplace", "logistic"])
 @pytest.mark.parametrize("beta", [1e-4, 1e-2, 1.0])
-def test_hard_cases_stay_finite(beta):
+def test_hard_cases_stay_finite(beta, density):
     """Tiny beta (the floor), points far outside the box and on its faces: finite densities,
-    colours, eikonal term and parameter gradients."""
-    f = field(beta=beta, beta_min=min(beta, 1e-4))
+    colours, eikonal term and parameter gradients, for both SDF-to-density conversions."""
+    f = field(beta=beta, beta_min=min(beta, 1e-4), density=density)
     x = torch.cat([inside(50), torch.tensor([[100.0, 0, 0], [-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]])])
     d = torch.nn.functional.normalize(torch.randn(len(x), 3), dim=-1)
     sigma, rgb = f(x, d)
@@ -108,8 +109,56 @@ def test_hard_cases_stay_finite(beta):
         assert p.grad is None or torch.isfinite(p.grad).all()
     assert f.aux_losses() == {}  # taken once
     assert torch.isclose(sigma.max(), torch.tensor(1.0 / f.beta.item()), rtol=1e-3) or beta == 1.0
-    want = laplace_cdf(-f.sdf(x), f.beta) / f.beta
-    assert torch.allclose(sigma, want)
+    if density == "laplace":
+        want = laplace_cdf(-f.sdf(x), f.beta) / f.beta
+    else:
+        want = 1.0 / (f.beta * (1.0 + torch.exp(f.sdf(x).double() / f.beta.double())))
+    assert torch.allclose(sigma.double(), want.double(), rtol=1e-5, atol=1e-30)
+
+
+def test_logistic_density_is_neus_along_the_normal():
+    """NeuS's opaque density rho = -(d/dt Phi_s(d(t))) / Phi_s(d(t)) on a head-on ray through a
+    plane d(t) = t0 - t (cos theta = -1) is the logistic density s Phi_s(-d), s = 1 / beta: the
+    closed form against autograd of the definition in float64, and the laplace / logistic pair
+    integrates to the same total opacity (both CDFs: the surface is crossed once)."""
+    from warpnerf.fields.hash_sdf import logistic_density, sdf_density
+
+    beta = torch.tensor(0.03, dtype=torch.float64)
+    t = torch.linspace(0.0, 2.0, 20001, dtype=torch.float64, requires_grad=True)
+    d = 1.0 - t
+    phi = torch.sigmoid(d / beta)
+    (dphi,) = torch.autograd.grad(phi.sum(), t)
+    rho = -dphi / phi.detach()
+    assert torch.allclose(logistic_density(d.detach(), beta), rho, rtol=1e-9, atol=1e-12)
+    dt = 2.0 / 20000
+    for kind in ("laplace", "logistic"):
+        sig = sdf_density(kind, d.detach(), beta)
+        tau = (0.5 * (sig[1:] + sig[:-1]) * dt).sum()  # optical depth behind the surface
+        assert float(tau) > 0.9 * 1.0 / float(beta)  # inside: sigma -> 1 / beta (opaque)
+        # the density is half its maximum exactly at the surface
+        mid = sdf_density(kind, torch.zeros(1, dtype=torch.float64), beta)
+        assert float(mid) == pytest.approx(0.5 / float(beta), rel=1e-12)
+
+
+def test_annealed_beta_follows_its_schedule_and_is_saved():
+    """--beta-final: beta goes geometrically from beta to beta_final over anneal_steps, then
+    stays; it is not a parameter; the value is in the state dict (a checkpoint renders with it)."""
+    f = field(beta=0.1, beta_min=1e-4, beta_final=0.001, anneal_steps=100)
+    assert f.beta_param is None
+    assert f.beta.item() == pytest.approx(0.1, rel=1e-6)
+    f.set_step(50)
+    assert f.beta.item() == pytest.approx(0.01, rel=1e-5)  # sqrt(0.1 * 0.001)
+    f.set_step(100)
+    assert f.beta.item() == pytest.approx(0.001, rel=1e-5)
+    f.set_step(10**6)
+    assert f.beta.item() == pytest.approx(0.001, rel=1e-5)
+    g = field(beta=0.1, beta_min=1e-4, beta_final=0.001, anneal_steps=100)
+    g.load_state_dict(f.state_dict())
+    assert g.beta.item() == pytest.approx(0.001, rel=1e-5)
+    with pytest.raises(ValueError, match="beta_final"):
+        field(beta=0.1, beta_final=0.5)
+    with pytest.raises(ValueError, match="density"):
+        field(density="gaussian")
 
 
 def test_surface_workflow_on_the_builtin_scene(tmp_path):
@@ -121,7 +170,8 @@ def test_surface_workflow_on_the_builtin_scene(tmp_path):
     common = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16"]
     assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out", str(run),
                  "--iters", "4", "--batch", "64", "--grid-res", "8", "--builtin-size", "16",
-                 "--val-images", "1", "--c2f-every", "2", "--quiet", *common]) == 0  # fmt: skip
+                 "--val-images", "1", "--c2f-every", "2", "--quiet", "--sdf-density", "logistic",
+                 "--beta-final", "0.02", "--beta-anneal-steps", "2", *common]) == 0  # fmt: skip
     assert main(["eval", str(run), "--max-images", "1", "--out", str(tmp_path / "e")]) == 0
     assert main(["render", str(run), "--frames", "2", "--size", "16x16"]) == 0
     assert (run / "render_spiral" / "geometry_001.png").is_file()
@@ -133,10 +183,17 @@ def test_surface_workflow_on_the_builtin_scene(tmp_path):
     from warpnerf.train.nerf import load_run
 
     cfg, model, _ = load_run(run)
+    assert cfg.sdf_density == "logistic" and model.field.density_kind == "logistic"
+    assert model.field.beta.item() == pytest.approx(0.02, rel=1e-5)  # annealed, then saved
     fn = model.field.sdf
     want = vertex_colors(model.field, fn, v[:50], "cpu")
     assert np.abs(want.astype(int) - rgb[:50]).max() <= 1
     assert main(["mesh", "--sdf", "torus", "--out", str(tmp_path / "t.ply"), "--colors"]) == 2
+    bad = ["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out",
+           str(tmp_path / "bad"), "--iters", "1", "--quiet"]  # fmt: skip
+    assert main([*bad, "--beta-final", "0.5"]) == 2  # above --beta
+    assert main([*bad, "--sdf-density", "gaussian"]) == 2
+    assert main([*bad[:5], "volsdf", *bad[6:], "--sdf-density", "logistic"]) == 2  # hash_sdf only
 
 
 def test_ply_with_colors_round_trips(tmp_path):

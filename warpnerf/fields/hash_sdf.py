@@ -9,8 +9,18 @@ zero (and the hash inputs' weights at zero), so training starts from the exact s
 role of SAL's geometric initialisation (Atzmon & Lipman 2020), which a 64-wide network only
 approximates.
 
-Density: VolSDF's sigma = Psi_beta(-d) / beta with the Laplace CDF Psi_beta, beta = beta_min +
-|b| learned (shrinks as the surface sharpens) or fixed.
+Density (``density=``): "laplace", VolSDF's sigma = Psi_beta(-d) / beta with the Laplace CDF
+Psi_beta (Yariv et al. 2021); or "logistic", NeuS's opaque density seen along the normal, sigma =
+s * Phi_s(-d) with the logistic CDF Phi_s(x) = 1 / (1 + exp(-s x)) and s = 1 / beta (Wang et al.
+2021: rho = -(dPhi_s(d(t))/dt) / Phi_s(d(t)) = s (1 - Phi_s(d)) (-cos theta), here with cos theta =
+-1, so that the density is a function of position alone and the occupancy grid and the packed
+compositing kernels serve it unchanged). Both are the same family sigma = Psi(-d / beta) / beta with
+a CDF Psi of unit scale; the logistic one has lighter (exponential, like Laplace) tails but is
+smooth at the surface. beta = beta_min + |b| learned (shrinks as the surface sharpens), fixed, or
+annealed: ``beta_final`` > 0 makes beta follow beta * (beta_final / beta)^(step / anneal_steps)
+(geometric, then constant; :meth:`set_step`), the NeuS-style schedule of the inverse standard
+deviation s = 1 / beta without learning it. The current beta is a buffer, so a checkpoint renders
+with the beta it was trained to.
 
 Normals and the eikonal term: the hash encoding gives no position gradient, so the SDF's gradient
 is a central finite difference (6 evaluations, second-order accurate; the 4-point tetrahedral
@@ -41,7 +51,23 @@ from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
 from .sdf_volume import laplace_cdf
 
-__all__ = ["HashSDFField"]
+__all__ = ["HashSDFField", "DENSITIES", "logistic_density", "sdf_density"]
+
+DENSITIES = ("laplace", "logistic")
+
+
+def logistic_density(d: torch.Tensor, beta) -> torch.Tensor:
+    """NeuS's density along the normal: s * sigmoid(-s d) with s = 1 / beta; finite with finite
+    gradients for any finite d and beta > 0 (sigmoid never overflows)."""
+    return torch.sigmoid(-d / beta) / beta
+
+
+def sdf_density(kind: str, d: torch.Tensor, beta) -> torch.Tensor:
+    """sigma(d) of the conversion ``kind`` (:data:`DENSITIES`) with scale ``beta``."""
+    if kind == "logistic":
+        return logistic_density(d, beta)
+    return laplace_cdf(-d, beta) / beta
+
 
 _AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
@@ -55,8 +81,18 @@ class HashSDFField(nn.Module):
     def __init__(self, aabb, grid: HashGrid | None = None, hidden: int = 64,
                  n_features: int = 15, view_dependence: bool = True, beta: float = 0.1,
                  beta_min: float = 1e-4, learn_beta: bool = True, radius: float = 0.5,
-                 levels_start: int = 4, level_every: int = 0):  # fmt: skip
+                 levels_start: int = 4, level_every: int = 0, density: str = "laplace",
+                 beta_final: float = 0.0, anneal_steps: int = 1):  # fmt: skip
         super().__init__()
+        if density not in DENSITIES:
+            raise ValueError(f"density must be one of {DENSITIES}, got {density!r}")
+        if beta_final > 0 and not (beta_min <= beta_final <= beta and anneal_steps >= 1):
+            raise ValueError("an annealed beta needs beta_min <= beta_final <= beta and "
+                             "anneal_steps >= 1")  # fmt: skip
+        self.density_kind = density
+        self.beta_start, self.beta_final = float(beta), float(beta_final)
+        self.anneal_steps = int(anneal_steps)
+        learn_beta = learn_beta and beta_final <= 0  # a schedule replaces learning
         box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1)
         if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
             raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min < max")
@@ -71,12 +107,12 @@ class HashSDFField(nn.Module):
         self.level_every = int(level_every)
         self.register_buffer("level_mask", torch.ones(self.encoding.out_dim))
         self.open_levels = self.n_levels
-        self.set_step(0)
         self.beta_min, self.view_dependence = float(beta_min), view_dependence
         b = torch.tensor(max(beta - beta_min, 1e-8))
         self.beta_param = nn.Parameter(b) if learn_beta else None
         if not learn_beta:
             self.register_buffer("beta_fixed", b)
+        self.set_step(0)
         e = self.encoding.out_dim
         self.sdf_mlp = nn.Sequential(
             nn.Linear(3 + e, hidden), nn.Softplus(beta=100), nn.Linear(hidden, hidden),
@@ -105,7 +141,12 @@ class HashSDFField(nn.Module):
     # ---------------------------------------------------------------- coarse-to-fine schedule
 
     def set_step(self, step: int) -> None:
-        """Opens the hash levels of training step ``step`` (all of them when level_every = 0)."""
+        """Opens the hash levels of training step ``step`` (all of them when level_every = 0) and
+        sets an annealed beta to its value at that step."""
+        if self.beta_final > 0:
+            f = min(max(int(step), 0) / self.anneal_steps, 1.0)
+            b = self.beta_start * (self.beta_final / self.beta_start) ** f
+            self.beta_fixed.fill_(max(b - self.beta_min, 1e-8))
         n = self.n_levels
         if self.level_every > 0:
             n = min(self.n_levels, self.levels_start + int(step) // self.level_every)
@@ -167,16 +208,14 @@ class HashSDFField(nn.Module):
     def density(self, positions: torch.Tensor):
         """sigmas [n] and the colour head's input [n, 3 + F] (positions, features)."""
         d, feat = self._geometry(positions)
-        beta = self.beta.to(d.dtype)
-        sigma = laplace_cdf(-d, beta) / beta
+        sigma = sdf_density(self.density_kind, d, self.beta.to(d.dtype))
         return sigma, torch.cat([positions.detach().to(feat.dtype), feat], -1)
 
     def grid_density(self, positions: torch.Tensor, radius: float) -> torch.Tensor:
         """The largest density within ``radius`` of each position (the SDF is 1-Lipschitz):
         the occupancy grid's value of a cell of half-diagonal ``radius``."""
         d = self.sdf(positions)
-        beta = self.beta.to(d.dtype)
-        return laplace_cdf(-(d - radius), beta) / beta
+        return sdf_density(self.density_kind, d - radius, self.beta.to(d.dtype))
 
     def color(self, h: torch.Tensor, directions: torch.Tensor | None = None):
         """rgbs [n, 3] from :meth:`density`'s features (positions + geometry features); records

@@ -83,6 +83,17 @@ class NeRFConfig:
     beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
     beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
     learn_beta: bool = option(True, "keep beta at --beta", negate="--fixed-beta", groups=VOLSDF)
+    beta_final: float = option(
+        0.0, "hash_sdf: anneal beta geometrically from --beta to this over --beta-anneal-steps "
+        "(then constant; replaces learning it); 0: off", check="nonnegative", groups=VOLSDF,
+    )  # fmt: skip
+    beta_anneal_steps: int = option(
+        5000, "hash_sdf: steps of the --beta-final schedule", check="positive", groups=VOLSDF
+    )
+    sdf_density: str = option(
+        "laplace", "hash_sdf: SDF-to-density conversion, laplace (VolSDF) or logistic (NeuS, "
+        "s = 1/beta)", groups=VOLSDF,
+    )  # fmt: skip
     eikonal_weight: float | None = option(
         None, "weight of (|grad d| - 1)^2 (samples + random points); default 0.1 (volsdf), "
         "0.01 (hash_sdf: measured +0.7 dB on lego, docs/PERFORMANCE.md)", check="finite",
@@ -230,7 +241,8 @@ class NeRFConfig:
         if not 0 <= self.seed < 2**31:
             raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
         choices = {"field": FIELDS, "ndc": ("auto", "on", "off"),
-                   "density_activation": ("relu", "softplus"), "data_format": FORMATS}  # fmt: skip
+                   "density_activation": ("relu", "softplus"), "data_format": FORMATS,
+                   "sdf_density": ("laplace", "logistic")}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
@@ -240,6 +252,13 @@ class NeRFConfig:
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
                            f"beta {self.beta}")  # fmt: skip
+            if self.beta_final > 0 and not self.beta_min <= self.beta_final <= self.beta:
+                raise fail("beta_final", f"must be in [beta_min, beta] = [{self.beta_min}, "
+                           f"{self.beta}] (or 0: off), got {self.beta_final}")  # fmt: skip
+            if self.field != "hash_sdf" and (self.beta_final > 0 or self.sdf_density != "laplace"):
+                raise fail("field", "--beta-final and --sdf-density need --field hash_sdf")
+            if self.beta_anneal_steps < 1:
+                raise fail("beta_anneal_steps", f"must be >= 1, got {self.beta_anneal_steps}")
             d_in = 3 * (1 + 2 * self.pos_freqs)
             if self.field == "volsdf" and self.width <= d_in:
                 raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
