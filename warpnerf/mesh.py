@@ -22,6 +22,8 @@ __all__ = [
     "vertex_colors",
     "screenshot",
     "sample_surface",
+    "clean_mesh",
+    "decimate_mesh",
 ]
 
 
@@ -150,6 +152,96 @@ def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
     u[flip], w[flip] = 1 - u[flip], 1 - w[flip]
     t = tri[idx]
     return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
+
+
+def _polydata(vertices, faces):
+    """A triangle-only pyvista PolyData of (vertices [V, 3], faces [F, 3])."""
+    import pyvista as pv
+
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return pv.PolyData.from_regular_faces(v, f)
+
+
+def _arrays(mesh):
+    """(vertices float32 [V, 3], faces int32 [F, 3]) of a PolyData's triangles (its lines and
+    vertices, e.g. degenerate triangles that ``clean`` turned into lines, are dropped)."""
+    if mesh.n_cells == 0 or mesh.n_faces == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)
+    v = np.asarray(mesh.points, dtype=np.float32)
+    return v, np.asarray(mesh.regular_faces, dtype=np.int32)
+
+
+def _merged(vertices, faces):
+    """The mesh with coincident points merged (so triangles meeting at a position share its
+    vertex), degenerate triangles and unused points dropped: a triangle-only PolyData."""
+    return _polydata(*_arrays(_polydata(vertices, faces).clean(tolerance=0.0)))
+
+
+def clean_mesh(vertices: np.ndarray, faces: np.ndarray, min_fraction: float = 0.01):
+    """Removes floating pieces: the connected components whose surface area is below
+    ``min_fraction`` of the whole mesh's (the largest component is always kept).
+
+    Coincident points are merged first (marching cubes may emit a vertex per triangle), so that
+    connectivity follows the surface; degenerate triangles and unused vertices go too. Uses
+    pyvista's ``clean``, ``connectivity`` and ``compute_cell_sizes``.
+
+    Args:
+        vertices: [V, 3] positions.
+        faces: [F, 3] vertex indices of triangles.
+        min_fraction: in [0, 1); 0 keeps every component (only merging points).
+
+    Returns:
+        (vertices float32 [V', 3], faces int32 [F', 3], info) with info = {"faces_before",
+        "faces_after", "components", "components_removed", "area_removed_fraction"}.
+    """
+    min_fraction = float(min_fraction)
+    if not 0.0 <= min_fraction < 1.0:
+        raise ValueError(f"min_fraction must be in [0, 1), got {min_fraction}")
+    info = {"faces_before": int(len(faces)), "faces_after": 0, "components": 0,
+            "components_removed": 0, "area_removed_fraction": 0.0}  # fmt: skip
+    if len(faces) == 0:
+        return *_arrays(_polydata(vertices, faces)), info
+    mesh = _merged(vertices, faces)
+    if mesh.n_cells == 0:
+        return *_arrays(mesh), info
+    mesh = mesh.connectivity("all").compute_cell_sizes(length=False, area=True, volume=False)
+    region = np.asarray(mesh.cell_data["RegionId"], dtype=np.int64)
+    area = np.bincount(region, weights=np.asarray(mesh.cell_data["Area"], dtype=np.float64))
+    keep = area >= min_fraction * area.sum()
+    keep[np.argmax(area)] = True
+    v, f = _arrays(mesh)
+    f = f[keep[region]]
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    remap = np.cumsum(used) - 1
+    total = float(area.sum())
+    removed = float(area[~keep].sum() / total) if total > 0 else 0.0
+    info.update(faces_after=int(len(f)), components=int(len(area)),
+                components_removed=int((~keep).sum()), area_removed_fraction=removed)  # fmt: skip
+    return v[used], remap[f].astype(np.int32), info
+
+
+def decimate_mesh(vertices: np.ndarray, faces: np.ndarray, reduction: float):
+    """Quadric-error decimation (pyvista's ``decimate``, VTK's vtkQuadricDecimation, with volume
+    preservation) removing about ``reduction`` of the triangles; coincident points are merged
+    first, so a closed manifold input stays closed and manifold.
+
+    Args:
+        vertices: [V, 3] positions.
+        faces: [F, 3] vertex indices of triangles.
+        reduction: target fraction of triangles removed, in (0, 1): 0.9 keeps ~10 %.
+
+    Returns:
+        (vertices float32 [V', 3], faces int32 [F', 3]).
+    """
+    reduction = float(reduction)
+    if not 0.0 < reduction < 1.0:
+        raise ValueError(f"reduction must be in (0, 1), got {reduction}")
+    if len(faces) == 0:
+        return _arrays(_polydata(vertices, faces))
+    mesh = _merged(vertices, faces).decimate(reduction, volume_preservation=True)
+    return _arrays(_polydata(*_arrays(mesh)).clean(tolerance=0.0))
 
 
 def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a", colors=None) -> None:

@@ -18,6 +18,15 @@ from .run_tools import cmd_eval, cmd_mesh, cmd_render
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 
 
+def _mesh_cleaning_flags(p) -> None:
+    """--clean [MIN_FRACTION] (`mesh`, `eval --geometry`)."""
+    p.add_argument(
+        "--clean", type=_finite, nargs="?", const=0.01, default=None, metavar="MIN_FRACTION",
+        help="drop floating pieces: connected components with less than MIN_FRACTION of the "
+        "surface area (default 0.01; give it after RUN)",
+    )  # fmt: skip
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="warpnerf",
@@ -104,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument(
         "--colors", action="store_true", help="runs: bake the radiance field's colour into the "
         "vertices (seen along the normal, looking at the surface)",
+    )  # fmt: skip
+    _mesh_cleaning_flags(m)
+    m.add_argument(
+        "--decimate", type=_finite, default=None, metavar="R", help="quadric decimation "
+        "removing about R of the faces, 0 < R < 1 (after --clean, before --colors)",
     )  # fmt: skip
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)

@@ -123,6 +123,31 @@ def _mesh_source(args) -> _MeshSource:
     return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device, field)
 
 
+def _check_clean(clean) -> None:
+    if clean is not None and not 0.0 <= clean < 1.0:
+        raise UserError(f"--clean MIN_FRACTION must be in [0, 1), got {clean}")
+
+
+def _clean_and_decimate(v, f, clean, decimate):
+    """--clean then --decimate of a marching-cubes mesh: (v, f, report dict)."""
+    from ..mesh import clean_mesh, decimate_mesh
+
+    rep = {"faces_extracted": int(len(f))}
+    try:
+        if clean is not None:
+            v, f, info = clean_mesh(v, f, clean)
+            rep.update(clean=clean, components=info["components"],
+                       components_removed=info["components_removed"],
+                       area_removed_fraction=info["area_removed_fraction"])  # fmt: skip
+        if decimate is not None:
+            n = len(f)
+            v, f = decimate_mesh(v, f, decimate)
+            rep.update(decimate=decimate, faces_decimated=int(n - len(f)))
+    except ImportError as e:  # pyvista is a dependency; say so on machines without it
+        raise UserError(f"--clean and --decimate need pyvista ({e})") from None
+    return v, f, rep
+
+
 def cmd_mesh(args) -> int:
     import time
 
@@ -130,6 +155,10 @@ def cmd_mesh(args) -> int:
 
     if args.resolution < 8 or args.resolution > 1024:
         raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
+    _check_clean(args.clean)
+    if args.decimate is not None and not 0.0 < args.decimate < 1.0:
+        raise UserError(f"--decimate R must be in (0, 1) (the fraction of faces removed), "
+                        f"got {args.decimate}")  # fmt: skip
     if not args.out.endswith(".ply"):
         raise UserError(f"--out must be a .ply file, got {args.out}")
     _check_out(args.out, file=True)
@@ -147,7 +176,10 @@ def cmd_mesh(args) -> int:
     secs = time.perf_counter() - t0
     if len(f) == 0:
         raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}")
-    rgb = vertex_colors(field, fn, v, dev) if args.colors else None  # (the field's own frame)
+    t1 = time.perf_counter()
+    v, f, post = _clean_and_decimate(v, f, args.clean, args.decimate)  # (the field's own frame)
+    post_secs = time.perf_counter() - t1
+    rgb = vertex_colors(field, fn, v, dev) if args.colors else None  # of the final vertices
     if back is not None:  # normalised frame -> the data's own units
         v = back(v).astype(np.float32)
         keep = np.isfinite(v).all(1)  # NDC vertices at infinity
@@ -172,11 +204,14 @@ def cmd_mesh(args) -> int:
         "vertices": len(v),
         "colors": rgb is not None,
         "faces": len(f),
+        **post,
         "bounds_min": v.min(0).tolist(),
         "bounds_max": v.max(0).tolist(),
         "resolution": args.resolution,
         "level": shown_level,
         "seconds": secs,
     }
+    if args.clean is not None or args.decimate is not None:
+        res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))
     return 0
