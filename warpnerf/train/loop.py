@@ -17,7 +17,12 @@ The loop owns the duties every trainer shares, so no task re-implements them:
 - periodic validation (every ``val_every`` steps, at the last step and when time runs out);
 - SIGINT/SIGTERM (finish the step, checkpoint it, raise :class:`~warpnerf.errors.Interrupted`);
 - atomic checkpoints and ``history.json`` every ``ckpt_every`` steps, at the end and when
-  stopping; a resumed run continues bit-exactly on CPU.
+  stopping; a resumed run continues bit-exactly on CPU;
+- snapshots for time-to-quality curves: at the first step whose training time reaches each of
+  ``snapshot_seconds``, a copy of the checkpoint goes to ``snapshots/t<seconds>s.pt`` (writing it
+  does not count as training time). With step-based schedules (learning rate, beta, grid) the
+  state at a snapshot is the state a run stopped by ``--max-seconds`` at that time would end with,
+  so one run gives the whole curve.
 
 A task provides the model side: its parameters and optimiser, one step's loss, what its
 checkpoint holds besides the loop's keys, and optionally a validation and progress-bar text.
@@ -36,7 +41,10 @@ from ..errors import Interrupted, UserError
 from ..io import adopt, check_foreign, load_weights, output_lock, save_checkpoint, write_json
 from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
 
-__all__ = ["Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run"]
+__all__ = [
+    "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
+    "parse_snapshots", "snapshot_name", "SNAPSHOTS",
+]  # fmt: skip
 
 # checkpoint keys the loop writes and reads (a task's state adds its own)
 LOOP_KEYS = ("step", "optimizer", "history")
@@ -54,13 +62,43 @@ class LoopSettings:
     ckpt_every: int = 500
     val_every: int = 0  # 0: no periodic validation
     desc: str = "train"
+    snapshot_seconds: tuple = ()  # training seconds at which to keep a copy of the checkpoint
 
     @classmethod
     def of(cls, cfg, desc: str, **override) -> LoopSettings:
-        """The loop settings of a task config (fields of the same names; ``override`` wins)."""
+        """The loop settings of a task config (fields of the same names; ``override`` wins; a
+        config's ``snapshots`` string, "30,60,120", gives ``snapshot_seconds``)."""
         names = ("iters", "lr", "lr_final", "lr_decay_steps", "max_seconds", "ckpt_every")
         kw = {k: getattr(cfg, k) for k in names if hasattr(cfg, k)}
+        if getattr(cfg, "snapshots", ""):
+            kw["snapshot_seconds"] = parse_snapshots(cfg.snapshots)
         return cls(**(kw | override), desc=desc)
+
+
+SNAPSHOTS = "snapshots"  # the run's sub-folder of snapshot checkpoints
+MAX_SNAPSHOTS = 64
+
+
+def parse_snapshots(text: str) -> tuple:
+    """Seconds from "5,15,30" (sorted, distinct, each in (0, 1e7], at most 64); ValueError
+    otherwise."""
+    import math
+
+    try:
+        vals = [float(t) for t in str(text).split(",") if t.strip()]
+    except ValueError:
+        msg = f"expected seconds separated by commas, e.g. 15,60,300; got {text!r}"
+        raise ValueError(msg) from None
+    if not vals or len(vals) > MAX_SNAPSHOTS:
+        raise ValueError(f"expected 1 to {MAX_SNAPSHOTS} values, got {len(vals)}")
+    if not all(math.isfinite(v) and 0 < v <= 1e7 for v in vals):
+        raise ValueError(f"each value must be in (0, 1e7] seconds, got {text!r}")
+    return tuple(sorted(set(vals)))
+
+
+def snapshot_name(seconds: float) -> str:
+    """The file (relative to the run) of the snapshot at ``seconds``: snapshots/t60s.pt."""
+    return f"{SNAPSHOTS}/t{seconds:g}s.pt"
 
 
 def lr_at(s: LoopSettings, step: int) -> float:
@@ -165,10 +203,16 @@ def run_loop(
 
         bar = tqdm(total=s.iters, initial=start, desc=s.desc, unit="step", disable=None)
 
-    def save(done):
+    def save(done, name=checkpoint):
         state = {**task.state(), "step": done, "optimizer": opt.state_dict(), "history": history}
-        save_checkpoint(Path(run) / checkpoint, state)
-        write_json(Path(run) / "history.json", history)
+        save_checkpoint(Path(run) / name, state)
+        if name == checkpoint:
+            write_json(Path(run) / "history.json", history)
+
+    pending = [b for b in s.snapshot_seconds if b > elapsed0] if run is not None else []
+    if pending:  # before any work: refuse to replace files warpnerf did not write
+        (Path(run) / SNAPSHOTS).mkdir(exist_ok=True)
+        check_foreign([Path(run) / snapshot_name(b) for b in pending])
 
     signals = stop_requests() if run is not None else contextlib.nullcontext({"signum": None})
     with signals as stop:
@@ -194,6 +238,11 @@ def run_loop(
             task.record(history, values)
             history["seconds"].append(seconds)
             task.after_step(step, history)
+            if pending and seconds >= pending[0]:  # not counted as training time
+                tv = time.perf_counter()
+                while pending and seconds >= pending[0]:
+                    save(done, snapshot_name(pending.pop(0)))
+                val_time += time.perf_counter() - tv
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(task.postfix(history))

@@ -139,12 +139,21 @@ def _optimizer(cfg, params):
     return torch.optim.Adam(params, lr=cfg.lr)
 
 
-def load_run(run, device: str | None = None):
-    """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one."""
+def load_run(run, device: str | None = None, snapshot: float | None = None):
+    """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one;
+    ``snapshot`` (seconds) loads the snapshot checkpoint kept at that training time
+    (``--snapshots``) instead of the latest one."""
     run = Path(run)
     cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
     if not cfg_path.is_file() or not ckpt_path.is_file():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
+    if snapshot is not None:
+        from .loop import snapshot_name
+
+        ckpt_path = run / snapshot_name(float(snapshot))
+        if not ckpt_path.is_file() or ckpt_path.is_symlink():
+            raise UserError(f"{run}: no snapshot at {snapshot:g} s ({ckpt_path.name} is missing; "
+                            "train with --snapshots to keep them)")  # fmt: skip
     from ..data._json import read_json
 
     saved = read_json(cfg_path, "run config")  # size- and depth-bounded, one-line errors

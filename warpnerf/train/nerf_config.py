@@ -155,6 +155,10 @@ class NeRFConfig:
         0.0, "stop after this much training time in this invocation (a resume gets a fresh "
         "budget; 0: run all --iters)", check="nonnegative",
     )  # fmt: skip
+    snapshots: str = option(
+        "", "keep a copy of the checkpoint when the training time reaches each of these seconds "
+        "(e.g. 15,60,300; RUN/snapshots/t60s.pt) for time-to-quality curves",
+    )  # fmt: skip
     tf32: bool = option(False, "TF32 matrix products on CUDA (kernels stay float32)")
     seed: int = option(0, "random seed", check="seed")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
@@ -296,6 +300,13 @@ class NeRFConfig:
         for name in ("max_seconds", "val_images", "max_images"):
             if not getattr(self, name) >= 0:
                 raise fail(name, f"must be >= 0, got {getattr(self, name)}")
+        if self.snapshots:
+            from .loop import parse_snapshots
+
+            try:
+                parse_snapshots(self.snapshots)
+            except ValueError as e:
+                raise fail("snapshots", str(e)) from None
         if not (math.isfinite(self.background) and 0 <= self.background <= 1):
             raise fail("background", f"must be in [0, 1], got {self.background}")
         if not (math.isfinite(self.aabb) and self.aabb >= 0):
