@@ -28,6 +28,9 @@ __all__ = [
     "evaluate_run",
     "evaluate_geometry",
     "materials_reference",
+    "materials_depth",
+    "sphere_depth",
+    "depth_error",
     "render_run",
     "camera_path",
     "train_and_evaluate",
@@ -50,6 +53,7 @@ def evaluate_run(
     device: str | None = None,
     max_images: int = 0,
     out_dir=None,
+    snapshot: float | None = None,
     **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
@@ -57,12 +61,13 @@ def evaluate_run(
     rendering time alone (device synchronised before and after; metrics and PNGs excluded).
     ``render`` overrides the run's rendering settings (:data:`RENDER_SETTINGS`: rays at once,
     and for grid runs the marching step, round size, float16 MLPs), e.g. for the
-    speed-versus-error sweep."""
+    speed-versus-error sweep. ``snapshot``: the run's snapshot at that many training seconds
+    (``train --snapshots``) instead of its last checkpoint."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
-    cfg, model, ckpt = load_run(run, device)
+    cfg, model, ckpt = load_run(run, device, snapshot)
     grid = model.grid
     for key, value in render.items():
         if key not in RENDER_SETTINGS:
@@ -265,6 +270,9 @@ def train_and_evaluate(cfg, run, split: str = "val", max_images: int = 0, progre
 # z = 0.32, x in {-1.05, -0.35, 0.35, 1.05}, y in {-0.4, 0.4}; a ground disk of radius 1.6 at z = 0.
 MATERIALS_SPHERES = [(x, y, 0.32) for y in (-0.4, 0.4) for x in (-1.05, -0.35, 0.35, 1.05)]
 MATERIALS_RADIUS, MATERIALS_DISK = 0.32, 1.6
+# A closed SDF must give the infinitely thin disk some thickness: its underside (below this z)
+# has no counterpart in the reference and is left out of the accuracy.
+MATERIALS_BELOW = -0.1
 
 
 def materials_reference(n: int, seed: int = 0):
@@ -283,51 +291,175 @@ def materials_reference(n: int, seed: int = 0):
     return np.concatenate([sph, disk]).astype(np.float32)
 
 
-def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None):
-    """Accuracy, completeness and Chamfer distance of an SDF run's surface against a reference.
+def sphere_depth(o: torch.Tensor, d: torch.Tensor, centers, radius: float) -> torch.Tensor:
+    """Distance along unit rays to the first of the spheres, inf on a miss: the smallest
+    positive root of |o + t d - c|^2 = r^2.
 
-    The run's zero level set is meshed by marching cubes at ``resolution`` inside its scene cube
-    and ``points`` points are sampled on it (by area); ``reference`` is "materials" (the analytic
-    spheres and disk, sampled the same way) or a point-cloud file (.npz with ``points`` or
-    ``verts``, or .ply vertices; a mesh's vertices serve as its points). Accuracy: mean distance
-    from the run's surface to the reference; completeness: mean distance from the reference to
-    the run's surface; Chamfer: their mean. World units of the data (a COLMAP/LLFF run's mesh is
-    mapped back to the capture's frame first).
+    Args:
+        o: [n_rays, 3] origins (outside the spheres).
+        d: [n_rays, 3] unit directions.
+        centers: [k, 3] sphere centres.
+        radius: their radius.
+
+    Returns:
+        t [n_rays].
     """
+    t_best = torch.full(o.shape[:1], math.inf, dtype=o.dtype, device=o.device)
+    for c in torch.as_tensor(centers, dtype=o.dtype).reshape(-1, 3).to(o.device):
+        oc = o - c
+        b = (oc * d).sum(-1)
+        disc = b * b - (oc * oc).sum(-1) + radius * radius
+        t = -b - torch.sqrt(disc.clamp_min(0))
+        t_best = torch.where((disc > 0) & (t > 0) & (t < t_best), t, t_best)
+    return t_best
+
+
+def materials_depth(o: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Distance along unit rays [n_rays, 3] to the materials scene's first analytic surface (its
+    spheres, or the ground disk z = 0 of radius 1.6), inf on a miss [n_rays]."""
+    t_sph = sphere_depth(o, d, MATERIALS_SPHERES, MATERIALS_RADIUS)
+    with torch.no_grad():
+        t = -o[:, 2] / d[:, 2]  # (inf / nan for rays parallel to the disk: no hit below)
+    p = o + t.unsqueeze(-1) * d
+    hit = (t > 0) & (p[:, 0] ** 2 + p[:, 1] ** 2 <= MATERIALS_DISK**2)
+    return torch.where(hit & (t < t_sph), t, t_sph)
+
+
+@torch.no_grad()
+def depth_error(model, cfg, ds, depth_fn, views: int = 10, min_opacity: float = 0.5) -> dict:
+    """Mean and median |rendered depth - true depth| over the pixels of the first ``views``
+    images of ``ds`` (0: all) that the reference hits and the run renders opaque.
+
+    Each image is rendered with the run's own renderer; its surface depth is expected depth /
+    opacity, compared where ``depth_fn(o, d)`` (true distance along the unit rays, inf on a
+    miss) is finite and the opacity exceeds ``min_opacity``. Units: the rays' (the data's world
+    units for Blender-format runs).
+
+    Returns:
+        {"depth_error_mean", "depth_error_median" (None without such pixels), "depth_pixels",
+        "depth_views"}.
+    """
+    from .nerf import dataset_rays
+
+    n = ds.images.shape[0] if not views else min(views, ds.images.shape[0])
+    errs = []
+    for i in range(n):
+        _, depth, opacity = render_dataset_image(model, cfg, ds, i)
+        o, d = dataset_rays(cfg, ds, image=i)
+        t_true = depth_fn(o, d.double() / d.double().norm(dim=-1, keepdim=True))
+        depth, opacity = depth.reshape(-1), opacity.reshape(-1)
+        ok = torch.isfinite(t_true) & (opacity > min_opacity)
+        surface = depth[ok] / opacity[ok]
+        errs.append((surface.double() - t_true[ok].double()).abs().cpu())
+    e = torch.cat(errs) if errs else torch.zeros(0, dtype=torch.float64)
+    return {
+        "depth_error_mean": float(e.mean()) if e.numel() else None,
+        "depth_error_median": float(e.median()) if e.numel() else None,
+        "depth_pixels": int(e.numel()),
+        "depth_views": n,
+    }
+
+
+def _surface_distances(v, f, ref, points, cfg, below=None) -> dict:
+    """Accuracy / completeness / Chamfer of the mesh (points sampled on it, mapped to the data's
+    world units) against the reference points; mesh points with z < ``below`` left out."""
     import numpy as np
 
-    from ..mesh import extract_mesh, sample_surface
-    from .sdf import chamfer, load_points
+    from ..mesh import sample_surface
+    from .sdf import chamfer
 
-    if not 8 <= resolution <= 1024:
-        raise UserError(f"--mesh-resolution must be in [8, 1024], got {resolution}")
-    if not 100 <= points <= 10_000_000:
-        raise UserError(f"--geometry-points must be in [100, 1e7], got {points}")
-    cfg, model, _ = load_run(run, device)
-    if model.kind != "sdf":
-        raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
-    ref = materials_reference(points) if reference == "materials" else load_points(reference)[0]
-    a, field = cfg.aabb, model.field
-    v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-a] * 3, [a] * 3, resolution,
-                        0.0, device=cfg.device)  # fmt: skip
-    if len(f) == 0:
-        raise UserError(f"{run}: the SDF has no zero level set inside its box; nothing to compare")
     m = sample_surface(v, f, points, seed=0)
     if cfg.scene is not None:
         from ..data.capture import normalised_to_world
 
         m = normalised_to_world(m, cfg.scene["transform"], cfg.ndc_camera())
         m = m[np.isfinite(m).all(1)]
+    if below is not None:
+        m = m[m[:, 2] >= below]
+    if len(m) == 0:
+        return {"accuracy": None, "completeness": None, "chamfer": None, "mesh_faces": len(f),
+                "surface_points": 0}  # fmt: skip
     dev = torch.device(cfg.device)
     acc, comp = chamfer(torch.as_tensor(m, dtype=torch.float32, device=dev),
                         torch.as_tensor(ref, dtype=torch.float32, device=dev))  # fmt: skip
-    return {
-        "run": str(run),
-        "reference": str(reference),
-        "accuracy": acc,
-        "completeness": comp,
-        "chamfer": 0.5 * (acc + comp),
-        "mesh_faces": int(len(f)),
-        "points": int(points),
-        "resolution": resolution,
-    }
+    return {"accuracy": acc, "completeness": comp, "chamfer": 0.5 * (acc + comp),
+            "mesh_faces": int(len(f)), "surface_points": int(len(m))}  # fmt: skip
+
+
+def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None,
+                      clean: float | None = None, views: int = 10):  # fmt: skip
+    """Accuracy, completeness and Chamfer distance of an SDF run's surface against a reference,
+    and the rendered depth's error where the reference is analytic.
+
+    The run's zero level set is meshed by marching cubes at ``resolution`` inside its scene cube
+    and ``points`` points are sampled on it (by area); ``reference`` is "materials" (the analytic
+    spheres and disk, sampled the same way; mesh points under the disk, z < -0.1, are left out)
+    or a point-cloud file (.npz with ``points`` or ``verts``, or .ply vertices; a mesh's vertices
+    serve as its points). Accuracy: mean distance from the run's surface to the reference;
+    completeness: mean distance from the reference to the run's surface; Chamfer: their mean.
+    World units of the data (a COLMAP/LLFF run's mesh is mapped back to the capture's frame
+    first). ``clean`` (a fraction of the area, :func:`warpnerf.mesh.clean_mesh`) also reports
+    the figures of the mesh without its floating pieces, under "cleaned".
+
+    Depth error (:func:`depth_error`, "materials" only: a point cloud has no ray hits, so the
+    depth figures are None): on the first ``views`` val images (0: all), rendered by the run.
+    """
+    from ..mesh import extract_mesh
+
+    if not 8 <= resolution <= 1024:
+        raise UserError(f"--mesh-resolution must be in [8, 1024], got {resolution}")
+    if not 100 <= points <= 10_000_000:
+        raise UserError(f"--geometry-points must be in [100, 1e7], got {points}")
+    if views < 0:
+        raise UserError(f"--geometry-views must be >= 0, got {views}")
+    if clean is not None and not 0.0 <= clean < 1.0:
+        raise UserError(f"--clean MIN_FRACTION must be in [0, 1), got {clean}")
+    cfg, model, _ = load_run(run, device, snapshot)
+    if model.kind != "sdf":
+        raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
+    analytic = reference == "materials"
+    if analytic:
+        from .sdf import load_points  # (checked first: a bad file fails before any work)
+    ref = materials_reference(points) if analytic else _load_reference(reference)
+    a, field = cfg.aabb, model.field
+    v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-a] * 3, [a] * 3, resolution,
+                        0.0, device=cfg.device)  # fmt: skip
+    if len(f) == 0:
+        raise UserError(f"{run}: the SDF has no zero level set inside its box; nothing to compare")
+    below = MATERIALS_BELOW if analytic else None
+    res = {"run": str(run), "reference": str(reference),
+           **_surface_distances(v, f, ref, points, cfg, below)}  # fmt: skip
+    if clean is not None:
+        from ..mesh import clean_mesh
+
+        vc, fc, info = clean_mesh(v, f, clean)
+        same = info["components_removed"] == 0
+        dist = {k: res[k] for k in ("accuracy", "completeness", "chamfer")} if same else (
+            _surface_distances(vc, fc, ref, points, cfg, below))  # fmt: skip
+        res["cleaned"] = {"clean": clean, **dist, "mesh_faces": int(len(fc)),
+                          **{k: info[k] for k in ("components", "components_removed",
+                                                  "area_removed_fraction")}}  # fmt: skip
+    res.update(points=int(points), resolution=resolution)
+    res.update(_geometry_depth(model, cfg, views) if analytic else _NO_DEPTH)
+    return res
+
+
+_NO_DEPTH = {"depth_error_mean": None, "depth_error_median": None, "depth_pixels": None,
+             "depth_note": "a point-cloud reference has no ray hits: no depth error"}  # fmt: skip
+
+
+def _load_reference(path):
+    from .sdf import load_points
+
+    return load_points(path)[0]
+
+
+def _geometry_depth(model, cfg, views: int) -> dict:
+    """:func:`depth_error` against the materials scene on the run's val images."""
+    if cfg.ndc_camera() is not None or cfg.scene is not None:
+        return {**_NO_DEPTH, "depth_note": "the run's rays are in a normalised capture frame, "
+                "not the analytic scene's: no depth error"}  # fmt: skip
+    res = depth_error(model, cfg, load_data(cfg, "val"), materials_depth, views)
+    res["depth_note"] = ("|expected depth / opacity - analytic first hit| on val pixels the "
+                         "reference hits with opacity > 0.5")  # fmt: skip
+    return res
