@@ -1,0 +1,134 @@
+"""Time to quality: a run trained with ``--snapshots`` evaluated at each snapshot (all val images by
+default), as a table (JSON + Markdown) and a plot of val PSNR (and, for SDF runs with a geometric
+reference, Chamfer distance) against training seconds.
+
+    warpnerf train volsdf --data lego --field hash_sdf ... --snapshots 15,30,60,120,300 \
+        --max-seconds 300 --out RUN
+    python scripts/time_to_quality.py eval RUN OUT.json [--label L] [--images 0] [--chunk 400000]
+        [--geometry materials] [--mesh-resolution 384]
+    python scripts/time_to_quality.py plot OUT.json [OUT2.json ...] --png docs/x.png [--title T]
+
+Why one run: the learning-rate, beta and grid schedules are functions of the step, so the state at
+the snapshot taken when the training time first reaches S seconds is the state a run stopped by
+``--max-seconds S`` ends with (up to the step that crosses S); the training time counts kernel
+compilation and the grid's warm-up, and excludes validation and snapshot writing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import tempfile
+from pathlib import Path
+
+from warpnerf.io import atomic_path, write_json
+
+
+def snapshots(run) -> list:
+    """Seconds of the run's snapshots, sorted."""
+    pat = re.compile(r"^t([0-9.e+-]+)s\.pt$")
+    out = []
+    for p in (Path(run) / "snapshots").glob("t*s.pt"):
+        m = pat.match(p.name)
+        if m:
+            out.append(float(m.group(1)))
+    return sorted(out)
+
+
+def evaluate(run, out, label, images, chunk, geometry, mesh_resolution):
+    from warpnerf.train.nerf import load_run
+    from warpnerf.train.nerf_eval import evaluate_geometry, evaluate_run
+
+    rows = []
+    for s in snapshots(run):
+        _, _, ckpt = load_run(run, snapshot=s)
+        h = ckpt["history"]
+        row = {"budget_s": s, "step": ckpt["step"], "train_seconds": h["seconds"][-1]}
+        if "beta" in h and h["beta"]:
+            row["beta"] = h["beta"][-1]
+        with tempfile.TemporaryDirectory() as tmp:
+            m = evaluate_run(run, "val", max_images=images, out_dir=tmp, snapshot=s, chunk=chunk)
+        row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"],
+                   render_ms_median=m["render_ms_median"])  # fmt: skip
+        if geometry:
+            g = evaluate_geometry(run, geometry, mesh_resolution, snapshot=s)
+            row.update({k: g[k] for k in g if k not in ("run", "reference")})
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    write_json(out, {"run": str(run), "label": label or str(run), "rows": rows,
+                     "geometry": geometry})  # fmt: skip
+    md = ["| training s | steps | val PSNR | val SSIM | frame ms |"
+          + (" Chamfer | accuracy | completeness |" if geometry else ""),
+          "|---|---|---|---|---|" + ("---|---|---|" if geometry else "")]  # fmt: skip
+    for r in rows:
+        line = (f"| {r['budget_s']:g} | {r['step']} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+                f"{r['render_ms_median']:.1f} |")  # fmt: skip
+        if geometry:
+            line += f" {r['chamfer']:.4f} | {r['accuracy']:.4f} | {r['completeness']:.4f} |"
+        md.append(line)
+    print("\n".join(md))
+
+
+def plot(paths, png, title):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = [json.load(open(p)) for p in paths]
+    geo = any(d.get("geometry") for d in data)
+    fig, axes = plt.subplots(1, 2 if geo else 1, figsize=(11 if geo else 6.4, 4.2))
+    ax = axes[0] if geo else axes
+    for d in data:
+        rows = d["rows"]
+        ax.plot([r["budget_s"] for r in rows], [r["psnr"] for r in rows], "o-", label=d["label"])
+    ax.set_xscale("log")
+    ax.set_xlabel("training seconds (wall clock, compilation and grid warm-up included)")
+    ax.set_ylabel("val PSNR (dB)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    if geo:
+        ax = axes[1]
+        for d in data:
+            rows = [r for r in d["rows"] if "chamfer" in r]
+            if rows:
+                ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o-",
+                        label=d["label"])  # fmt: skip
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("training seconds")
+        ax.set_ylabel("mesh Chamfer distance (world units)")
+        ax.set_title("geometry against the analytic shapes")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    with atomic_path(png) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    e = sub.add_parser("eval")
+    e.add_argument("run")
+    e.add_argument("out")
+    e.add_argument("--label", default=None)
+    e.add_argument("--images", type=int, default=0, help="val images (0: all)")
+    e.add_argument("--chunk", type=int, default=None)
+    e.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
+    e.add_argument("--mesh-resolution", type=int, default=384)
+    q = sub.add_parser("plot")
+    q.add_argument("json", nargs="+")
+    q.add_argument("--png", required=True)
+    q.add_argument("--title", default="val PSNR against training time")
+    a = p.parse_args()
+    if a.cmd == "eval":
+        evaluate(a.run, a.out, a.label, a.images, a.chunk, a.geometry, a.mesh_resolution)
+    else:
+        plot(a.json, a.png, a.title)
+
+
+if __name__ == "__main__":
+    main()
