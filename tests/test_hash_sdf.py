@@ -213,7 +213,8 @@ def test_ply_with_colors_round_trips(tmp_path):
 
 def test_eval_geometry_against_a_reference(tmp_path, capsys):
     """`eval RUN --geometry REF`: a reference sampled from the run's own surface gives a Chamfer
-    distance near zero, a shifted one the shift; the materials reference and the refusals."""
+    distance near zero, a shifted one the shift; --clean; the materials reference and its depth
+    error (a point cloud has none); the refusals."""
     import json
 
     from warpnerf.cli.parser import main
@@ -233,14 +234,24 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
     np.savez(tmp_path / "own.npz", points=own)
     np.savez(tmp_path / "shifted.npz", points=own + np.float32([0.0, 0.0, 0.05]))
     capsys.readouterr()
-    assert main(["eval", str(run), "--geometry", str(tmp_path / "own.npz"),
+    assert main(["eval", str(run), "--geometry", str(tmp_path / "own.npz"), "--clean",
                  "--mesh-resolution", "64", "--geometry-points", "20000"]) == 0  # fmt: skip
     same = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert same["chamfer"] < 0.01 and same["accuracy"] < 0.01 and same["completeness"] < 0.01
+    assert same["depth_error_mean"] is None and "point-cloud" in same["depth_note"]
+    cleaned = same["cleaned"]  # one surface: nothing to remove
+    assert cleaned["components_removed"] == 0 and cleaned["chamfer"] == same["chamfer"]
     far = evaluate_geometry(run, tmp_path / "shifted.npz", 64, 20000)
     assert far["chamfer"] > 2 * same["chamfer"] and far["chamfer"] < 0.05
     ref = materials_reference(1000)
     assert ref.shape == (1000, 3) and np.isclose(ref[:, 2].min(), -0.32 + 0.32, atol=0.01)
-    assert main(["eval", str(run), "--geometry", "materials", "--geometry-points", "500"]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(run), "--geometry", "materials", "--geometry-points", "500",
+                 "--geometry-views", "0", "--mesh-resolution", "32"]) == 0  # fmt: skip
+    mat = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert mat["depth_views"] == 4 and mat["depth_pixels"] > 0  # (its sphere vs materials')
+    assert 0 < mat["depth_error_mean"] < 3.0 and 0 < mat["depth_error_median"] < 3.0
+    assert main(["eval", str(run), "--geometry", "materials", "--clean", "1"]) == 2
+    assert main(["eval", str(run), "--clean"]) == 2  # only with --geometry
     assert main(["eval", str(run), "--geometry", str(tmp_path / "nope.npz")]) == 2
     assert main(["eval", str(run), "--geometry", "materials", "--mesh-resolution", "4"]) == 2

@@ -86,10 +86,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument(
         "--geometry", default=None, metavar="REF", help="SDF runs: instead of images, the "
         "surface's accuracy, completeness and Chamfer distance against REF: 'materials' (its "
-        "analytic shapes) or a point cloud (.npz / .ply)",
+        "analytic shapes; also the rendered depth's error) or a point cloud (.npz / .ply)",
     )  # fmt: skip
     e.add_argument("--mesh-resolution", type=int, default=256, help="with --geometry")
     e.add_argument("--geometry-points", type=int, default=50000, help="with --geometry")
+    e.add_argument(
+        "--geometry-views", type=_nonnegative, default=10, help="with --geometry materials: the "
+        "rendered depth's error against the analytic hits on this many val images (0 = all)",
+    )  # fmt: skip
+    _mesh_cleaning_flags(e)  # with --geometry: also the figures without floating pieces
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")

@@ -19,9 +19,13 @@ def cmd_eval(args) -> int:
 
     if args.geometry is not None:  # reads the run, writes nothing: prints the figures
         device = _device(args.device) if args.device else None
+        _check_clean(args.clean)
         print(json_dumps(evaluate_geometry(args.run, args.geometry, args.mesh_resolution,
-                                           args.geometry_points, device)))  # fmt: skip
+                                           args.geometry_points, device, clean=args.clean,
+                                           views=args.geometry_views)))  # fmt: skip
         return 0
+    if args.clean is not None:
+        raise UserError("--clean needs --geometry (eval) or the mesh command")
     if args.out:
         _check_out(args.out)
     elif Path(args.run).is_dir():

@@ -346,11 +346,11 @@ def depth_error(model, cfg, ds, depth_fn, views: int = 10, min_opacity: float = 
     for i in range(n):
         _, depth, opacity = render_dataset_image(model, cfg, ds, i)
         o, d = dataset_rays(cfg, ds, image=i)
-        t_true = depth_fn(o, d.double() / d.double().norm(dim=-1, keepdim=True))
+        t_true = depth_fn(o.double(), d.double())  # (unit directions)
         depth, opacity = depth.reshape(-1), opacity.reshape(-1)
         ok = torch.isfinite(t_true) & (opacity > min_opacity)
         surface = depth[ok] / opacity[ok]
-        errs.append((surface.double() - t_true[ok].double()).abs().cpu())
+        errs.append((surface.double() - t_true[ok]).abs().cpu())
     e = torch.cat(errs) if errs else torch.zeros(0, dtype=torch.float64)
     return {
         "depth_error_mean": float(e.mean()) if e.numel() else None,
@@ -387,7 +387,8 @@ def _surface_distances(v, f, ref, points, cfg, below=None) -> dict:
 
 
 def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None,
-                      clean: float | None = None, views: int = 10):  # fmt: skip
+                      clean: float | None = None, views: int = 10,
+                      snapshot: float | None = None):  # fmt: skip
     """Accuracy, completeness and Chamfer distance of an SDF run's surface against a reference,
     and the rendered depth's error where the reference is analytic.
 
@@ -403,6 +404,8 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
 
     Depth error (:func:`depth_error`, "materials" only: a point cloud has no ray hits, so the
     depth figures are None): on the first ``views`` val images (0: all), rendered by the run.
+    ``snapshot``: the run's snapshot at that many training seconds instead of its last
+    checkpoint.
     """
     from ..mesh import extract_mesh
 
@@ -418,8 +421,6 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
     if model.kind != "sdf":
         raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
     analytic = reference == "materials"
-    if analytic:
-        from .sdf import load_points  # (checked first: a bad file fails before any work)
     ref = materials_reference(points) if analytic else _load_reference(reference)
     a, field = cfg.aabb, model.field
     v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-a] * 3, [a] * 3, resolution,
