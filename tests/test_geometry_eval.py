@@ -82,3 +82,36 @@ def test_depth_error_of_a_sphere(sphere_model):
     assert wrong["depth_views"] == 1 and 0.09 < wrong["depth_error_median"] < 0.2
     none = depth_error(model, cfg, ds, lambda o, d: sphere_depth(o, d, [[0, 0, 9]], r), views=1)
     assert none["depth_pixels"] == 0 and none["depth_error_mean"] is None
+
+
+def test_materials_visibility_and_shapes():
+    """The analytic observation mask: a sphere's top and the open disk are seen from above, the
+    contact point under a sphere and a sphere's underside are not, points outside the image are
+    not; each point is assigned to its own shape."""
+    import numpy as np
+
+    from warpnerf.data.cameras import look_at
+    from warpnerf.train.nerf_eval import (
+        MATERIALS_NAMES,
+        MATERIALS_SPHERES,
+        materials_shape_ids,
+        materials_visible,
+    )
+
+    (x, y, z) = MATERIALS_SPHERES[6]  # the glass sphere
+    pts = np.array([
+        [x, y, z + 0.32],  # its top
+        [x, y, 0.0],  # its contact point with the disk
+        [x, y, z - 0.32 + 1e-3],  # (just above) its bottom
+        [0.0, 1.3, 0.0],  # open disk
+        [0.0, -1.3, 0.0],  # open disk, outside the camera's image
+    ])  # fmt: skip
+    cam = look_at((0.0, 3.0, 4.0), (0.0, 0.8, 0.0)).unsqueeze(0)
+    wide = torch.tensor([[100.0, 100.0, 100.0, 100.0]])  # 200x200, 90 degrees
+    narrow = torch.tensor([[400.0, 400.0, 100.0, 100.0]])  # 28 degrees
+    seen = materials_visible(pts, cam, narrow, 200, 200)
+    assert seen.tolist() == [True, False, False, True, False]
+    below = look_at((0.0, 0.0, -4.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)).unsqueeze(0)
+    assert not materials_visible(pts[:1], below, wide, 200, 200).any()  # the disk hides it
+    ids = materials_shape_ids(pts)
+    assert [MATERIALS_NAMES[i] for i in ids[[0, 3]]] == ["glass", "disk"]
