@@ -5,6 +5,9 @@
 #        DATA=.gpu/materials SECS=300 EXTRA="--aabb 1.7" TAG=materials GEOMETRY=1 bash ...
 # (writes $OUT/surface_$TAG.md, the history, metrics and mesh summary; GEOMETRY=1: the mesh's
 # Chamfer distance and the depth error against materials' analytic geometry, materials_geometry.py)
+# SNAP=15,30,60,120 also keeps snapshots at those training seconds and evaluates each (all val
+# images; geometry too with GEOMETRY=1): scripts/time_to_quality.py -> $OUT/ttq_$TAG.json.
+# SPHERE=1: sphere tracing against volume rendering on the final run (surface_renderers.py).
 source "$(dirname "$0")/_gpu_ab.sh"  # OUT, DATA
 SECS=${SECS:-240}
 TAG=${TAG:-lego}
@@ -12,13 +15,21 @@ R=/tmp/sdf_$TAG
 rm -rf $R ${R}_eval
 python3 -m warpnerf.cli train volsdf --data "$DATA" --field hash_sdf --device cuda --tf32 \
   --batch 4096 --target-samples 262144 --iters 100000 --max-seconds "$SECS" --val-images 0 \
-  --quiet --out $R ${EXTRA:-} > "$OUT/train_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "train failed" | tee -a "$OUT/log_$TAG.txt"
+  --quiet --out $R ${SNAP:+--snapshots $SNAP,$SECS} ${EXTRA:-} > "$OUT/train_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "train failed" | tee -a "$OUT/log_$TAG.txt"
 python3 -m warpnerf.cli eval $R --split val --chunk 400000 --out ${R}_eval > "$OUT/eval_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "eval failed" | tee -a "$OUT/log_$TAG.txt"
 python3 -m warpnerf.cli mesh $R --out "$OUT/mesh_$TAG.ply" --resolution 384 > "$OUT/mesh_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "mesh failed" | tee -a "$OUT/log_$TAG.txt"
 rm -f "$OUT/mesh_$TAG.ply"  # (large; the summary and screenshot come back)
 if [ "${GEOMETRY:-0}" = 1 ]; then
-  python3 scripts/materials_geometry.py $R --resolution 384 --val-images 100 --json "$OUT/geometry_$TAG.json" > /dev/null 2>> "$OUT/log_$TAG.txt" || echo "geometry failed" | tee -a "$OUT/log_$TAG.txt"
+  python3 -m warpnerf.cli eval $R --geometry materials --mesh-resolution 384 --geometry-views 0 --clean > "$OUT/geometry_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "geometry failed" | tee -a "$OUT/log_$TAG.txt"
   cat "$OUT/geometry_$TAG.json"; echo
+fi
+if [ -n "${SNAP:-}" ]; then
+  python3 scripts/time_to_quality.py eval $R "$OUT/ttq_$TAG.json" --label "$TAG" --chunk 400000 $( [ "${GEOMETRY:-0}" = 1 ] && echo --geometry materials ) >> "$OUT/log_$TAG.txt" 2>&1 || echo "ttq failed" | tee -a "$OUT/log_$TAG.txt"
+  tail -8 "$OUT/log_$TAG.txt"
+fi
+if [ "${SPHERE:-0}" = 1 ]; then
+  python3 scripts/surface_renderers.py $R --json "$OUT/renderers_$TAG.json" >> "$OUT/log_$TAG.txt" 2>&1 || echo "renderers failed" | tee -a "$OUT/log_$TAG.txt"
+  cat "$OUT/renderers_$TAG.json"; echo
 fi
 cp $R/history.json "$OUT/history_$TAG.json"; cp $R/config.json "$OUT/config_$TAG.json"
 cp ${R}_eval/metrics.json "$OUT/metrics_$TAG.json" 2>/dev/null
