@@ -20,7 +20,7 @@ python3 -m warpnerf.cli eval $R --split val --chunk 400000 --out ${R}_eval > "$O
 python3 -m warpnerf.cli mesh $R --out "$OUT/mesh_$TAG.ply" --resolution 384 > "$OUT/mesh_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "mesh failed" | tee -a "$OUT/log_$TAG.txt"
 rm -f "$OUT/mesh_$TAG.ply"  # (large; the summary and screenshot come back)
 if [ "${GEOMETRY:-0}" = 1 ]; then
-  python3 -m warpnerf.cli eval $R --geometry materials --mesh-resolution 384 --geometry-views 0 --clean > "$OUT/geometry_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "geometry failed" | tee -a "$OUT/log_$TAG.txt"
+  python3 -m warpnerf.cli eval $R --geometry materials --mesh-resolution 384 --geometry-views 0 > "$OUT/geometry_$TAG.json" 2>> "$OUT/log_$TAG.txt" || echo "geometry failed" | tee -a "$OUT/log_$TAG.txt"
   cat "$OUT/geometry_$TAG.json"; echo
 fi
 if [ -n "${SNAP:-}" ]; then
