@@ -9,7 +9,17 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["Trace", "sphere_trace_fn", "shade", "MISS", "HIT", "CAP", "INSIDE", "INVALID"]
+__all__ = [
+    "Trace",
+    "sphere_trace_fn",
+    "sphere_trace_steps",
+    "shade",
+    "MISS",
+    "HIT",
+    "CAP",
+    "INSIDE",
+    "INVALID",
+]
 
 MISS, HIT, CAP, INSIDE, INVALID = 0, 1, 2, 3, 4
 _TETRA = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
@@ -46,7 +56,6 @@ def _dist(sdf_fn, p):
     return out[0] if isinstance(out, tuple) else out
 
 
-@torch.no_grad()
 def sphere_trace_fn(
     sdf_fn,
     origins: torch.Tensor,  # [n, 3]
@@ -65,8 +74,39 @@ def sphere_trace_fn(
     statuses, the over-relaxation fallback and the failure modes); only the rays still marching
     are evaluated at each step, so the callable sees shrinking batches.
     """
-    if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0 and max_iters >= 1):
-        raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2 and max_iters >= 1")
+    kw = dict(eps=eps, omega=omega, max_iters=max_iters, normal_eps=normal_eps)
+    return sphere_trace_steps(sdf_fn, origins, directions, near, far, **kw)[0]
+
+
+@torch.no_grad()
+def sphere_trace_steps(
+    sdf_fn,
+    origins: torch.Tensor,  # [n, 3]
+    directions: torch.Tensor,  # [n, 3] unit length
+    near,  # float or [n]
+    far,  # float or [n]
+    *,
+    eps: float = 1e-4,
+    omega: float = 1.0,
+    max_iters: int = 256,
+    normal_eps: float = 1e-4,
+    normals: bool = True,
+    cone: float = 0.0,
+):
+    """:func:`sphere_trace_fn`, also returning the last step: (Trace, t_prev [n], d_prev [n]),
+    the marching point before each ray's final t and sdf_fn there (a HIT's t_prev has d_prev >=
+    eps: with the hit, a bracket of the surface when the last step overshot it; near and 0
+    before the first step). ``normals=False`` skips the normals (zero everywhere), for callers
+    that compute their own at a refined point. ``cone`` > 0 widens the hit test to
+    sdf < eps + cone * t (a pixel's footprint: cone = its half-angle; 0 is the kernel's test).
+
+    The marching rays are kept compacted: each step evaluates them, updates them with
+    element-wise selects, and drops the finished ones in one gather (one host sync a step, so
+    the loop costs a few dozen launches a step whatever the number of rays).
+    """
+    if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0 and max_iters >= 1 and cone >= 0):
+        raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2, max_iters >= 1 and "
+                         "cone >= 0")  # fmt: skip
     n, dev, dt = origins.shape[0], origins.device, origins.dtype
     t = torch.as_tensor(near, device=dev, dtype=dt).expand(n).clone()
     t_far = torch.as_tensor(far, device=dev, dtype=dt).expand(n).clone()
@@ -81,50 +121,62 @@ def sphere_trace_fn(
     )
     status[~finite] = INVALID
     t[~finite] = float("nan")
-    om = torch.full((n,), float(omega), dtype=dt, device=dev)
-    t_prev, d_prev, step = t.clone(), torch.zeros_like(t), torch.zeros_like(t)
-    active = finite.clone()
+    om_all = torch.full((n,), float(omega), dtype=dt, device=dev)
+    t_prev, d_prev = t.clone(), torch.zeros_like(t)
+    # the marching rays, compacted: idx into the n rays and their state
+    idx = finite.nonzero().squeeze(-1)
+    o_a, d_a, ta, fa = origins[idx], directions[idx], t[idx], t_far[idx]
+    om = om_all[idx]
+    tp, dp, st = ta.clone(), torch.zeros_like(ta), torch.zeros_like(ta)
+    it, pid_a = torch.zeros_like(idx, dtype=torch.int32), None
+    fin = torch.full_like(it, -1)  # status a ray finished with, -1 while it marches
     while True:
-        active &= iters < max_iters
-        past = active & (t > t_far)
-        back = past & (om > 1) & (step > d_prev) & (t_prev + d_prev <= t_far)
-        t[back], step[back], om[back] = t_prev[back] + d_prev[back], d_prev[back], 1.0
+        # before a step: out of steps (CAP), past far (MISS, or back to the last safe point
+        # when an over-relaxed step jumped there)
+        fin = torch.where((fin < 0) & (it >= max_iters), CAP, fin)
+        past = (fin < 0) & (ta > fa)
+        back = past & (om > 1) & (st > dp) & (tp + dp <= fa)
+        ta, st = torch.where(back, tp + dp, ta), torch.where(back, dp, st)
+        om = torch.where(back, 1.0, om)
         left = past & ~back
-        status[left], t[left] = MISS, t_far[left]
-        active &= ~left
-        idx = active.nonzero().squeeze(-1)
-        if idx.numel() == 0:
+        fin, ta = torch.where(left, MISS, fin), torch.where(left, fa, ta)
+        keep = (fin < 0).nonzero().squeeze(-1)  # (the step's one host sync)
+        if keep.numel() < idx.numel():  # write the state back, then drop the finished rays
+            t[idx], iters[idx], om_all[idx] = ta, it, om
+            status[idx] = torch.where(fin < 0, CAP, fin)
+            t_prev[idx], d_prev[idx] = tp, dp
+            if pid_a is not None:
+                ids[idx] = pid_a
+        if keep.numel() == 0:
             break
-        out = sdf_fn(origins[idx] + t[idx, None] * directions[idx])
+        if keep.numel() < idx.numel():
+            idx, o_a, d_a, ta, fa, om = (x[keep] for x in (idx, o_a, d_a, ta, fa, om))
+            tp, dp, st, it, fin = (x[keep] for x in (tp, dp, st, it, fin))
+        out = sdf_fn(o_a + ta.unsqueeze(-1) * d_a)
         dist, pid = out if isinstance(out, tuple) else (out, None)
         dist = dist.to(dt)
-        if pid is not None:
-            ids[idx] = pid.to(torch.int32)
-        iters[idx] += 1
-        first_inside = (iters[idx] == 1) & (dist < 0)
-        fail = (om[idx] > 1) & (dist.abs() + d_prev[idx] < step[idx]) & ~first_inside
-        hit = (dist < eps) & ~fail & ~first_inside
+        pid_a = None if pid is None else pid.to(torch.int32)
+        it = it + 1
+        first_inside = (it == 1) & (dist < 0)
+        fail = (om > 1) & (dist.abs() + dp < st) & ~first_inside
+        hit = (dist < (eps + cone * ta if cone else eps)) & ~fail & ~first_inside
         go = ~(first_inside | fail | hit)
-        status[idx[first_inside]] = INSIDE
-        status[idx[hit]] = HIT
-        active[idx[first_inside | hit]] = False
-        f = idx[fail]  # back to the last safe point, no more relaxation
-        t[f] = t_prev[f] + d_prev[f]
-        step[f] = d_prev[f]
-        om[f] = 1.0
-        g = idx[go]
-        t_prev[g], d_prev[g] = t[g], dist[go]
-        step[g] = om[g] * dist[go]
-        t[g] = t[g] + step[g]
-    left = (status == CAP) & (t >= t_far) & (om <= 1)
+        # fail: back to the last safe point, no more relaxation
+        ta, st = torch.where(fail, tp + dp, ta), torch.where(fail, dp, st)
+        om = torch.where(fail, 1.0, om)
+        tp, dp = torch.where(go, ta, tp), torch.where(go, dist, dp)
+        st = torch.where(go, om * dist, st)
+        ta = torch.where(go, ta + st, ta)
+        fin = torch.where(first_inside, INSIDE, torch.where(hit, HIT, -1)).to(torch.int32)
+    left = (status == CAP) & (t >= t_far) & (om_all <= 1)
     status[left], t[left] = MISS, t_far[left]
     points = origins + t.unsqueeze(-1) * directions
-    normals = torch.zeros_like(points)
+    nrm = torch.zeros_like(points)
     hit = status == HIT
-    if bool(hit.any()):
-        normals[hit] = tetra_normals(sdf_fn, points[hit], normal_eps)
+    if normals and bool(hit.any()):
+        nrm[hit] = tetra_normals(sdf_fn, points[hit], normal_eps)
     ids[~hit] = -1
-    return Trace(t, status, iters, points, normals, ids)
+    return Trace(t, status, iters, points, nrm, ids), t_prev, d_prev
 
 
 def shade(

@@ -82,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--round-samples", type=_nonnegative, default=None, help="grid runs: another")
     e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
+    e.add_argument(
+        "--renderer", default="volume", choices=["volume", "sphere"], help="SDF runs: sphere "
+        "(trace the surface, colour at the hit; default folder RUN/eval_SPLIT_sphere) or volume",
+    )  # fmt: skip
     e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
     e.add_argument(
         "--geometry", default=None, metavar="REF", help="SDF runs: instead of images, the "
@@ -103,6 +107,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", type=_positive(int), default=40)
     r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
     r.add_argument("--device", default=None)
+    r.add_argument(
+        "--renderer", default="volume", choices=["volume", "sphere"],
+        help="SDF runs: sphere-trace the surface (into RUN/render_PATH_sphere) or volume",
+    )  # fmt: skip
     r.set_defaults(func=cmd_render)
 
     m = sub.add_parser("mesh", help="marching cubes of an SDF scene or a trained run -> PLY + PNG")

@@ -29,7 +29,8 @@ def cmd_eval(args) -> int:
     if args.out:
         _check_out(args.out)
     elif Path(args.run).is_dir():
-        _check_out(Path(args.run) / f"eval_{args.split}", "eval output")
+        sub = f"eval_{args.split}" + ("_sphere" if args.renderer == "sphere" else "")
+        _check_out(Path(args.run) / sub, "eval output")
     m = evaluate_run(
         args.run,
         args.split,
@@ -40,8 +41,9 @@ def cmd_eval(args) -> int:
         march_step=args.march_step,
         round_samples=args.round_samples,
         render_half=True if args.half else None,
+        renderer=args.renderer,
     )
-    keys = ("split", "step", "n_images", "psnr", "ssim", "render_ms_median")
+    keys = ("split", "step", "n_images", "renderer", "psnr", "ssim", "render_ms_median")
     print(json_dumps({k: m[k] for k in keys}))
     return 0
 
@@ -50,13 +52,15 @@ def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
     if Path(args.run).is_dir():
-        _check_out(Path(args.run) / f"render_{args.path}", "render output")
+        sub = f"render_{args.path}" + ("_sphere" if args.renderer == "sphere" else "")
+        _check_out(Path(args.run) / sub, "render output")
     res = render_run(
         args.run,
         args.path,
         args.frames,
         args.size,
         device=_device(args.device) if args.device else None,
+        renderer=args.renderer,
     )
     print(json_dumps(res))
     return 0

@@ -47,6 +47,31 @@ def _depth_image(depth, opacity, far):
     return torch.from_numpy(depth_to_uint8(surf, far)).unsqueeze(-1).expand(*surf.shape, 3)
 
 
+RENDERERS = ("volume", "sphere")  # eval / render --renderer: volume rendering, sphere tracing
+
+
+def _check_renderer(renderer: str, model, cfg) -> None:
+    if renderer not in RENDERERS:
+        raise UserError(f"--renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
+    if renderer == "sphere" and model.kind != "sdf":
+        raise UserError(f"--renderer sphere needs an SDF run (volsdf, hash_sdf), not {cfg.field} "
+                        "(a density field has no surface to trace)")  # fmt: skip
+
+
+def sphere_traced_rays_of(model, cfg, o, d, chunk=None, normals=False, **trace):
+    """Renders rays of an SDF run by sphere tracing its field (:func:`warpnerf.render.
+    render_sphere_traced`) inside the run's box, hit tolerance 1e-3 box half-sizes unless
+    ``trace`` (its keywords) says otherwise; ``chunk`` None: the sphere tracer's own (memory
+    grows with rays, not samples)."""
+    from ..render import SPHERE_CHUNK, render_sphere_traced
+
+    trace.setdefault("eps", 1e-3 * cfg.aabb)
+    return render_sphere_traced(
+        model.field, o, d, cfg.near, cfg.far, aabb=cfg.aabb_box(), background=cfg.background,
+        normals=normals, chunk=chunk or SPHERE_CHUNK, **trace,
+    )  # fmt: skip
+
+
 def evaluate_run(
     run,
     split: str = "val",
@@ -54,6 +79,7 @@ def evaluate_run(
     max_images: int = 0,
     out_dir=None,
     snapshot: float | None = None,
+    renderer: str = "volume",
     **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
@@ -62,12 +88,15 @@ def evaluate_run(
     ``render`` overrides the run's rendering settings (:data:`RENDER_SETTINGS`: rays at once,
     and for grid runs the marching step, round size, float16 MLPs), e.g. for the
     speed-versus-error sweep. ``snapshot``: the run's snapshot at that many training seconds
-    (``train --snapshots``) instead of its last checkpoint."""
+    (``train --snapshots``) instead of its last checkpoint. ``renderer="sphere"`` (SDF runs)
+    sphere-traces the surface instead (:func:`sphere_traced_rays_of`; default folder
+    RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction)."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
     cfg, model, ckpt = load_run(run, device, snapshot)
+    _check_renderer(renderer, model, cfg)
     grid = model.grid
     for key, value in render.items():
         if key not in RENDER_SETTINGS:
@@ -80,24 +109,35 @@ def evaluate_run(
     if grid is not None:
         grid.dt = cfg.march_step
     ds = load_data(cfg, split)
-    out_dir = Path(out_dir) if out_dir else Path(run) / f"eval_{split}"
+    sub = f"eval_{split}" + ("_sphere" if renderer == "sphere" else "")
+    out_dir = Path(out_dir) if out_dir else Path(run) / sub
     n = ds.images.shape[0] if not max_images else min(max_images, ds.images.shape[0])
     with output_lock(out_dir, "evaluation folder"):
         names = ["metrics.json"] + [f"{split}_{i:03d}.png" for i in range(n)]
         check_foreign([out_dir / x for x in names])  # another program's files stay untouched
         # a previous, possibly larger, evaluation's images (only those warpnerf wrote)
         remove_own(out_dir, sorted({p.name for p in out_dir.glob(f"{split}_*.png")} - set(names)))
-        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir)
+        sphere = (render.get("chunk") or True) if renderer == "sphere" else None
+        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere)
 
 
-def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
+def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
+    """``sphere``: None (volume rendering), else sphere tracing (the --chunk given, or True)."""
+    from .nerf import dataset_rays
+
     with_ssim = min(ds.height, ds.width) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     for i in range(n):
         sync()
         tr = time.perf_counter()
-        rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
+        if sphere:
+            o, d = dataset_rays(cfg, ds, image=i)
+            out = sphere_traced_rays_of(model, cfg, o, d, chunk=None if sphere is True else sphere)
+            rgb, depth, opacity = (out[k].reshape(ds.height, ds.width, -1).squeeze(-1)
+                                   for k in ("rgb", "depth", "opacity"))  # fmt: skip
+        else:
+            rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
         sync()
         render_ms = 1e3 * (time.perf_counter() - tr)
         gt = ds.images[i]
@@ -109,6 +149,9 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
                 "render_ms": render_ms,
             }
         )
+        if sphere:  # marching steps per pixel, fraction of pixels on the surface
+            rows[-1].update(sphere_iters=float(out["iters"].float().mean()),
+                            sphere_hits=out["n_hit"] / max(o.shape[0], 1))  # fmt: skip
         side = [
             to_uint8(gt.cpu()),
             to_uint8(rgb.cpu()),
@@ -128,8 +171,12 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir):
         "seconds_per_image": (time.perf_counter() - t0) / max(n, 1),
         "render_ms_median": statistics.median(r["render_ms"] for r in rows) if rows else None,
         **{k: getattr(cfg, k) if k == "chunk" or grid else None for k in RENDER_SETTINGS},
+        "renderer": "sphere" if sphere else "volume",
         "per_image": rows,
     }
+    if sphere:
+        for k in ("sphere_iters", "sphere_hits"):
+            metrics[k] = sum(r[k] for r in rows) / max(n, 1)
     write_json(out_dir / "metrics.json", metrics)
     return metrics
 
@@ -165,10 +212,13 @@ def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=None, fps=20):
+def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=None, fps=20,
+               renderer: str = "volume"):  # fmt: skip
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
-    RUN/render_{path}/. ``size`` = (W, H), default the training resolution."""
+    RUN/render_{path}/ (RUN/render_{path}_sphere/ with ``renderer="sphere"``: SDF runs'
+    surfaces sphere-traced). ``size`` = (W, H), default the training resolution."""
     cfg, model, _ = load_run(run, device)
+    _check_renderer(renderer, model, cfg)
     train = load_data(cfg, "train")
     w0, h0 = train.width, train.height
     w, h = size or (w0, h0)
@@ -181,7 +231,7 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
         cams = forward_facing_spiral(train.c2w, frames).float().to(cfg.device)
     else:
         cams = camera_path(train.c2w, path, frames).to(cfg.device)
-    out_dir = Path(run) / f"render_{path}"
+    out_dir = Path(run) / (f"render_{path}" + ("_sphere" if renderer == "sphere" else ""))
     kinds = ("rgb", "depth", "geometry") if model.kind == "sdf" else ("rgb", "depth")
     # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
     check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
@@ -190,14 +240,17 @@ def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=No
     names += [f"{kind}.{x}" for kind in kinds for x in ("gif", "mp4")]
     with output_lock(out_dir, "render folder"):
         check_foreign([out_dir / x for x in names])
-        return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir)
+        return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer)
 
 
-def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
+def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume"):
     rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
     for f in range(frames):
         o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
-        out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+        if renderer == "sphere":
+            out = sphere_traced_rays_of(model, cfg, o, d)
+        else:
+            out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep = _depth_image(
             out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu(), cfg.far
@@ -225,6 +278,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir):
         "size": [w, h],
         "seconds": time.perf_counter() - t0,
         "out": str(out_dir),
+        "renderer": renderer,
     }
 
 
