@@ -80,10 +80,19 @@ def plot(paths, png, title):
     geo = any(d.get("geometry") for d in data)
     fig, axes = plt.subplots(1, 2 if geo else 1, figsize=(11 if geo else 6.4, 4.2))
     ax = axes[0] if geo else axes
-    for d in data:
+    colors = [f"C{i}" for i in range(len(data))]  # one colour per run in both panels
+    ticks = sorted({r["budget_s"] for d in data for r in d["rows"]})
+
+    def log_x(ax):
+        ax.set_xscale("log")
+        ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+        ax.minorticks_off()
+
+    for d, c in zip(data, colors):
         rows = d["rows"]
-        ax.plot([r["budget_s"] for r in rows], [r["psnr"] for r in rows], "o-", label=d["label"])
-    ax.set_xscale("log")
+        ax.plot([r["budget_s"] for r in rows], [r["psnr"] for r in rows], "o-", color=c,
+                label=d["label"])  # fmt: skip
+    log_x(ax)
     ax.set_xlabel("training seconds (wall clock, compilation and grid warm-up included)")
     ax.set_ylabel("val PSNR (dB)")
     ax.set_title(title)
@@ -91,12 +100,12 @@ def plot(paths, png, title):
     ax.legend(fontsize=8, loc="lower right")
     if geo:
         ax = axes[1]
-        for d in data:
+        for d, c in zip(data, colors):
             rows = [r for r in d["rows"] if "chamfer" in r]
             if rows:
                 ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o-",
-                        label=d["label"])  # fmt: skip
-        ax.set_xscale("log")
+                        color=c, label=d["label"])  # fmt: skip
+        log_x(ax)
         ax.set_yscale("log")
         ax.set_xlabel("training seconds")
         ax.set_ylabel("mesh Chamfer distance (world units)")
