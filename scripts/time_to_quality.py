@@ -7,6 +7,10 @@ reference, Chamfer distance) against training seconds.
     python scripts/time_to_quality.py eval RUN OUT.json [--label L] [--images 0] [--chunk 400000]
         [--geometry materials] [--mesh-resolution 384]
     python scripts/time_to_quality.py plot OUT.json [OUT2.json ...] --png docs/x.png [--title T]
+    python scripts/time_to_quality.py run DIR [--budgets 5,15,30,60,120,300] [--label L]
+        [--geometry materials] -- train nerf --data ../shared/data/lego --field hash --device cuda
+        (trains DIR/run with --snapshots BUDGETS --max-seconds max(BUDGETS), then eval and plot:
+        DIR/ttq.json, the table on stdout, DIR/ttq.png)
 
 Why one run: the learning-rate, beta and grid schedules are functions of the step, so the state at
 the snapshot taken when the training time first reaches S seconds is the state a run stopped by
@@ -117,9 +121,44 @@ def plot(paths, png, title):
         fig.savefig(tmp, dpi=110, format="png")
 
 
+def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geometry, res):
+    """One training with snapshots at ``budgets`` (its last one the time limit), then
+    :func:`evaluate` and :func:`plot` into ``out_dir``."""
+    from warpnerf.cli.parser import main as cli
+    from warpnerf.train.loop import parse_snapshots
+
+    secs = parse_snapshots(budgets)
+    if not train_argv or train_argv[0] != "train":
+        raise SystemExit("after --, give a `warpnerf train ...` command line (e.g. train nerf ...)")
+    run = Path(out_dir) / "run"
+    # --iters 100000 (the learning rate decays over it) unless the command line says otherwise,
+    # as in the documented GPU runs; the time limit is the last budget
+    snaps = ",".join(f"{t:g}" for t in secs)
+    argv = [*train_argv[:2], "--iters", "100000", *train_argv[2:], "--out", str(run),
+            "--snapshots", snaps, "--max-seconds", f"{max(secs):g}"]  # fmt: skip
+    if cli(argv) != 0:
+        raise SystemExit(f"training failed: warpnerf {' '.join(argv)}")
+    js = Path(out_dir) / "ttq.json"
+    evaluate(run, js, label, images, chunk, geometry, res)
+    plot([js], Path(out_dir) / "ttq.png", label or "val PSNR against training time")
+
+
 def main():
+    import sys
+
+    argv = sys.argv[1:]
+    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("dir")
+    r.add_argument("--budgets", default="5,15,30,60,120,300")
+    r.add_argument("--label", default=None)
+    r.add_argument("--images", type=int, default=0, help="val images (0: all)")
+    r.add_argument("--chunk", type=int, default=None)
+    r.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
+    r.add_argument("--mesh-resolution", type=int, default=384)
     e = sub.add_parser("eval")
     e.add_argument("run")
     e.add_argument("out")
@@ -132,8 +171,11 @@ def main():
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)
     q.add_argument("--title", default="val PSNR against training time")
-    a = p.parse_args()
-    if a.cmd == "eval":
+    a = p.parse_args(argv)
+    if a.cmd == "run":
+        train_and_evaluate(a.dir, a.budgets, train_argv, a.label, a.images, a.chunk, a.geometry,
+                           a.mesh_resolution)  # fmt: skip
+    elif a.cmd == "eval":
         evaluate(a.run, a.out, a.label, a.images, a.chunk, a.geometry, a.mesh_resolution)
     else:
         plot(a.json, a.png, a.title)
