@@ -96,6 +96,17 @@ def _resume_device(args):
     return _device(args.device) if args.device else None
 
 
+def nerf_config_from_args(args):
+    """The NeRFConfig / VolSDFConfig of parsed `train nerf|volsdf` flags (a new run)."""
+    if args.data is None:
+        raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
+    cls = VolSDFConfig if args.model == "volsdf" else NeRFConfig
+    kw = from_flags(cls, args, groups=_GROUPS[args.model])
+    kw["n_fine"] = args.fine_samples if args.coarse_fine else 0
+    kw["device"] = _device(args.device or cls.device)
+    return cls(**kw)
+
+
 def cmd_train_nerf(args) -> int:
     from ..train.nerf import train_nerf
 
@@ -115,14 +126,7 @@ def cmd_train_nerf(args) -> int:
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
         hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
     else:
-        if args.data is None:
-            raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
-        cls = VolSDFConfig if args.model == "volsdf" else NeRFConfig
-        kw = from_flags(cls, args, groups=_GROUPS[args.model])
-        kw["n_fine"] = args.fine_samples if args.coarse_fine else 0
-        kw["device"] = _device(args.device or cls.device)
-        cfg = cls(**kw)
-        hist = train_nerf(cfg, args.out, progress=not args.quiet)
+        hist = train_nerf(nerf_config_from_args(args), args.out, progress=not args.quiet)
     last = {
         "step": hist["step"][-1] if hist["step"] else 0,
         "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,

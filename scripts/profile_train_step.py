@@ -1,0 +1,103 @@
+"""Where a training step's time goes (issue 18): the NeRF/VolSDF task of `warpnerf train` built from
+the same flags, WARM steps run untimed, then STEPS steps timed (wall clock, synchronised) and one
+window profiled with torch.profiler (CPU + CUDA): the top operators by device time and by host
+time, the host syncs, and the share of device-busy time in the step (a step far longer than its
+device time is host-bound: launches and syncs).
+
+    python3 scripts/profile_train_step.py [--warm 300] [--steps 50] [--json out.json] -- \
+        train nerf --data lego --field hash --device cuda --tf32 --batch 4096 \
+        --target-samples 262144
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+
+
+def main():
+    argv = sys.argv[1:]
+    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
+    own = argv[: argv.index("--")] if "--" in argv else argv
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--warm", type=int, default=300)
+    p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--json", default=None)
+    a = p.parse_args(own)
+
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    from warpnerf.cli.parser import build_parser
+    from warpnerf.cli.train import nerf_config_from_args
+    from warpnerf.train.loop import LoopSettings, lr_at
+    from warpnerf.train.nerf import NeRFTask, build_model, load_data, resolve_data
+
+    args = build_parser().parse_args([*train_argv, "--out", "/tmp/_profile_unused"])
+    cfg = nerf_config_from_args(args).validate()
+    resolve_data(cfg)
+    model = build_model(cfg)
+    train = load_data(cfg, "train")
+    task = NeRFTask(cfg, model, train, None, log=lambda *x: None)
+    torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
+    params = task.parameters()
+    opt = task.optimizer(params, cfg.lr)
+    s = LoopSettings.of(cfg, "profile")
+    cuda = cfg.device.startswith("cuda")
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+
+    def step(i):
+        for g in opt.param_groups:
+            g["lr"] = lr_at(s, i)
+        loss, terms = task.loss(i)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return float(loss)  # the loop's one host sync per step
+
+    for i in range(a.warm):
+        step(i)
+    sync()
+    times = []
+    for i in range(a.warm, a.warm + a.steps):
+        t = time.perf_counter()
+        step(i)
+        sync()
+        times.append(1e3 * (time.perf_counter() - t))
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    n_prof = 10
+    with profile(activities=acts) as prof:
+        for i in range(a.warm + a.steps, a.warm + a.steps + n_prof):
+            step(i)
+        sync()
+    ka = prof.key_averages()
+    dev_key = "self_device_time_total" if cuda else "self_cpu_time_total"
+    print(ka.table(sort_by=dev_key, row_limit=25))
+    print(ka.table(sort_by="self_cpu_time_total", row_limit=15))
+    dev_total = sum(getattr(k, dev_key, 0.0) for k in ka) / 1e3 / n_prof  # ms per step
+    syncs = {k.key: k.count // n_prof for k in ka
+             if k.key in ("aten::_local_scalar_dense", "aten::item", "aten::nonzero",
+                          "cudaStreamSynchronize", "cudaDeviceSynchronize")}  # fmt: skip
+    launches = sum(k.count for k in ka if k.key in ("cudaLaunchKernel", "cuLaunchKernel"))
+    top = sorted(ka, key=lambda k: -getattr(k, dev_key, 0.0))[:15]
+    res = {
+        "step_ms_median": statistics.median(times),
+        "device_busy_ms_per_step": dev_total if cuda else None,
+        "host_syncs_per_step": syncs,
+        "kernel_launches_per_step": launches / n_prof,
+        "samples_per_step": task.batch,
+        "top_device_ops_ms_per_step": {k.key: getattr(k, dev_key) / 1e3 / n_prof for k in top},
+        "device": torch.cuda.get_device_name() if cuda else "cpu",
+    }
+    print(json.dumps(res, indent=1))
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
