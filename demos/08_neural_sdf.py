@@ -4,6 +4,7 @@ still marching) into a normal-shaded turntable.
 
     python demos/08_neural_sdf.py --out out/08                       # built-in torus points
     python demos/08_neural_sdf.py --points ../shared/data/bunny_pointcloud.npz --iters 2000
+    python demos/08_neural_sdf.py --field hash                       # the hash-grid SDF
 
 Writes the run folder (config, checkpoint, mesh.ply, mesh.png, metrics.json) under --out plus
 turntable.gif; the last line is JSON with the Chamfer distance (bounding-box diagonals), the
@@ -29,7 +30,7 @@ from warpnerf.train.sdf import SDFConfig, train_sdf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402
 
-FLAGS = ("points", "iters", "batch", "width", "resolution", "device")  # SDFConfig's, shown here
+FLAGS = ("points", "field", "iters", "batch", "width", "resolution", "device")  # SDFConfig's
 
 
 def turntable(model, n_frames, size, device):
@@ -70,6 +71,7 @@ def _main(argv) -> int:
     write_video(out / "turntable.gif", frames)
     res = {
         "points": args.points,
+        "field": args.field,
         "iters": m["step"],
         "train_seconds": m["seconds"],
         "chamfer": m["chamfer"],
