@@ -517,6 +517,7 @@ def test_demo_11_hash_sdf_tiny(tmp_path):
              "--mesh-resolution", "16"], tmp_path)  # fmt: skip
     res = last_json(p.stdout)
     assert res["iters"] == 3 and res["beta"] > 0 and res["val_psnr"] > 0
+    assert res["sphere_traced_psnr"] > 0 and res["sphere_traced_ms_median"] > 0
     assert (tmp_path / "o" / "run" / "render_spiral" / "geometry_000.png").is_file()
     if res["mesh_faces"]:
         v, f, rgb = read_ply(tmp_path / "o" / "mesh.ply", colors=True)
