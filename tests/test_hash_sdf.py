@@ -255,3 +255,16 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
     assert main(["eval", str(run), "--clean"]) == 2  # only with --geometry
     assert main(["eval", str(run), "--geometry", str(tmp_path / "nope.npz")]) == 2
     assert main(["eval", str(run), "--geometry", "materials", "--mesh-resolution", "4"]) == 2
+
+
+def test_annealed_beta_below_the_march_step_warns(tmp_path, capsys):
+    """--beta-final below the grid's marching step trains, with a warning naming the fix."""
+    from warpnerf.cli.parser import main
+
+    assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out",
+                 str(tmp_path / "r"), "--iters", "1", "--batch", "32", "--grid-res", "8",
+                 "--builtin-size", "8", "--hash-levels", "2", "--hash-log2-size", "8",
+                 "--hash-max-res", "16", "--val-images", "0", "--quiet", "--beta-final", "0.001",
+                 "--beta-anneal-steps", "1"]) == 0  # fmt: skip
+    out = capsys.readouterr()
+    assert "below the marching step" in out.out + out.err and "--march-step" in out.out + out.err
