@@ -25,6 +25,7 @@ LAYERS = {
     "mesh": 5,
     "train": 6,
     "bench": 7,
+    "export": 7,
     "demo": 7,
     "cli": 8,
     "__init__": 9,

@@ -71,21 +71,33 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
     return v, f
 
 
-def write_ply(
-    path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False, colors=None
-) -> None:
-    """Binary little-endian PLY (float32 xyz, optional uchar red/green/blue per vertex, int32
-    triangle indices), written atomically."""
+def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False,
+              colors=None, normals=None) -> None:  # fmt: skip
+    """Binary little-endian PLY (float32 xyz, optional float32 nx/ny/nz and uchar red/green/blue
+    per vertex, int32 triangle indices; no faces for a point cloud), written atomically."""
     v = np.ascontiguousarray(vertices, dtype="<f4")
-    f = np.ascontiguousarray(faces, dtype="<i4")
+    f = np.ascontiguousarray(faces, dtype="<i4").reshape(-1, 3)
     props = "property float x\nproperty float y\nproperty float z\n"
+    row = [("p", "<f4", (3,))]
+    if normals is not None:
+        nr = np.asarray(normals)
+        if nr.shape != (len(v), 3):
+            raise ValueError(f"normals must be [{len(v)}, 3], got {nr.shape}")
+        props += "property float nx\nproperty float ny\nproperty float nz\n"
+        row.append(("n", "<f4", (3,)))
     if colors is not None:
         c = np.asarray(colors)
         if c.shape != (len(v), 3) or c.dtype != np.uint8:
             raise ValueError(f"colors must be uint8 [{len(v)}, 3], got {c.dtype} {c.shape}")
         props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        rows = np.empty(len(v), dtype=[("p", "<f4", (3,)), ("c", "u1", (3,))])
-        rows["p"], rows["c"] = v, c
+        row.append(("c", "u1", (3,)))
+    if len(row) > 1:
+        rows = np.empty(len(v), dtype=row)
+        rows["p"] = v
+        if normals is not None:
+            rows["n"] = nr
+        if colors is not None:
+            rows["c"] = c
         v = rows
     head = (
         f"ply\nformat binary_little_endian 1.0\nelement vertex {len(v)}\n{props}"
@@ -99,20 +111,26 @@ def write_ply(
         fh.write(body.tobytes())
 
 
-def read_ply(path, colors: bool = False):
+def read_ply(path, colors: bool = False, normals: bool = False):
     """Reads what :func:`write_ply` writes: (vertices [V, 3], faces [F, 3]), plus the vertex
-    colours uint8 [V, 3] (None when the file has none) when ``colors``."""
+    colours uint8 [V, 3] when ``colors`` and the normals [V, 3] when ``normals`` (None when the
+    file has none)."""
     data = open(path, "rb").read()
     end = data.index(b"end_header\n") + len(b"end_header\n")
     head = data[:end].decode().splitlines()
     nv = int(next(x for x in head if x.startswith("element vertex")).split()[-1])
     nf = int(next(x for x in head if x.startswith("element face")).split()[-1])
-    rgb = "property uchar red" in head
-    row = [("p", "<f4", (3,))] + ([("c", "u1", (3,))] if rgb else [])
+    rgb, nrm = "property uchar red" in head, "property float nx" in head
+    row = [("p", "<f4", (3,))] + ([("n", "<f4", (3,))] if nrm else [])
+    row += [("c", "u1", (3,))] if rgb else []
     verts = np.frombuffer(data, row, nv, end)
     body = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + verts.nbytes)
     out = (verts["p"].copy(), body["i"].copy())
-    return out + ((verts["c"].copy() if rgb else None),) if colors else out
+    if colors:
+        out += (verts["c"].copy() if rgb else None,)
+    if normals:
+        out += (verts["n"].copy() if nrm else None,)
+    return out
 
 
 def vertex_colors(

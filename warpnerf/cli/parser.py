@@ -14,7 +14,7 @@ from ._common import (
     _size,
 )
 from .misc import cmd_bench, cmd_data, cmd_demo
-from .run_tools import cmd_eval, cmd_mesh, cmd_render
+from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 
 
@@ -134,6 +134,20 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
+
+    x = sub.add_parser(
+        "export", help="a run as files other tools open: a coloured point cloud with normals "
+        "(PLY) or its cameras (nerfstudio transforms.json)",
+    )  # fmt: skip
+    x.add_argument("run")
+    x.add_argument("what", choices=["pointcloud", "cameras"])
+    x.add_argument("--out", required=True, help="pointcloud: a .ply; cameras: a .json")
+    x.add_argument("--views", type=_nonnegative, default=0, help="pointcloud: training views "
+                   "used, spread evenly (0: all)")  # fmt: skip
+    x.add_argument("--stride", type=_positive(int), default=2, help="pointcloud: every Nth pixel")
+    x.add_argument("--min-opacity", type=_finite, default=0.5, help="pointcloud: rays kept")
+    x.add_argument("--device", default=None, help="pointcloud: default the run's")
+    x.set_defaults(func=cmd_export)
 
     dp = sub.add_parser(
         "data", help="check a dataset folder and print a JSON summary (format, splits, cameras)"

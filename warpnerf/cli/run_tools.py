@@ -223,3 +223,18 @@ def cmd_mesh(args) -> int:
         res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))
     return 0
+
+
+def cmd_export(args) -> int:
+    from ..export import export_cameras, export_pointcloud
+
+    _check_out(args.out, file=True)
+    if args.what == "pointcloud":
+        if not args.out.endswith(".ply"):
+            raise UserError(f"--out must be a .ply file, got {args.out}")
+        res = export_pointcloud(args.run, args.out, args.views, args.stride, args.min_opacity,
+                                _device(args.device) if args.device else None)  # fmt: skip
+    else:
+        res = export_cameras(args.run, args.out)
+    print(json_dumps(res))
+    return 0

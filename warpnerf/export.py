@@ -1,0 +1,151 @@
+"""Exports of a trained run that other tools open: a coloured point cloud with normals (PLY, for
+MeshLab, Blender, pyvista) and the cameras as a nerfstudio ``transforms.json``.
+
+Point cloud: every ``stride``-th pixel (in x and y) of the chosen training views is rendered with
+the run's own renderer; where the ray's opacity exceeds ``min_opacity`` the point is where it
+terminates, origin + direction * (expected depth / opacity), coloured with the rendered colour
+(the view's own, so view-dependent highlights are baked as seen from that camera). Normals: the
+normalised central-difference gradient of the level-set function at the point (the SDF for SDF
+fields, minus the density for NeRF fields: both grow outwards), step ``1e-3`` of the scene box.
+For COLMAP/LLFF runs points and normals are mapped back to the capture's world units (a normal as
+the image of a short step along it, so NDC runs work too).
+
+Cameras: the run's training (and validation) cameras, OpenGL camera-to-world in the frame the run
+trains in, with per-frame intrinsics and image paths relative to the JSON; a capture's
+world-to-normalised transform is recorded as nerfstudio's ``applied_transform``. Datasets without
+image files (the built-in scene) get their images written beside the JSON.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import UserError
+from .io import json_safe, write_image, write_json
+
+__all__ = ["export_pointcloud", "export_cameras"]
+
+
+@torch.no_grad()
+def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: float = 0.5,
+                      device=None) -> dict:  # fmt: skip
+    """Writes the point cloud PLY ``out``; returns a summary dict."""
+    from .mesh import write_ply
+    from .train.nerf import dataset_rays, load_data, load_run, render_rays_of
+
+    if not 1 <= stride <= 64:
+        raise UserError(f"--stride must be in [1, 64], got {stride}")
+    if not 0.0 < min_opacity < 1.0:
+        raise UserError(f"--min-opacity must be in (0, 1), got {min_opacity}")
+    if views < 0:
+        raise UserError(f"--views must be >= 0, got {views}")
+    cfg, model, _ = load_run(run, device)
+    ds = load_data(cfg, "train")
+    n = ds.images.shape[0] if not views else min(views, ds.images.shape[0])
+    pick = torch.linspace(0, ds.images.shape[0] - 1, n).round().long().unique().tolist()
+    h, w = ds.height, ds.width
+    keep_px = torch.zeros(h, w, dtype=torch.bool)
+    keep_px[::stride, ::stride] = True
+    keep_px = keep_px.reshape(-1)
+    pts, cols = [], []
+    for i in pick:
+        o, d = dataset_rays(cfg, ds, image=i)
+        sel = keep_px.to(o.device)
+        o, d = o[sel], d[sel]
+        r = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+        ok = r["opacity"] > min_opacity
+        z = r["depth"][ok] / r["opacity"][ok]
+        pts.append(o[ok] + d[ok] * z.unsqueeze(-1))
+        cols.append(r["rgb"][ok])
+    p = torch.cat(pts) if pts else torch.zeros(0, 3)
+    c = torch.cat(cols) if cols else torch.zeros(0, 3)
+    if len(p) == 0:
+        raise UserError(f"{run}: no ray reaches opacity {min_opacity}; nothing to export")
+    field = model.field
+    step = 1e-3 * (cfg.aabb if cfg.aabb > 0 else 1.0)
+    if model.kind == "sdf":
+        fn = field.sdf
+    else:
+
+        def fn(x):
+            return -field.density(x)[0]
+
+    nrm = _normals(fn, p.float(), step)
+    pw, nw = p.cpu().numpy().astype(np.float64), nrm.cpu().numpy().astype(np.float64)
+    if cfg.scene is not None:  # back to the capture's world units
+        from .data.capture import normalised_to_world
+
+        ndc = cfg.ndc_camera()
+        a = normalised_to_world(pw, cfg.scene["transform"], ndc)
+        b = normalised_to_world(pw + step * nw, cfg.scene["transform"], ndc)
+        nw = b - a
+        nw /= np.maximum(np.linalg.norm(nw, axis=1, keepdims=True), 1e-12)
+        pw = a
+    good = np.isfinite(pw).all(1) & np.isfinite(nw).all(1)
+    pw, nw = pw[good], nw[good]
+    rgb = (c.float().clamp(0, 1).cpu().numpy()[good] * 255 + 0.5).astype(np.uint8)
+    write_ply(out, pw.astype(np.float32), np.zeros((0, 3), np.int32), colors=rgb,
+              normals=nw.astype(np.float32))  # fmt: skip
+    return {"out": str(out), "points": int(len(pw)), "views": len(pick), "stride": stride,
+            "min_opacity": min_opacity, "bounds_min": pw.min(0).tolist(),
+            "bounds_max": pw.max(0).tolist()}  # fmt: skip
+
+
+def _normals(fn, x: torch.Tensor, h: float, chunk: int = 1 << 16) -> torch.Tensor:
+    """Unit outward normals [n, 3]: normalised central differences of ``fn`` (+z where the
+    gradient vanishes)."""
+    e = torch.eye(3, device=x.device)
+    out = []
+    for s in range(0, len(x), chunk):
+        q = x[s : s + chunk]
+        d = fn(torch.cat([q + h * e[i] for i in range(3)] + [q - h * e[i] for i in range(3)]))
+        d = d.float().reshape(6, -1)
+        g = torch.nan_to_num((d[:3] - d[3:]).T)
+        n = torch.nn.functional.normalize(g, dim=-1)
+        up = torch.tensor([0.0, 0.0, 1.0], device=x.device)
+        out.append(torch.where(n.norm(dim=-1, keepdim=True) > 0, n, up))
+    return torch.cat(out) if out else torch.zeros(0, 3, device=x.device)
+
+
+def export_cameras(run, out, splits=("train", "val")) -> dict:
+    """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras; returns a
+    summary."""
+    from .train.nerf import load_data, load_run
+
+    out = Path(out)
+    if out.suffix != ".json":
+        raise UserError(f"--out must be a .json file, got {out}")
+    cfg, _, _ = load_run(run, "cpu")
+    frames, written = [], 0
+    for split in splits:
+        try:
+            ds = load_data(cfg, split)
+        except UserError:
+            if split == "train":
+                raise
+            continue  # no such split
+        for i in range(ds.images.shape[0]):
+            fx, fy, cx, cy = (float(v) for v in ds.intrinsics[i])
+            if i < len(ds.paths):
+                path = os.path.relpath(Path(ds.paths[i]).resolve(), out.parent.resolve())
+            else:  # no image file (the built-in scene): write it beside the JSON
+                rel = f"images/{split}_{i:03d}.png"
+                (out.parent / "images").mkdir(parents=True, exist_ok=True)
+                img = (ds.images[i].clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
+                write_image(out.parent / rel, img)
+                path, written = rel, written + 1
+            frames.append({
+                "file_path": path, "transform_matrix": ds.c2w[i].double().tolist(),
+                "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": ds.width, "h": ds.height,
+                "split": split,
+            })  # fmt: skip
+    doc = {"camera_model": "OPENCV", "frames": frames}
+    if cfg.scene is not None:  # a capture: poses are in the run's normalised frame
+        doc["applied_transform"] = np.asarray(cfg.scene["transform"])[:3].tolist()
+    write_json(out, json_safe(doc))
+    frame = "normalised (applied_transform)" if cfg.scene is not None else "data"
+    return {"out": str(out), "frames": len(frames), "images_written": written, "frame": frame}
