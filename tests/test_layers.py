@@ -26,6 +26,7 @@ LAYERS = {
     "train": 6,
     "bench": 7,
     "export": 7,
+    "viewer": 7,
     "demo": 7,
     "cli": 8,
     "__init__": 9,

@@ -16,6 +16,7 @@ from ._common import (
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
+from .view import cmd_view, view_flags
 
 
 def _mesh_cleaning_flags(p) -> None:
@@ -103,8 +104,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
     r.add_argument("run")
-    r.add_argument("--path", default="spiral", choices=["spiral", "orbit"])
-    r.add_argument("--frames", type=_positive(int), default=40)
+    r.add_argument("--path", default="spiral", help="spiral, orbit, or a camera-path JSON "
+                   "file saved by `warpnerf view`")  # fmt: skip
+    r.add_argument("--frames", type=_positive(int), default=None,
+                   help="default 40 (a path file: its own frame count)")  # fmt: skip
     r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
     r.add_argument("--device", default=None)
     r.add_argument(
@@ -134,6 +137,11 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
+
+    v = sub.add_parser("view", help="web viewer of a run on a local port (viser): renders, "
+                       "training cameras, occupancy grid, mesh, camera-path editor")  # fmt: skip
+    view_flags(v)
+    v.set_defaults(func=cmd_view)
 
     x = sub.add_parser(
         "export", help="a run as files other tools open: a coloured point cloud with normals "

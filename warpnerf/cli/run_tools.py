@@ -52,7 +52,8 @@ def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
     if Path(args.run).is_dir():
-        sub = f"render_{args.path}" + ("_sphere" if args.renderer == "sphere" else "")
+        name = args.path if args.path in ("spiral", "orbit") else Path(args.path).stem
+        sub = f"render_{name}" + ("_sphere" if args.renderer == "sphere" else "")
         _check_out(Path(args.run) / sub, "render output")
     res = render_run(
         args.run,

@@ -20,6 +20,7 @@ from ._common import (
     _device,
     _saved_config,
 )
+from .view import live_hooks, watch_flags
 
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
 
@@ -39,6 +40,7 @@ def cmd_train_box(args) -> int:
             frames=args.frames,
             progress=not args.quiet,
             resume=True,
+            tensorboard=args.tensorboard,
         )
         print(json_dumps(res))
         return 0
@@ -54,6 +56,7 @@ def cmd_train_box(args) -> int:
         device=_device(args.device or DEVICE),
         frames=args.frames,
         progress=not args.quiet,
+        tensorboard=args.tensorboard,
     )
     print(json_dumps(res))
     return 0
@@ -71,6 +74,10 @@ _RESUME_FLAGS = {
     "command",
     "model",
     "frames",  # train box: the spiral video written at the end, not part of the fit
+    "tensorboard",  # watching a training changes nothing in it
+    "viewer",
+    "host",
+    "port",
 }
 
 
@@ -124,9 +131,10 @@ def cmd_train_nerf(args) -> int:
                 f"`warpnerf train nerf --out {args.out} --resume --iters N`"
             )
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
-        hist = train_nerf(cfg, args.out, resume=True, progress=not args.quiet, device=device)
     else:
-        hist = train_nerf(nerf_config_from_args(args), args.out, progress=not args.quiet)
+        cfg, device = nerf_config_from_args(args), None
+    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet, device=device,
+                      hooks=live_hooks(args), tensorboard=args.tensorboard)  # fmt: skip
     last = {
         "step": hist["step"][-1] if hist["step"] else 0,
         "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,
@@ -144,7 +152,8 @@ def cmd_train_sdf(args) -> int:
     if args.resume:
         dev = _resume_device(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
-        m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev)
+        m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev,
+                      tensorboard=args.tensorboard)  # fmt: skip
     else:
         if args.points is None:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
@@ -152,7 +161,7 @@ def cmd_train_sdf(args) -> int:
         kw.update(n_random=kw["batch"], skip=max(1, kw["n_layers"] // 2))
         kw["device"] = _device(args.device or SDFConfig.device)
         cfg = SDFConfig(**kw)
-        m = train_sdf(cfg, args.out, progress=not args.quiet)
+        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=args.tensorboard)
     keys = ("step", "seconds", "chamfer", "vertices", "faces")
     out = {k: m[k] for k in keys}
     out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
@@ -173,6 +182,7 @@ def _box_flags(tb) -> None:
     tb.add_argument("--frames", type=CHECKS[("int", "nonnegative")], default=40,
                     help="spiral video frames (0: none)")  # fmt: skip
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
+    watch_flags(tb, viewer=False)
     add_flags(tb, BoxFitConfig, unset=("iters",))
 
 
@@ -182,6 +192,7 @@ def _sdf_flags(ts) -> None:
     ts.add_argument("--out", required=True, help="run folder")
     ts.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
     ts.add_argument("--quiet", action="store_true", help="no progress bar")
+    watch_flags(ts, viewer=False)
     add_flags(ts, SDFConfig, exclude=("points",), unset=("iters", "device"))
 
 
@@ -200,4 +211,5 @@ def _nerf_flags(tn, model: str) -> None:
     tn.add_argument("--fine-samples", type=CHECKS[("int", "positive")],
                     default=cls.n_fine or FINE_SAMPLES, help="fine samples per ray")  # fmt: skip
     tn.add_argument("--quiet", action="store_true", help="no progress bar")
+    watch_flags(tn, viewer=True)
     add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=("iters", "device"))

@@ -10,7 +10,7 @@ import torch
 
 from ..errors import UserError
 
-__all__ = ["look_at", "intrinsics_from_fov", "spiral_path", "orbit_views"]
+__all__ = ["look_at", "camera_target", "intrinsics_from_fov", "spiral_path", "orbit_views"]
 
 # Limits every dataset loader applies to its cameras (check_poses, check_intrinsics):
 MAX_CENTRE = 1e6  # |camera centre| in the units rays are made in (float32 rays)
@@ -38,6 +38,16 @@ def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), dtype=torch.float32
     m = torch.eye(4, dtype=torch.float64)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, back, eye
     return m.to(dtype)
+
+
+def camera_target(c2w: torch.Tensor) -> torch.Tensor:
+    """The point [3] (float64) nearest to all the cameras' optical axes (least squares): what a
+    set of inward-facing cameras looks at. ``c2w`` [n, 3|4, 4], OpenGL."""
+    c2w = torch.as_tensor(c2w).double().cpu()
+    o, fwd = c2w[:, :3, 3], -c2w[:, :3, 2]
+    eye = torch.eye(3, dtype=torch.float64)
+    proj = eye - fwd.unsqueeze(-1) * fwd.unsqueeze(-2)
+    return torch.linalg.lstsq(proj.sum(0), (proj @ o.unsqueeze(-1)).sum(0)).solution.squeeze(-1)
 
 
 def intrinsics_from_fov(width: int, height: int, fov_x: float, dtype=torch.float32):

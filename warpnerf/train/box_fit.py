@@ -36,6 +36,7 @@ from ..io import (
 from ..ops import generate_rays, random_pixels
 from ..options import option
 from ..render import render_rays, render_views
+from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, lock_run, resume_checks, run_loop
 
 __all__ = [
@@ -146,6 +147,7 @@ def fit_box(
     run=None,
     state: dict | None = None,
     log=print,
+    hooks=(),
 ):
     """Optimises a rainbow box's center and side lengths so its renders match ``images``.
 
@@ -178,7 +180,7 @@ def fit_box(
     settings = LoopSettings.of(cfg, "fit box", lr_final=cfg.lr * cfg.lr_final_ratio)
     history = run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=state, progress=progress,
-        log=log,
+        log=log, hooks=hooks,
     )  # fmt: skip
     losses = history["loss"]
     return {
@@ -292,6 +294,7 @@ def run_box_fit_on_folder(
     progress: bool = False,
     resume: bool = False,
     log=print,
+    tensorboard: bool = False,
 ):
     """The seed's box task on a Blender-format folder: images alpha-composited on black, fits the
     rainbow box in run folder ``out`` (``config.json``, atomic ``checkpoint.pt`` and
@@ -304,13 +307,17 @@ def run_box_fit_on_folder(
     and every other setting come from the run's config.json, and ``device`` (if given) moves it.
     ``device`` None: cpu for a new fit.
 
+    ``tensorboard``: also TensorBoard event files in OUT/tensorboard.
+
     Returns {"center": [x, y, z], "side_lengths": [a, b, c], "final_loss": float}.
     """
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
-        return _run_box_fit(data, Path(out), cfg, device, frames, progress, resume, log, locks)
+        return _run_box_fit(data, Path(out), cfg, device, frames, progress, resume, log, locks,
+                            tensorboard)  # fmt: skip
 
 
-def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, locks):
+def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, locks,
+                 tensorboard=False):  # fmt: skip
     from ..data.blender import load_blender
 
     state = None
@@ -332,6 +339,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     # every frame is fitted (holdout 0: no frames held out of a single transforms.json)
     ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
     dev = torch.device(device)
+    tb = [TensorBoardLog(out)] if tensorboard else []  # (checks the folder; writes nothing)
     if not resume:
         locks.enter_context(output_lock(out, "run folder"))
         old = _read_config(out)  # again, under the lock
@@ -351,6 +359,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
         run=out,
         state=state,
         log=log,
+        hooks=tb,
     )
     volume = fit.pop("volume")
     result = {k: fit[k] for k in ("center", "side_lengths", "final_loss")}

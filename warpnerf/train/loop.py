@@ -43,7 +43,7 @@ from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, st
 
 __all__ = [
     "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
-    "parse_snapshots", "snapshot_name", "SNAPSHOTS",
+    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook",
 ]  # fmt: skip
 
 # checkpoint keys the loop writes and reads (a task's state adds its own)
@@ -155,6 +155,26 @@ class Task:
         return {"loss": f"{history['loss'][-1]:.4g}"}
 
 
+class LoopHook:
+    """Something that watches a training from outside the task (TensorBoard logs, the live
+    viewer): :func:`run_loop` calls it in the training thread, between steps, and the time it
+    takes is not counted as training time (like validation). A hook must not change the task's
+    state or draw from its random generators, so a run with hooks trains exactly as one
+    without."""
+
+    def on_start(self, task: Task, step: int) -> None:
+        """Before the first step (``step``: the step the run starts or resumes from)."""
+
+    def on_step(self, step: int, history: dict, lr: float) -> None:
+        """After step ``step`` (1-based: steps done) has been recorded in ``history``."""
+
+    def on_validation(self, step: int, figures: dict, task: Task) -> None:
+        """After a validation at ``step`` with the figures it returned."""
+
+    def close(self) -> None:
+        """When the loop ends, however it ends (also on errors)."""
+
+
 def _read_terms(loss, terms: dict, flags):
     """Host values of the loss, the tensor terms and the divergence flags, in one transfer."""
     names = [k for k, v in terms.items() if isinstance(v, torch.Tensor)]
@@ -178,6 +198,7 @@ def run_loop(
     progress: bool = False,
     log=print,
     where=None,
+    hooks=(),
 ) -> dict:
     """Trains ``task`` up to ``s.iters`` steps; returns the history.
 
@@ -194,6 +215,15 @@ def run_loop(
     if resume_from is not None:
         load_weights(opt, resume_from["optimizer"], Path(run) / checkpoint, "optimizer state")
         history, start = resume_from["history"], resume_from["step"]
+    with contextlib.ExitStack() as closing:
+        for hook in hooks:
+            closing.callback(hook.close)
+        return _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks,
+                     params, opt, history, start)  # fmt: skip
+
+
+def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, params, opt,
+          history, start):  # fmt: skip
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
     t0, val_time = time.perf_counter(), 0.0  # training time excludes validation
     cuda = any(p.is_cuda for p in params)
@@ -214,6 +244,10 @@ def run_loop(
         (Path(run) / SNAPSHOTS).mkdir(exist_ok=True)
         check_foreign([Path(run) / snapshot_name(b) for b in pending])
 
+    tv = time.perf_counter()
+    for hook in hooks:
+        hook.on_start(task, start)
+    val_time += time.perf_counter() - tv
     signals = stop_requests() if run is not None else contextlib.nullcontext({"signum": None})
     with signals as stop:
         for step in range(start, s.iters):
@@ -238,6 +272,11 @@ def run_loop(
             task.record(history, values)
             history["seconds"].append(seconds)
             task.after_step(step, history)
+            if hooks:  # (not training time)
+                tv = time.perf_counter()
+                for hook in hooks:
+                    hook.on_step(done, history, lr)
+                val_time += time.perf_counter() - tv
             if pending and seconds >= pending[0]:  # not counted as training time
                 tv = time.perf_counter()
                 while pending and seconds >= pending[0]:
@@ -250,11 +289,14 @@ def run_loop(
             if s.val_every and (done % s.val_every == 0 or done == s.iters or out_of_time):
                 tv = time.perf_counter()
                 figures = task.validate(done)
-                val_time += time.perf_counter() - tv
                 if figures is not None:
                     history.setdefault("val_step", []).append(done)
                     for k, v in figures.items():
                         history.setdefault(k, []).append(v)
+                    for hook in hooks:
+                        hook.on_validation(done, figures, task)
+                val_time += time.perf_counter() - tv
+                if figures is not None:
                     log(f"step {done}: {task.validation_text(history)}, {seconds:.0f} s")
             stopping = out_of_time or stop["signum"] is not None
             if run is not None and (done % s.ckpt_every == 0 or done == s.iters or stopping):

@@ -20,6 +20,7 @@ from ..io import (
 )
 from ..ops import random_pixels
 from ..render import render_chunks, render_marched, render_nerf
+from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
 
@@ -201,17 +202,24 @@ def train_nerf(
     progress: bool = True,
     log=print,
     device: str | None = None,
+    hooks=(),
+    tensorboard: bool = False,
 ):
     """Trains (or resumes) a run in folder ``run``; returns the history dict.
+
+    ``hooks``: :class:`~warpnerf.train.loop.LoopHook` s that watch the training (the live
+    viewer); ``tensorboard``: also write TensorBoard event files to RUN/tensorboard (the
+    command line's default).
 
     On resume only ``cfg.iters`` (the total to reach) and ``cfg.max_seconds`` are taken from
     ``cfg``; everything else comes from the run's config.json, and ``device`` (if given) moves it.
     """
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
-        return _train_nerf(cfg, Path(run), resume, progress, log, device, locks)
+        return _train_nerf(cfg, Path(run), resume, progress, log, device, locks, hooks,
+                           tensorboard)  # fmt: skip
 
 
-def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
+def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, tensorboard):
     if resume:
         lock_run(run, locks)
         saved_cfg, model, ckpt = load_run(run, device)
@@ -231,6 +239,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     # Data first: a bad dataset stops the run before anything is written.
     train = load_data(cfg, "train")
     val = load_data(cfg, "val") if cfg.val_images > 0 else None
+    tb = [TensorBoardLog(run)] if tensorboard else []  # (checks the folder; writes nothing)
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
@@ -245,9 +254,11 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks):
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     settings = LoopSettings.of(cfg, "train nerf", val_every=cfg.val_every if val is not None else 0)
+    hooks = [*hooks, *tb]
     return run_loop(
-        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
-    )
+        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress,
+        log=log, hooks=hooks,
+    )  # fmt: skip
 
 
 class NeRFTask(Task):
@@ -332,7 +343,15 @@ class NeRFTask(Task):
         super().record(history, terms)
 
     def validate(self, step):
-        return {"val_psnr": validate(self.model, self.cfg, self.val)}
+        keep = {}
+        psnr = validate(self.model, self.cfg, self.val, keep)
+        if keep:  # the first image, for the TensorBoard log: prediction | truth, and depth
+            rgb, depth = keep["rgb"], keep["depth"]
+            self.val_images = {
+                "rgb": torch.cat([rgb, self.val.images[0]], 1).cpu().numpy(),
+                "depth": (depth / max(self.cfg.far, 1e-6)).clamp(0, 1).cpu().numpy(),
+            }
+        return {"val_psnr": psnr}
 
     def validation_text(self, history):
         return f"train psnr {history['psnr'][-1]:.2f}, val psnr {history['val_psnr'][-1]:.2f}"
@@ -356,11 +375,14 @@ class NeRFTask(Task):
         return state
 
 
-def validate(model, cfg, val) -> float:
-    """Mean PSNR over the first cfg.val_images validation images."""
+def validate(model, cfg, val, keep: dict | None = None) -> float:
+    """Mean PSNR over the first cfg.val_images validation images (``keep``, a dict: receives
+    the first image's ``rgb`` [H, W, 3] and ``depth`` [H, W])."""
     n = min(cfg.val_images, val.images.shape[0])
     mses = []
     for i in range(n):
-        rgb, _, _ = render_dataset_image(model, cfg, val, i)
+        rgb, depth, _ = render_dataset_image(model, cfg, val, i)
+        if keep is not None and i == 0:
+            keep.update(rgb=rgb, depth=depth)
         mses.append(float(((rgb - val.images[i]) ** 2).mean()))
     return sum(_psnr(m) for m in mses) / max(n, 1)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from ..data.cameras import camera_rays, look_at
+from ..data.cameras import camera_rays, camera_target, look_at
 from ..errors import UserError, check_fits
 from ..io import (
     check_foreign,
@@ -185,14 +185,10 @@ def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
     """[frames, 4, 4] cameras around the training cameras' target: centre = the point nearest to
     all optical axes, radius = their mean distance to it, up = their mean up vector; "orbit" keeps
     their mean elevation, "spiral" swings it by +-15 degrees."""
-    if kind not in ("spiral", "orbit"):
+    if kind not in PATHS:
         raise UserError(f"--path must be spiral or orbit, got {kind!r}")
     c2w = c2w.double().cpu()
-    o, fwd = c2w[:, :3, 3], -c2w[:, :3, 2]
-    # Least-squares point closest to all lines o + t * fwd.
-    eye = torch.eye(3, dtype=torch.float64)
-    proj = eye - fwd.unsqueeze(-1) * fwd.unsqueeze(-2)
-    centre = torch.linalg.lstsq(proj.sum(0), (proj @ o.unsqueeze(-1)).sum(0)).solution.squeeze(-1)
+    o, centre = c2w[:, :3, 3], camera_target(c2w)
     up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
     rel = o - centre
     radius = float(rel.norm(dim=-1).mean())
@@ -211,27 +207,45 @@ def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
     return torch.stack(mats).float()
 
 
+PATHS = ("spiral", "orbit")  # the built-in camera paths of `render --path`
+
+
 @torch.no_grad()
-def render_run(run, path: str = "spiral", frames: int = 40, size=None, device=None, fps=20,
+def render_run(run, path: str = "spiral", frames: int | None = None, size=None, device=None, fps=20,
                renderer: str = "volume"):  # fmt: skip
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
     RUN/render_{path}/ (RUN/render_{path}_sphere/ with ``renderer="sphere"``: SDF runs'
-    surfaces sphere-traced). ``size`` = (W, H), default the training resolution."""
+    surfaces sphere-traced). ``size`` = (W, H), default the training resolution. ``path``:
+    "spiral", "orbit" or a camera-path file saved by the viewer (its keyframes, field of view
+    and frame count; ``frames`` overrides the count; output in RUN/render_{file stem}/)."""
     cfg, model, _ = load_run(run, device)
     _check_renderer(renderer, model, cfg)
+    user_path = None
+    if path not in PATHS:
+        from ..data.camera_path import load_camera_path
+
+        user_path = load_camera_path(path)
+        frames = frames or user_path.frames
+    frames = frames or 40
     train = load_data(cfg, "train")
     w0, h0 = train.width, train.height
-    w, h = size or (w0, h0)
-    k = train.intrinsics[0].clone()
-    k[[0, 2]] *= w / w0
-    k[[1, 3]] *= h / h0
-    if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
-        from ..data.cameras import forward_facing_spiral
-
-        cams = forward_facing_spiral(train.c2w, frames).float().to(cfg.device)
+    if user_path is not None:  # the viewer's field of view and aspect, the training height
+        w, h = size or (max(1, round(h0 * user_path.aspect)), h0)
+        k = user_path.intrinsics(w, h).to(train.intrinsics)
+        cams = user_path.cameras(frames).to(cfg.device)
     else:
-        cams = camera_path(train.c2w, path, frames).to(cfg.device)
-    out_dir = Path(run) / (f"render_{path}" + ("_sphere" if renderer == "sphere" else ""))
+        w, h = size or (w0, h0)
+        k = train.intrinsics[0].clone()
+        k[[0, 2]] *= w / w0
+        k[[1, 3]] *= h / h0
+        if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
+            from ..data.cameras import forward_facing_spiral
+
+            cams = forward_facing_spiral(train.c2w, frames).float().to(cfg.device)
+        else:
+            cams = camera_path(train.c2w, path, frames).to(cfg.device)
+    name = path if user_path is None else Path(path).stem
+    out_dir = Path(run) / (f"render_{name}" + ("_sphere" if renderer == "sphere" else ""))
     kinds = ("rgb", "depth", "geometry") if model.kind == "sdf" else ("rgb", "depth")
     # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
     check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")

@@ -39,6 +39,7 @@ from ..io import (
     write_json,
 )
 from ..options import option
+from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
@@ -329,17 +330,19 @@ def sdf_loss(model, surf, normals, rand, cfg, uniform_dist=None):
     return loss, parts
 
 
-def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None):
-    """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict.
+def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None,
+              tensorboard: bool = False):  # fmt: skip
+    """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict
+    (``tensorboard``: also TensorBoard event files in RUN/tensorboard).
 
     SIGINT/SIGTERM during training finish the current step, checkpoint it and raise
     :class:`~warpnerf.errors.Interrupted` (no mesh or metrics); ``resume=True`` then continues
     exactly (bit-identical on CPU with the same seed)."""
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
-        return _train_sdf(cfg, Path(run), resume, progress, log, device, locks)
+        return _train_sdf(cfg, Path(run), resume, progress, log, device, locks, tensorboard)
 
 
-def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
+def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard):
     ckpt = None
     if resume:
         lock_run(run, locks)
@@ -357,6 +360,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
     center, scale = normalisation(pts_np)
     if model is None:
         model = _build(cfg)
+    tb = [TensorBoardLog(run)] if tensorboard else []  # (checks the folder; writes nothing)
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
@@ -371,8 +375,9 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks):
         task.gen.set_state(ckpt["generator"].cpu())
     settings = LoopSettings.of(cfg, "train sdf")
     history = run_loop(
-        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress, log=log
-    )
+        task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress,
+        log=log, hooks=tb,
+    )  # fmt: skip
     metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
     metrics.update(step=history["step"][-1] if history["step"] else 0,
                    seconds=history["seconds"][-1] if history["seconds"] else 0.0)  # fmt: skip

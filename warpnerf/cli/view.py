@@ -1,0 +1,81 @@
+"""`warpnerf view RUN`: the web viewer on a local port; and the flags that watch a training
+(`--viewer`, `--no-tensorboard`)."""
+
+from __future__ import annotations
+
+import time
+
+from ..errors import UserError
+from ._common import _device, _positive
+
+
+def _host_port_flags(p, port_flag: str) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="address the viewer listens on "
+                   "(default 127.0.0.1: this machine only; 0.0.0.0 lets other machines "
+                   "connect)")  # fmt: skip
+    p.add_argument(port_flag, type=int, default=7007, dest="port",
+                   help="the viewer's port (default 7007; the next free one if taken)")  # fmt: skip
+
+
+def view_flags(v) -> None:
+    v.add_argument("run", help="a run folder (train nerf, volsdf or sdf)")
+    _host_port_flags(v, "--port")
+    v.add_argument("--device", default=None, help="default: the run's device")
+    v.add_argument("--mesh", default=None, help="a PLY to overlay (default RUN/mesh.ply if any)")
+    v.add_argument("--max-resolution", type=_positive(int), default=800,
+                   help="longest side of a still frame, pixels (default 800)")  # fmt: skip
+    v.add_argument("--frame-ms", type=_positive(float), default=100.0,
+                   help="render time aimed at while the camera moves (default 100 ms)")  # fmt: skip
+    v.add_argument("--exit-after", type=_positive(float), default=None, metavar="S",
+                   help="stop the server after S seconds (scripts, tests)")  # fmt: skip
+
+
+def watch_flags(p, viewer: bool) -> None:
+    """`train ...`: --no-tensorboard, and (radiance trainings) --viewer, --host, --viewer-port."""
+    p.add_argument(
+        "--no-tensorboard",
+        dest="tensorboard",
+        action="store_false",
+        help="no TensorBoard event files in RUN/tensorboard (default: written)",
+    )
+    if viewer:
+        p.add_argument("--viewer", action="store_true", help="serve the web viewer during "
+                       "training (frames render between steps; see `warpnerf view`)")  # fmt: skip
+        _host_port_flags(p, "--viewer-port")
+
+
+def check_port(port: int) -> None:
+    if not 0 < port < 65536:
+        raise UserError(f"--port must be in 1..65535, got {port}")
+
+
+def live_hooks(args, log=print) -> list:
+    """The hooks of `train ... --viewer` (none without it)."""
+    if not getattr(args, "viewer", False):
+        return []
+    from ..viewer import LiveViewer
+
+    check_port(args.port)
+    return [LiveViewer(args.out, host=args.host, port=args.port, log=log)]
+
+
+def cmd_view(args) -> int:
+    from ..viewer import Viewer, load_scene
+
+    check_port(args.port)
+    scene = load_scene(args.run, _device(args.device) if args.device else None, args.mesh)
+    viewer = Viewer(
+        scene, host=args.host, port=args.port, run=args.run,
+        max_resolution=args.max_resolution, frame_seconds=args.frame_ms / 1e3,
+    )  # fmt: skip
+    print(f"warpnerf view: {viewer.url} (Ctrl-C stops)", flush=True)
+    t0 = time.perf_counter()
+    try:
+        while args.exit_after is None or time.perf_counter() - t0 < args.exit_after:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    print(f"warpnerf view: stopped after {viewer.frames} frames", flush=True)
+    return 0

@@ -1,0 +1,178 @@
+"""Camera-path files: keyframes a user places in the viewer (``warpnerf view``), rendered to
+video by ``warpnerf render RUN --path FILE``.
+
+The file is JSON::
+
+    {"warpnerf_camera_path": 1,
+     "fov_y": 0.8,                 # vertical field of view, radians, in (0, pi)
+     "aspect": 1.5,                # width / height of the viewer's canvas
+     "frames": 120,                # frames of the rendered video
+     "loop": false,                # true: the path returns to its first keyframe
+     "keyframes": [{"c2w": [[...], [...], [...], [0, 0, 0, 1]]}, ...]}
+
+``c2w`` is an OpenGL camera-to-world matrix (x right, y up, looking down -z) in the run's world
+frame. Between keyframes the position follows a Catmull-Rom spline through the keyframes'
+positions and the rotation a spherical linear interpolation (slerp) of their quaternions, each
+segment taking the same number of frames. A path file is input like any other: every count and
+number is bounded and checked, and a bad file is a :class:`~warpnerf.errors.UserError` naming
+the file and field.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from ._json import read_json
+from .cameras import check_poses
+
+__all__ = ["CameraPath", "load_camera_path", "interpolate_path", "PATH_FORMAT"]
+
+PATH_FORMAT = 1
+MAX_KEYFRAMES = 1000
+MAX_FRAMES = 100000
+
+
+class CameraPath:
+    """Keyframes [k, 4, 4] (float64 OpenGL c2w) with the field of view, aspect, frame count."""
+
+    def __init__(self, keyframes, fov_y: float = 0.8, aspect: float = 1.0, frames: int = 120,
+                 loop: bool = False):  # fmt: skip
+        self.keyframes = np.asarray(keyframes, dtype=np.float64).reshape(-1, 4, 4)
+        self.fov_y, self.aspect = float(fov_y), float(aspect)
+        self.frames, self.loop = int(frames), bool(loop)
+
+    def to_dict(self) -> dict:
+        return {
+            "warpnerf_camera_path": PATH_FORMAT, "fov_y": self.fov_y, "aspect": self.aspect,
+            "frames": self.frames, "loop": self.loop,
+            "keyframes": [{"c2w": k.tolist()} for k in self.keyframes],
+        }  # fmt: skip
+
+    def save(self, path) -> None:
+        """Writes the path atomically (never over a file warpnerf did not write)."""
+        from ..io import write_json
+
+        if len(self.keyframes) == 0:
+            raise UserError(f"{path}: a camera path needs at least one keyframe")
+        write_json(Path(path), self.to_dict())
+
+    def cameras(self, frames: int | None = None) -> torch.Tensor:
+        """[frames, 4, 4] float32 cameras along the path (:func:`interpolate_path`)."""
+        return interpolate_path(self.keyframes, frames or self.frames, self.loop)
+
+    def intrinsics(self, width: int, height: int) -> torch.Tensor:
+        """[4] fx, fy, cx, cy of the path's vertical field of view at ``width`` x ``height``."""
+        f = 0.5 * height / math.tan(0.5 * self.fov_y)
+        return torch.tensor([f, f, 0.5 * width, 0.5 * height])
+
+
+def load_camera_path(path) -> CameraPath:
+    """Reads and checks a camera-path file (the format in the module's docstring)."""
+    p = Path(path)
+    d = read_json(p, "camera path")
+    if not isinstance(d, dict) or d.get("warpnerf_camera_path") != PATH_FORMAT:
+        raise UserError(f"{p}: not a warpnerf camera path (expected a JSON object with "
+                        f'"warpnerf_camera_path": {PATH_FORMAT})')  # fmt: skip
+
+    def number(key, lo, hi, default, kind=float):
+        v = d.get(key, default)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        if not ok or not lo <= v <= hi or (kind is int and v != int(v)):
+            what = "an integer" if kind is int else "a number"
+            raise UserError(f"{p}: field '{key}' must be {what} in [{lo}, {hi}], got {v!r}")
+        return kind(v)
+
+    fov = number("fov_y", 1e-3, math.pi - 1e-3, 0.8)
+    aspect = number("aspect", 1e-2, 1e2, 1.0)
+    frames = number("frames", 1, MAX_FRAMES, 120, int)
+    loop = d.get("loop", False)
+    if not isinstance(loop, bool):
+        raise UserError(f"{p}: field 'loop' must be true or false, got {loop!r}")
+    keys = d.get("keyframes")
+    if not isinstance(keys, list) or not 1 <= len(keys) <= MAX_KEYFRAMES:
+        raise UserError(f"{p}: field 'keyframes' must be a list of 1 to {MAX_KEYFRAMES} "
+                        "keyframes")  # fmt: skip
+    mats = []
+    for i, k in enumerate(keys):
+        m = k.get("c2w") if isinstance(k, dict) else None
+        try:
+            a = np.asarray(m, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or a.shape != (4, 4) or not np.isfinite(a).all():
+            raise UserError(f"{p}: keyframes[{i}].c2w must be a 4x4 matrix of finite numbers")
+        mats.append(a)
+    c2w = np.stack(mats)
+    labels = [f"keyframes[{i}]" for i in range(len(mats))]
+    c2w = check_poses(c2w, str(p), labels)  # rotations, bottom row, centres
+    return CameraPath(np.asarray(c2w, dtype=np.float64), fov, aspect, frames, loop)
+
+
+def _quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix [3, 3]."""
+    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
+    x = math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2
+    y = math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2
+    z = math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2
+    x = math.copysign(x, r[2, 1] - r[1, 2])
+    y = math.copysign(y, r[0, 2] - r[2, 0])
+    z = math.copysign(z, r[1, 0] - r[0, 1])
+    q = np.array([w, x, y, z])
+    return q / np.linalg.norm(q)
+
+
+def _rot(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def _slerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    dot = float(a @ b)
+    if dot < 0:  # the shorter way round
+        b, dot = -b, -dot
+    if dot > 0.9995:
+        q = a + t * (b - a)
+        return q / np.linalg.norm(q)
+    th = math.acos(min(dot, 1.0))
+    return (math.sin((1 - t) * th) * a + math.sin(t * th) * b) / math.sin(th)
+
+
+def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor:
+    """[frames, 4, 4] float32 cameras through ``keyframes`` [k, 4, 4] (OpenGL c2w): Catmull-Rom
+    positions, slerped rotations, equal frames per segment; frame 0 is the first keyframe and,
+    without ``loop``, the last frame is the last keyframe."""
+    k = np.asarray(keyframes, dtype=np.float64).reshape(-1, 4, 4)
+    if len(k) == 0 or frames < 1:
+        raise ValueError("need at least one keyframe and one frame")
+    pos, quats = k[:, :3, 3], [_quat(m[:3, :3]) for m in k]
+    n = len(k)
+    segments = n if loop else n - 1
+    out = []
+    for f in range(frames):
+        if segments == 0:
+            out.append(k[0])
+            continue
+        s = f / frames * segments if loop else f / max(frames - 1, 1) * segments
+        i = min(int(s), segments - 1)
+        t = s - i
+
+        def p(j):
+            return pos[j % n] if loop else pos[min(max(j, 0), n - 1)]
+
+        p0, p1, p2, p3 = p(i - 1), p(i), p(i + 1), p(i + 2)
+        c = 0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t * t
+                   + (-p0 + 3 * p1 - 3 * p2 + p3) * t ** 3)  # fmt: skip
+        m = np.eye(4)
+        m[:3, :3] = _rot(_slerp(quats[i], quats[(i + 1) % n], t))
+        m[:3, 3] = c
+        out.append(m)
+    return torch.as_tensor(np.stack(out), dtype=torch.float32)

@@ -1,0 +1,263 @@
+"""What the viewer shows of a run, independent of the web page: a :class:`RunScene` renders any
+camera of the scene through the project's own renderers, and lists the overlays (training
+cameras with their images, the scene box, the occupancy grid's occupied cells, a mesh).
+
+Two kinds of run:
+
+- radiance runs (``train nerf`` / ``train volsdf``: the NeRF MLP, the hash field, VolSDF and
+  hash_sdf): :func:`~warpnerf.train.nerf.render_rays_of` (grid marching or stratified samples,
+  rendered in chunks by :func:`~warpnerf.render.render_chunks`); modes ``rgb``, ``depth``,
+  ``opacity`` and, for SDF fields, ``normals`` (the field's SDF gradient at the rendered depth);
+- neural SDFs fitted to points (``train sdf``): the SDF sphere-traced inside its normalised box,
+  modes ``shaded`` (grey, headlight), ``normals``, ``depth`` and ``opacity`` (hits).
+
+Cameras are OpenGL camera-to-world matrices [4, 4] (x right, y up, looking down -z) with pixel
+intrinsics, as everywhere in the project. :meth:`RunScene.render` takes a ``lock`` (shared with a
+training loop that mutates the model) and an ``abort`` callable that is polled between row
+blocks, so a frame that a newer camera has made stale stops early.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import UserError
+from ..io import to_uint8
+
+__all__ = ["RunScene", "load_scene", "RADIANCE_MODES", "SDF_MODES", "POINT_SDF_MODES"]
+
+RADIANCE_MODES = ("rgb", "depth", "opacity")
+SDF_MODES = ("rgb", "depth", "normals", "opacity")
+POINT_SDF_MODES = ("shaded", "normals", "depth", "opacity")
+MAX_OVERLAY_POINTS = 20000  # occupied cells drawn at most
+THUMBNAIL = 64  # training images shown in the frustums, longest side in pixels
+
+
+class Aborted(Exception):
+    """A frame given up because ``abort()`` said so."""
+
+
+class RunScene:
+    """A run as the viewer sees it. Build it with :func:`load_scene` (a run folder) or
+    :meth:`of_radiance` (a live model, e.g. from a training loop)."""
+
+    def __init__(self, render_rays, modes, box, *, up=(0.0, 0.0, 1.0), cameras=None,
+                 intrinsics=None, size=None, images=None, grid=None, far=None,
+                 title=""):  # fmt: skip
+        self._render_rays = render_rays  # (o [n,3], d [n,3], mode) -> image values [n, 3]
+        self.modes = tuple(modes)
+        self.box = [float(v) for v in box]  # [6]
+        self.up = tuple(float(v) for v in up)
+        self.cameras = cameras  # [n, 4, 4] OpenGL c2w (host) or None
+        self.intrinsics = intrinsics  # [n, 4] fx, fy, cx, cy or None
+        self.size = size  # (W, H) of the training images
+        self.images = images  # [n, h, w, 3] uint8 thumbnails or None
+        self.grid = grid
+        self.far = far
+        self.title = title
+        self.lock = threading.Lock()  # held while rendering (a trainer holds it while stepping)
+        self.mesh = None  # (vertices [v, 3], faces [f, 3], colours [v, 3] uint8 or None)
+
+    # --------------------------------------------------------------------------- overlays
+
+    def target(self) -> np.ndarray:
+        """Where a new viewer camera looks: the training cameras' common target, else the box
+        centre."""
+        if self.cameras is not None and len(self.cameras) > 1:
+            from ..data.cameras import camera_target
+
+            return np.asarray(camera_target(torch.as_tensor(self.cameras)), dtype=np.float64)
+        b = self.box
+        return np.array([(b[0] + b[3]) / 2, (b[1] + b[4]) / 2, (b[2] + b[5]) / 2])
+
+    def occupied_cells(self, limit: int = MAX_OVERLAY_POINTS) -> np.ndarray | None:
+        """Centres [m, 3] of occupied occupancy-grid cells (an even subsample of at most
+        ``limit``), or None without a grid."""
+        if self.grid is None:
+            return None
+        from ..ops.occupancy import unpack_bits
+
+        with self.lock:
+            occ = unpack_bits(self.grid.bits).cpu()
+        idx = torch.nonzero(occ).squeeze(1)
+        if idx.numel() > limit:
+            idx = idx[torch.linspace(0, idx.numel() - 1, limit).long()]
+        res = self.grid.res
+        ijk = torch.stack([idx // (res * res), (idx // res) % res, idx % res], -1).double()
+        lo, hi = torch.tensor(self.grid.box[:3]), torch.tensor(self.grid.box[3:])
+        return ((ijk + 0.5) / res * (hi - lo).double() + lo.double()).numpy()
+
+    def load_mesh(self, path) -> bool:
+        """Shows the mesh in ``path`` (a PLY from ``warpnerf mesh``, vertex colours kept) when it
+        exists; False when there is none. A broken file is a :class:`UserError`."""
+        from ..mesh import read_ply
+
+        p = Path(path)
+        if not p.is_file():
+            return False
+        v, f, c = read_ply(p, colors=True)
+        self.mesh = (np.asarray(v, np.float32), np.asarray(f, np.int32), c)
+        return True
+
+    # -------------------------------------------------------------------------- rendering
+
+    @torch.no_grad()
+    def render(self, c2w, fx: float, fy: float, width: int, height: int, mode: str = "",
+               abort=None, rows: int | None = None) -> np.ndarray:  # fmt: skip
+        """An image [height, width, 3] uint8 of the camera ``c2w`` [4, 4] (OpenGL) with focal
+        lengths ``fx, fy`` (pixels, principal point at the centre) in ``mode`` (default the
+        first of :attr:`modes`). Rendered ``rows`` image rows at a time (default about 16k
+        rays); ``abort()`` true between blocks raises :class:`Aborted`."""
+        from ..ops import generate_rays
+
+        mode = mode or self.modes[0]
+        if mode not in self.modes:
+            raise ValueError(f"mode must be one of {self.modes}, got {mode!r}")
+        if not (0 < width <= 8192 and 0 < height <= 8192):
+            raise ValueError(f"image size must be 1..8192 pixels a side, got {width}x{height}")
+        c2w = torch.as_tensor(np.asarray(c2w, dtype=np.float32)).reshape(4, 4)
+        if not bool(torch.isfinite(c2w).all()) or not (math.isfinite(fx) and math.isfinite(fy)):
+            raise ValueError("camera pose and focal lengths must be finite")
+        k = torch.tensor([float(fx), float(fy), width / 2.0, height / 2.0], dtype=torch.float32)
+        o, d = generate_rays(c2w[None], k[None], width, height)
+        rows = rows or max(1, (1 << 14) // width)
+        out = []
+        for r0 in range(0, height, rows):
+            if abort is not None and abort():
+                raise Aborted
+            sl = slice(r0 * width, min(height, r0 + rows) * width)
+            with self.lock:
+                out.append(self._render_rays(o[sl], d[sl], mode).float().cpu())
+        return to_uint8(torch.cat(out).reshape(height, width, 3))
+
+    # ------------------------------------------------------------------------ constructors
+
+    @classmethod
+    def of_radiance(cls, model, cfg, train=None, title: str = "") -> RunScene:
+        """A radiance run's scene (``model`` a :class:`~warpnerf.fields.model.RadianceModel`,
+        ``cfg`` its NeRFConfig, ``train`` its training split for the camera overlay)."""
+        from ..data.cameras import ndc_rays
+        from ..train.nerf import render_rays_of
+
+        dev, ndc = cfg.device, cfg.ndc_camera()
+        sdf = model.kind == "sdf"
+        far = float(cfg.far)
+
+        def render_rays(o, d, mode):
+            o, d = o.to(dev), d.to(dev)
+            if ndc is not None:
+                o, d = ndc_rays(o, d, ndc)
+            res = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+            acc = res["opacity"].reshape(-1, 1)
+            if mode == "rgb":
+                return res["rgb"]
+            if mode == "opacity":
+                return acc.expand(-1, 3)
+            if mode == "depth":  # near: bright, far or empty: dark
+                dep = (1.0 - res["depth"].reshape(-1, 1) / far).clamp(0, 1)
+                return (dep * (acc > 0.5)).expand(-1, 3)
+            x = o + d * res["depth"].reshape(-1, 1)  # normals of an SDF field at the depth
+            n = model.coarse.normals(x)
+            return torch.where(acc > 0.5, (n + 1) / 2, torch.ones_like(n))
+
+        cams = intr = images = size = None
+        if train is not None:
+            cams, intr = train.c2w.detach().cpu().numpy(), train.intrinsics.detach().cpu().numpy()
+            size = (int(train.width), int(train.height))
+            images = _thumbnails(train.images)
+        box = cfg.aabb_box() or [-cfg.aabb, -cfg.aabb, -cfg.aabb, cfg.aabb, cfg.aabb, cfg.aabb]
+        if ndc is not None:  # forward-facing: draw the cameras' neighbourhood instead
+            box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+        up = _up_of(cams)
+        return cls(render_rays, SDF_MODES if sdf else RADIANCE_MODES, box, up=up, cameras=cams,
+                   intrinsics=intr, size=size, images=images, grid=model.grid, far=far,
+                   title=title)  # fmt: skip
+
+    @classmethod
+    def of_point_sdf(cls, model, cfg, title: str = "") -> RunScene:
+        """A neural SDF fitted to points: sphere-traced in its normalised box [-1, 1]^3."""
+        from ..ops import ray_aabb_intersect
+        from ..trace import shade, sphere_trace_fn
+
+        dev = cfg.device
+        box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+        grey = torch.tensor([[0.8, 0.8, 0.8]])
+
+        def render_rays(o, d, mode):
+            o, d = o.to(dev), d.to(dev)
+            t0, t1, hit = ray_aabb_intersect(o, d, box)
+            t1 = torch.where(hit, t1, t0)
+            tr = sphere_trace_fn(model, o, d, t0, t1, eps=1e-3, max_iters=128)
+            m = tr.hit.reshape(-1, 1)
+            if mode == "shaded":
+                return shade(tr, d, grey.to(dev), light=None)
+            if mode == "normals":
+                return torch.where(m, (tr.normals + 1) / 2, torch.ones_like(tr.normals))
+            if mode == "opacity":
+                return m.float().expand(-1, 3)
+            far = float(t1.max()) if t1.numel() else 1.0
+            return ((1.0 - tr.t.reshape(-1, 1) / max(far, 1e-6)).clamp(0, 1) * m).expand(-1, 3)
+
+        return cls(render_rays, POINT_SDF_MODES, box, up=(0.0, 1.0, 0.0), title=title)
+
+
+def _thumbnails(images: torch.Tensor) -> np.ndarray:
+    """uint8 [n, h, w, 3] copies of [n, H, W, 3] float images, longest side :data:`THUMBNAIL`."""
+    n, h, w = images.shape[:3]
+    s = max(1, math.ceil(max(h, w) / THUMBNAIL))
+    small = images[:, ::s, ::s, :3].detach().float().cpu()
+    return to_uint8(small)
+
+
+def _up_of(c2w) -> tuple:
+    """The training cameras' mean up vector (their y axis), or +z."""
+    if c2w is None or len(c2w) == 0:
+        return (0.0, 0.0, 1.0)
+    u = np.asarray(c2w)[:, :3, 1].mean(0)
+    n = float(np.linalg.norm(u))
+    return tuple((u / n).tolist()) if n > 1e-6 else (0.0, 0.0, 1.0)
+
+
+def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunScene:
+    """The :class:`RunScene` of a run folder: a ``train nerf``/``train volsdf`` run (its
+    training cameras too) or a ``train sdf`` run. ``mesh``: a PLY to show (default RUN/mesh.ply
+    when it exists)."""
+    from ..data._json import read_json
+
+    run = Path(run)
+    if not run.is_dir():
+        raise UserError(f"{run}: no such run folder")
+    cfg_path = run / "config.json"
+    if not cfg_path.is_file():
+        raise UserError(f"{run}: not a training run (no config.json)")
+    saved = read_json(cfg_path, "run config")
+    kind = saved.get("model") if isinstance(saved, dict) else None
+    if kind == "neural_sdf":
+        from ..train.sdf import load_sdf_run
+
+        cfg, model, _ = load_sdf_run(run, device)
+        model.eval()
+        scene = RunScene.of_point_sdf(model, cfg, title=f"{run.name}: neural SDF ({cfg.field})")
+    elif kind is None:
+        from ..train.nerf import load_data, load_run
+
+        cfg, model, _ = load_run(run, device)
+        with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
+            train = load_data(cfg, "train")
+        scene = RunScene.of_radiance(model, cfg, locals().get("train"),
+                                     title=f"{run.name}: {cfg.field}")  # fmt: skip
+    else:
+        raise UserError(f"{run}: a {kind} run; the viewer shows trained fields (train nerf, "
+                        "volsdf or sdf runs)")  # fmt: skip
+    if mesh is not None:
+        if not scene.load_mesh(mesh):
+            raise UserError(f"{mesh}: no such mesh file")
+    else:
+        scene.load_mesh(run / "mesh.ply")
+    return scene

@@ -1,0 +1,379 @@
+"""The web viewer: a viser server (a three.js page served on a local port) whose background is
+the run rendered by the project's own renderer from each browser's camera.
+
+Each connected browser has its own camera; a frame is rendered when that camera moves, when the
+mode changes, and (live training) when the weights have changed. The resolution adapts to the
+measured render speed: while the camera moves, frames are sized to take about
+``frame_seconds`` (coarse, fast); once it has been still for ``settle_seconds`` one frame is
+rendered at the full resolution (the browser canvas, at most ``max_resolution`` pixels a side).
+A stale frame stops between row blocks when a newer camera arrives.
+
+Overlays drawn by the browser itself (three.js, toggled in the panel): the training cameras as
+frustums showing their images, the scene box, the occupancy grid's occupied cells, a mesh
+(RUN/mesh.ply from ``warpnerf mesh`` or ``--mesh FILE``; one colour), and the camera path being
+edited. The camera-path editor adds the current view as a keyframe and saves the path as a JSON
+file that ``warpnerf render RUN --path FILE`` renders to video
+(:mod:`warpnerf.data.camera_path`).
+
+The server binds 127.0.0.1 unless told otherwise (``host``): other machines cannot connect.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..data.camera_path import CameraPath
+from ..errors import UserError
+from .scene import Aborted, RunScene
+
+__all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv"]
+
+_FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL camera axes
+
+
+def _quat_to_matrix(wxyz) -> np.ndarray:
+    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / np.linalg.norm(wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])  # fmt: skip
+
+
+def _matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    from ..data.camera_path import _quat
+
+    return _quat(r)
+
+
+def opencv_to_gl(wxyz, position) -> np.ndarray:
+    """OpenGL camera-to-world [4, 4] of a viser camera (rotation ``wxyz`` of OpenCV camera axes:
+    x right, y down, looking down +z; ``position`` in world)."""
+    m = np.eye(4)
+    m[:3, :3] = _quat_to_matrix(wxyz) @ _FLIP
+    m[:3, 3] = np.asarray(position, dtype=np.float64)
+    return m
+
+
+def gl_to_opencv(c2w) -> tuple:
+    """(wxyz, position) of viser's OpenCV-axes camera for an OpenGL camera-to-world [4, 4]."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    return _matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
+
+
+class _ClientState:
+    def __init__(self, client):
+        self.client = client
+        self.pose = None  # (c2w [4, 4], fov_y, aspect, canvas width) of the latest camera
+        self.moved_at = 0.0
+        self.version = 0  # bumped by every camera or mode change
+        self.shown = (-1, -1, False)  # (version, weights version, full) of the last frame
+
+
+class Viewer:
+    """A viser server showing ``scene`` (:class:`~warpnerf.viewer.scene.RunScene`).
+
+    ``live`` False: a background thread renders frames (``warpnerf view``). ``live`` True: the
+    owner calls :meth:`tick` between training steps and frames are rendered there, in the
+    training thread (so a frame never sees a half-updated model or occupancy grid); call
+    :meth:`weights_changed` after each step.
+    """
+
+    def __init__(self, scene: RunScene, *, host: str = "127.0.0.1", port: int = 7007,
+                 run=None, live: bool = False, frame_seconds: float = 0.1,
+                 settle_seconds: float = 0.3, max_resolution: int = 800,
+                 refresh_seconds: float = 2.0, log=print):  # fmt: skip
+        import viser
+
+        self.scene, self.live, self.log = scene, live, log
+        self.frame_seconds, self.settle_seconds = float(frame_seconds), float(settle_seconds)
+        self.max_resolution, self.refresh_seconds = int(max_resolution), float(refresh_seconds)
+        self.run = Path(run) if run is not None else None
+        self.ray_seconds = None  # measured seconds per ray (EMA)
+        self.frames = 0
+        self.weights_version, self._weights_at = 0, 0.0
+        self._clients: dict[int, _ClientState] = {}
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._path: list = []
+        self._path_handles: list = []
+        self.render_seconds = 0.0  # time spent rendering (live: taken from training)
+        try:
+            self.server = viser.ViserServer(host=host, port=port, label="warpnerf", verbose=False)
+        except OSError as e:
+            raise UserError(f"viewer: cannot listen on {host}:{port} ({e.strerror or e})") from None
+        self.port = self.server.get_port()
+        shown = "localhost" if host in ("127.0.0.1", "localhost") else host
+        self.url = f"http://{shown}:{self.port}"
+        self._build_scene()
+        self._build_gui()
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+        self._thread = None
+        if not live:
+            self._thread = threading.Thread(target=self._render_loop, daemon=True)
+            self._thread.start()
+
+    # ----------------------------------------------------------------------------- scene
+
+    def _build_scene(self) -> None:
+        sc, s = self.scene, self.server.scene
+        s.set_up_direction(tuple(sc.up))
+        b = sc.box
+        corners = np.array([[x, y, z] for x in (b[0], b[3]) for y in (b[1], b[4])
+                            for z in (b[2], b[5])])  # fmt: skip
+        edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5),
+                 (2, 6), (3, 7)]  # fmt: skip
+        s.add_line_segments("/box", corners[np.array(edges)], (240, 160, 40),
+                            thickness=2.0, thickness_units="screen")  # fmt: skip
+        self.frustums = []
+        if sc.cameras is not None:
+            n = len(sc.cameras)
+            w, h = sc.size
+            pick = np.unique(np.linspace(0, n - 1, min(n, 200)).round().astype(int))
+            scale = 0.05 * max(b[3] - b[0], b[4] - b[1], b[5] - b[2])
+            for i in pick:
+                k = sc.intrinsics[i]
+                wxyz, pos = gl_to_opencv(sc.cameras[i])
+                fov = 2 * np.arctan(0.5 * h / float(k[1]))
+                img = sc.images[i] if sc.images is not None else None
+                self.frustums.append(s.add_camera_frustum(
+                    f"/cameras/{i}", fov=float(fov), aspect=w / h, scale=scale, image=img,
+                    wxyz=wxyz, position=pos, color=(60, 90, 200),
+                ))  # fmt: skip
+        self.grid_points = None
+        self._show_grid()
+        self.mesh = None
+        if sc.mesh is not None:
+            v, f, _ = sc.mesh
+            self.mesh = s.add_mesh_simple("/mesh", v, f, color=(200, 180, 110), visible=False)
+
+    def _show_grid(self) -> None:
+        pts = self.scene.occupied_cells()
+        if pts is None:
+            return
+        visible = self.grid_points.visible if self.grid_points is not None else False
+        size = (self.scene.box[3] - self.scene.box[0]) / max(self.scene.grid.res, 1)
+        self.grid_points = self.server.scene.add_point_cloud(
+            "/occupancy", pts.astype(np.float32), (255, 140, 0), point_size=float(size),
+            visible=visible,
+        )  # fmt: skip
+
+    def _build_gui(self) -> None:
+        g = self.server.gui
+        g.add_markdown(f"**warpnerf** {self.scene.title}")
+        self.mode = g.add_dropdown("Mode", self.scene.modes, initial_value=self.scene.modes[0])
+        self.mode.on_update(lambda _: self._bump())
+        self.max_res = g.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
+        self.max_res.on_update(lambda _: self._bump())
+        self.status = g.add_markdown("rendered frames: 0")
+        with g.add_folder("Overlays"):
+            show_cams = g.add_checkbox("Training cameras", True)
+            show_cams.on_update(lambda e: [setattr(f, "visible", show_cams.value)
+                                           for f in self.frustums])  # fmt: skip
+            if self.grid_points is not None:
+                show_grid = g.add_checkbox("Occupancy grid", False)
+
+                def toggle_grid(_):
+                    if self.live and show_grid.value:
+                        self._show_grid()  # (the grid changes while training)
+                    self.grid_points.visible = show_grid.value
+
+                show_grid.on_update(toggle_grid)
+            if self.mesh is not None:
+                show_mesh = g.add_checkbox("Mesh", False)
+                show_mesh.on_update(lambda _: setattr(self.mesh, "visible", show_mesh.value))
+        with g.add_folder("Camera path"):
+            add = g.add_button("Add keyframe (this view)")
+            undo = g.add_button("Remove last keyframe")
+            clear = g.add_button("Clear")
+            self.path_frames = g.add_number("Frames", 120, min=1, max=100000, step=1)
+            self.path_loop = g.add_checkbox("Loop", False)
+            default = str(self.run / "camera_path.json") if self.run else "camera_path.json"
+            self.path_file = g.add_text("File", default)
+            save = g.add_button("Save path")
+            self.path_info = g.add_markdown("keyframes: 0")
+        add.on_click(lambda e: self._add_keyframe(e.client))
+        undo.on_click(lambda _: self._set_path(self._path[:-1]))
+        clear.on_click(lambda _: self._set_path([]))
+        save.on_click(lambda e: self._save_path(e.client))
+
+    # ------------------------------------------------------------------------ camera path
+
+    def _add_keyframe(self, client) -> None:
+        st = self._clients.get(client.client_id)
+        if st is None or st.pose is None:
+            return
+        self._set_path(self._path + [st.pose])
+
+    def _set_path(self, keys: list) -> None:
+        self._path = keys
+        s = self.server.scene
+        for h in self._path_handles:
+            h.remove()
+        self._path_handles = []
+        for i, (c2w, fov, aspect, _) in enumerate(keys):
+            wxyz, pos = gl_to_opencv(c2w)
+            self._path_handles.append(s.add_camera_frustum(
+                f"/path/key_{i}", fov=fov, aspect=aspect, scale=0.08, wxyz=wxyz, position=pos,
+                color=(220, 40, 40),
+            ))  # fmt: skip
+        if len(keys) >= 2:
+            cams = self.path().cameras(min(400, 20 * len(keys))).numpy()
+            pts = cams[:, :3, 3]
+            self._path_handles.append(s.add_line_segments(
+                "/path/line", np.stack([pts[:-1], pts[1:]], 1), (220, 40, 40), thickness=2.0,
+                thickness_units="screen",
+            ))  # fmt: skip
+        self.path_info.content = f"keyframes: {len(keys)}"
+
+    def path(self) -> CameraPath:
+        """The camera path being edited (the first keyframe's field of view and aspect)."""
+        keys = self._path
+        fov, aspect = (keys[0][1], keys[0][2]) if keys else (0.8, 1.0)
+        return CameraPath([k[0] for k in keys], fov, aspect, int(self.path_frames.value),
+                          bool(self.path_loop.value))  # fmt: skip
+
+    def _save_path(self, client) -> None:
+        try:
+            self.path().save(self.path_file.value)
+            msg = f"saved {len(self._path)} keyframes to {self.path_file.value}"
+        except (UserError, OSError) as e:
+            msg = f"not saved: {e}"
+        self.path_info.content = msg
+        self.log(f"viewer: {msg}")
+
+    # ---------------------------------------------------------------------------- clients
+
+    def _connect(self, client) -> None:
+        st = _ClientState(client)
+        with self._lock:
+            self._clients[client.client_id] = st
+        sc = self.scene
+        target = sc.target()
+        if sc.cameras is not None:  # start where the first training camera stands
+            w, h = sc.size
+            client.camera.fov = float(2 * np.arctan(0.5 * h / float(sc.intrinsics[0][1])))
+            client.camera.position = tuple(sc.cameras[0][:3, 3])
+        else:
+            client.camera.position = tuple(target + 2.5 * np.asarray(sc.up)[[1, 2, 0]])
+        client.camera.look_at = tuple(target)
+        client.camera.up_direction = tuple(sc.up)
+        client.camera.on_update(lambda cam: self._camera(st))
+
+    def _disconnect(self, client) -> None:
+        with self._lock:
+            self._clients.pop(client.client_id, None)
+
+    def _camera(self, st: _ClientState) -> None:
+        cam = st.client.camera
+        c2w = opencv_to_gl(cam.wxyz, cam.position)
+        width = int(getattr(cam, "image_width", 0) or 0)
+        with self._lock:
+            st.pose = (c2w, float(cam.fov), float(cam.aspect), width)
+            st.moved_at = time.perf_counter()
+            st.version += 1
+
+    def _bump(self) -> None:
+        with self._lock:
+            for st in self._clients.values():
+                st.version += 1
+
+    def weights_changed(self) -> None:
+        """Live training: the model changed (re-rendered at most every refresh_seconds)."""
+        now = time.perf_counter()
+        if now - self._weights_at >= self.refresh_seconds:
+            self.weights_version += 1
+            self._weights_at = now
+
+    # -------------------------------------------------------------------------- rendering
+
+    def _size(self, aspect: float, canvas: int, full: bool) -> tuple:
+        cap = min(int(self.max_res.value), canvas or self.max_resolution)
+        if full or self.ray_seconds is None:
+            w = cap if full else min(cap, 128)
+        else:
+            w = int((self.frame_seconds / self.ray_seconds * aspect) ** 0.5)
+        w = max(32, min(cap, w))
+        return w, max(16, int(round(w / max(aspect, 1e-3))))
+
+    def _next_job(self):
+        """(state, version, full) of the frame most worth rendering now, or None."""
+        now = time.perf_counter()
+        with self._lock:
+            for st in self._clients.values():
+                if st.pose is None:
+                    continue
+                still = now - st.moved_at >= self.settle_seconds
+                v, wv = st.version, self.weights_version
+                if st.shown[:2] != (v, wv):
+                    return st, v, wv, still
+                if still and not st.shown[2]:
+                    return st, v, wv, True
+        return None
+
+    def _render_job(self, job, abortable: bool) -> bool:
+        st, version, wversion, full = job
+        c2w, fov, aspect, canvas = st.pose
+        w, h = self._size(aspect, canvas, full)
+        f = 0.5 * h / np.tan(0.5 * fov)
+
+        def stale():
+            return abortable and (st.version != version or self._stop.is_set())
+
+        t0 = time.perf_counter()
+        try:
+            img = self.scene.render(c2w, f, f, w, h, str(self.mode.value), abort=stale)
+        except Aborted:
+            return False
+        dt = time.perf_counter() - t0
+        self.render_seconds += dt
+        spr = dt / (w * h)
+        self.ray_seconds = spr if self.ray_seconds is None else 0.7 * self.ray_seconds + 0.3 * spr
+        st.client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
+        st.shown = (version, wversion, full)
+        self.frames += 1
+        self.status.content = (f"rendered frames: {self.frames}, last {w}x{h} in "
+                               f"{1e3 * dt:.0f} ms")  # fmt: skip
+        return True
+
+    def _render_loop(self) -> None:
+        while not self._stop.is_set():
+            job = self._next_job()
+            if job is None:
+                time.sleep(0.01)
+                continue
+            try:
+                self._render_job(job, abortable=True)
+            except Exception as e:  # a broken frame must not kill the server
+                self.status.content = f"render failed: {e}"
+                self.log(f"viewer: render failed: {e}")
+                time.sleep(0.5)
+
+    def tick(self) -> None:
+        """Live training: renders at most one frame, in the caller's thread; frames are spaced
+        so that rendering takes at most about a fifth of the time while someone watches."""
+        if not self._clients:
+            return
+        now = time.perf_counter()
+        last = getattr(self, "_last_tick_frame", 0.0)
+        if now - last < max(0.05, 4.0 * getattr(self, "_last_frame_seconds", 0.0)):
+            return
+        job = self._next_job()
+        if job is None:
+            return
+        t0 = time.perf_counter()
+        self._render_job(job, abortable=False)
+        self._last_frame_seconds = time.perf_counter() - t0
+        self._last_tick_frame = time.perf_counter()
+
+    def close(self) -> None:
+        """Stops the render thread and the server (its port is free afterwards)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+        self.server.stop()
