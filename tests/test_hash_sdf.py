@@ -140,6 +140,45 @@ def test_logistic_density_is_neus_along_the_normal():
         assert float(mid) == pytest.approx(0.5 / float(beta), rel=1e-12)
 
 
+def test_reflected_direction_colour_input():
+    """color_direction="reflect": the head sees SH(w_r) with w_r = d - 2 (d . n) n (unit, the
+    mirror law: equal angles to the normal, in the plane of d and n) and n . v; gradients reach
+    the SDF network; hard cases stay finite."""
+    from warpnerf.fields.hash_sdf import reflect
+
+    g = torch.Generator().manual_seed(1)
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    n = torch.nn.functional.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    r = reflect(d, n)
+    assert torch.allclose(r.norm(dim=-1), torch.ones(64, dtype=torch.float64))
+    assert torch.allclose((r * n).sum(-1), -(d * n).sum(-1))  # angle of reflection
+    assert torch.allclose(torch.linalg.det(torch.stack([d, n, r], 1)), torch.zeros(64,
+                          dtype=torch.float64), atol=1e-12)  # coplanar  # fmt: skip
+    head_on = reflect(-n, n)
+    assert torch.allclose(head_on, n)  # looking straight at a mirror: back along the normal
+    f = field(color_direction="reflect")
+    seen = {}
+    f.color_mlp[0].register_forward_hook(lambda m, a, o: seen.update(x=a[0]))
+    x = inside(40)
+    dirs = torch.nn.functional.normalize(torch.randn(len(x), 3, generator=g), dim=-1)
+    sigma, rgb = f(x, dirs)
+    nrm = torch.nn.functional.normalize(f.gradient(x), dim=-1)
+    want = f.sh(reflect(dirs, nrm))
+    k = 3 + 15
+    assert torch.allclose(seen["x"][:, k : k + f.sh.out_dim], want, atol=1e-5)
+    assert torch.allclose(seen["x"][:, -1], -(dirs * nrm).sum(-1), atol=1e-5)
+    (rgb.sum()).backward()
+    first = f.sdf_mlp[0].weight.grad
+    assert first is not None and torch.isfinite(first).all() and first.abs().max() > 0
+    far = torch.tensor([[100.0, 0.0, 0.0], [1.5, 1.5, 1.5]])
+    s2, c2 = f(far, torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
+    assert torch.isfinite(s2).all() and torch.isfinite(c2).all()
+    with pytest.raises(ValueError, match="color_direction"):
+        field(color_direction="sideways")
+    with pytest.raises(ValueError, match="view_dependence"):
+        field(color_direction="reflect", view_dependence=False)
+
+
 def test_annealed_beta_follows_its_schedule_and_is_saved():
     """--beta-final: beta goes geometrically from beta to beta_final over anneal_steps, then
     stays; it is not a parameter; the value is in the state dict (a checkpoint renders with it)."""
@@ -268,3 +307,20 @@ def test_annealed_beta_below_the_march_step_warns(tmp_path, capsys):
                  "--beta-anneal-steps", "1"]) == 0  # fmt: skip
     out = capsys.readouterr()
     assert "below the marching step" in out.out + out.err and "--march-step" in out.out + out.err
+
+
+def test_color_direction_flag(tmp_path, capsys):
+    from warpnerf.cli.parser import main
+    from warpnerf.train.nerf import load_run
+
+    tiny = ["--data", "builtin", "--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res",
+            "16", "--grid-res", "8", "--builtin-size", "16", "--batch", "64", "--val-images", "0",
+            "--quiet", "--iters", "2"]  # fmt: skip
+    run = tmp_path / "r"
+    assert main(["train", "volsdf", *tiny, "--field", "hash_sdf", "--color-direction", "reflect",
+                 "--out", str(run)]) == 0  # fmt: skip
+    cfg, model, _ = load_run(run)
+    assert cfg.color_direction == "reflect" and model.field.reflect
+    assert main(["train", "volsdf", *tiny, "--field", "volsdf", "--color-direction", "reflect",
+                 "--out", str(tmp_path / "v")]) == 2  # fmt: skip
+    assert "--color-direction" in capsys.readouterr().err

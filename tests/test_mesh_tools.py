@@ -105,3 +105,54 @@ def test_mesh_command_cleans_and_decimates(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([*base, "--decimate", "nan"])
     assert e.value.code == 2 and "argument --decimate" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ PLY files (plyfile-backed)
+
+
+def _tetra():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
+    return v, f
+
+
+def test_ply_round_trip_and_files_other_tools_write(tmp_path):
+    import plyfile
+
+    from warpnerf.mesh import read_ply, write_ply
+
+    v, f = _tetra()
+    c = np.arange(12, dtype=np.uint8).reshape(4, 3)
+    write_ply(tmp_path / "m.ply", v, f, colors=c, normals=v)
+    v2, f2, c2, n2 = read_ply(tmp_path / "m.ply", colors=True, normals=True)
+    assert np.array_equal(v2, v) and np.array_equal(f2, f) and np.array_equal(c2, c)
+    assert np.array_equal(n2, v)
+    # ascii and big-endian files (as MeshLab or Blender may write them) read the same
+    rows = np.array([tuple(p) for p in v], dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    tris = np.empty(4, dtype=[("vertex_indices", "i4", (3,))])
+    tris["vertex_indices"] = f
+    for name, kw in (("a.ply", {"text": True}), ("b.ply", {"byte_order": ">"})):
+        plyfile.PlyData([plyfile.PlyElement.describe(rows, "vertex"),
+                         plyfile.PlyElement.describe(tris, "face")], **kw).write(
+            str(tmp_path / name))  # fmt: skip
+        v3, f3, c3 = read_ply(tmp_path / name, colors=True)
+        assert np.array_equal(v3, v) and np.array_equal(f3, f) and c3 is None
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda b: b.replace(b"element vertex 4", b"element vertex 4000000"), "promises more"),
+    (lambda b: b[: len(b) - 20], "unreadable"),
+    (lambda b: b.replace(b"ply\n", b"plx\n", 1), "does not start"),
+    (lambda b: b[:-13] + b"\x03" + np.array([0, 1, 99], "<i4").tobytes(), "outside"),
+    (lambda b: b.replace(b"format binary_little_endian", b"format binary_sideways"), "header"),
+])  # fmt: skip
+def test_hostile_ply_files_are_refused(tmp_path, mutate, match):
+    from warpnerf.errors import UserError
+    from warpnerf.mesh import read_ply, write_ply
+
+    v, f = _tetra()
+    write_ply(tmp_path / "m.ply", v, f)
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(mutate((tmp_path / "m.ply").read_bytes()))
+    with pytest.raises(UserError, match=match):
+        read_ply(bad)

@@ -255,3 +255,43 @@ def test_live_viewer_leaves_training_unchanged(tmp_path):
     w = Watching(tmp_path / "c", port=_free_port(), log=lambda *a: None)
     assert _train(tmp_path / "c", [w])["loss"] == base["loss"]
     assert len(w.client.images) >= 4 and w.client.images[-1].shape[2] == 3
+
+
+def test_viewer_overlays_and_the_path_editor(tmp_path):
+    """A hash_sdf run with a coloured mesh: the viewer builds its grid, mesh and camera overlays;
+    keyframes added from a client's camera are saved as a path file `render --path` reads."""
+    from warpnerf.mesh import write_ply
+    from warpnerf.viewer import Viewer, load_scene
+    from warpnerf.viewer.server import _ClientState
+
+    run = tmp_path / "s"
+    assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--hash-levels",
+                 "3", "--hash-log2-size", "8", "--hash-max-res", "16", "--grid-res", "8",
+                 "--builtin-size", "16", "--batch", "64", "--val-images", "0", "--quiet",
+                 "--iters", "2", "--out", str(run)]) == 0  # fmt: skip
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    write_ply(run / "mesh.ply", v, np.array([[0, 1, 2]]), colors=np.full((3, 3), 200, np.uint8))
+    viewer = Viewer(load_scene(run), port=_free_port(), run=run, log=lambda *a: None)
+    try:
+        assert viewer.mesh is not None and viewer.grid_points is not None
+        assert len(viewer.frustums) == len(viewer.scene.cameras)
+        st = _ClientState(_FakeClient())
+        viewer._clients[1] = st
+        for a in (0.0, 0.5, 1.0):
+            st.pose = (look_at((3 * math.cos(a), 3 * math.sin(a), 1), (0, 0, 0)).double().numpy(),
+                       0.7, 1.5, 64)  # fmt: skip
+            viewer._add_keyframe(st.client)
+        viewer.path_frames.value = 7
+        viewer.path_file.value = str(tmp_path / "p.json")
+        viewer._save_path(st.client)
+        assert "saved 3 keyframes" in viewer.path_info.content
+        path = load_camera_path(tmp_path / "p.json")
+        assert path.keyframes.shape == (3, 4, 4) and path.frames == 7
+        assert math.isclose(path.fov_y, 0.7) and math.isclose(path.aspect, 1.5)
+        (tmp_path / "mine.json").write_text("{}")  # a user's file is never replaced
+        viewer.path_file.value = str(tmp_path / "mine.json")
+        viewer._save_path(st.client)
+        assert "not saved" in viewer.path_info.content
+        assert (tmp_path / "mine.json").read_text() == "{}"
+    finally:
+        viewer.close()

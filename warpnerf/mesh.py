@@ -9,6 +9,7 @@ threshold for NeRFs. Vertices come back in world coordinates.
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -74,62 +75,105 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False,
               colors=None, normals=None) -> None:  # fmt: skip
     """Binary little-endian PLY (float32 xyz, optional float32 nx/ny/nz and uchar red/green/blue
-    per vertex, int32 triangle indices; no faces for a point cloud), written atomically."""
-    v = np.ascontiguousarray(vertices, dtype="<f4")
-    f = np.ascontiguousarray(faces, dtype="<i4").reshape(-1, 3)
-    props = "property float x\nproperty float y\nproperty float z\n"
-    row = [("p", "<f4", (3,))]
+    per vertex, int32 triangle indices; no faces for a point cloud), written atomically with
+    plyfile."""
+    import plyfile
+
+    v = np.asarray(vertices, dtype="<f4").reshape(-1, 3)
+    f = np.asarray(faces, dtype="<i4").reshape(-1, 3)
+    row = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if normals is not None:
         nr = np.asarray(normals)
         if nr.shape != (len(v), 3):
             raise ValueError(f"normals must be [{len(v)}, 3], got {nr.shape}")
-        props += "property float nx\nproperty float ny\nproperty float nz\n"
-        row.append(("n", "<f4", (3,)))
+        row += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if colors is not None:
         c = np.asarray(colors)
         if c.shape != (len(v), 3) or c.dtype != np.uint8:
             raise ValueError(f"colors must be uint8 [{len(v)}, 3], got {c.dtype} {c.shape}")
-        props += "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        row.append(("c", "u1", (3,)))
-    if len(row) > 1:
-        rows = np.empty(len(v), dtype=row)
-        rows["p"] = v
-        if normals is not None:
-            rows["n"] = nr
-        if colors is not None:
-            rows["c"] = c
-        v = rows
-    head = (
-        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(v)}\n{props}"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
-    ).encode()
-    body = np.empty(len(f), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-    body["n"], body["i"] = 3, f
+        row += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rows = np.empty(len(v), dtype=row)
+    rows["x"], rows["y"], rows["z"] = v.T
+    if normals is not None:
+        rows["nx"], rows["ny"], rows["nz"] = np.asarray(nr, dtype="<f4").T
+    if colors is not None:
+        rows["red"], rows["green"], rows["blue"] = c.T
+    tris = np.empty(len(f), dtype=[("vertex_indices", "<i4", (3,))])
+    tris["vertex_indices"] = f
+    data = plyfile.PlyData([
+        plyfile.PlyElement.describe(rows, "vertex"),
+        plyfile.PlyElement.describe(tris, "face", len_types={"vertex_indices": "u1"}),
+    ], byte_order="<")  # fmt: skip
     with atomic_path(path, replace_foreign) as tmp, open(tmp, "wb") as fh:
-        fh.write(head)
-        fh.write(v.tobytes())
-        fh.write(body.tobytes())
+        data.write(fh)
+
+
+MAX_PLY_BYTES = 1 << 32  # 4 GiB: larger mesh files are refused before reading
 
 
 def read_ply(path, colors: bool = False, normals: bool = False):
-    """Reads what :func:`write_ply` writes: (vertices [V, 3], faces [F, 3]), plus the vertex
-    colours uint8 [V, 3] when ``colors`` and the normals [V, 3] when ``normals`` (None when the
-    file has none)."""
-    data = open(path, "rb").read()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    head = data[:end].decode().splitlines()
-    nv = int(next(x for x in head if x.startswith("element vertex")).split()[-1])
-    nf = int(next(x for x in head if x.startswith("element face")).split()[-1])
-    rgb, nrm = "property uchar red" in head, "property float nx" in head
-    row = [("p", "<f4", (3,))] + ([("n", "<f4", (3,))] if nrm else [])
-    row += [("c", "u1", (3,))] if rgb else []
-    verts = np.frombuffer(data, row, nv, end)
-    body = np.frombuffer(data, [("n", "u1"), ("i", "<i4", (3,))], nf, end + verts.nbytes)
-    out = (verts["p"].copy(), body["i"].copy())
+    """(vertices [V, 3] float32, faces [F, 3] int32) of a PLY mesh or point cloud (plyfile:
+    ascii or binary; faces must be triangles), plus the vertex colours uint8 [V, 3] when
+    ``colors`` and the normals [V, 3] when ``normals`` (None when the file has none).
+
+    The file may be untrusted (a run folder's mesh): the header's counts are checked against the
+    file's size before plyfile allocates anything, and an unreadable file, non-triangle faces,
+    face indices outside the vertices or non-finite coordinates are a
+    :class:`~warpnerf.errors.UserError` naming the file."""
+    import plyfile
+
+    from .errors import UserError
+
+    path = Path(path)
+
+    def bad(msg):
+        return UserError(f"{path}: unreadable PLY file ({msg})")
+
+    try:
+        size = path.stat().st_size
+        if size > MAX_PLY_BYTES:
+            raise bad(f"{size} bytes, more than the {MAX_PLY_BYTES} accepted")
+        with open(path, "rb") as fh:
+            head = fh.read(_PLY_MAX_HEADER + 64)
+    except OSError as e:
+        raise bad(f"cannot read: {e.strerror or e}") from None
+    fmt, elements, start = _ply_header(head, bad)
+    counts = {name: n for name, n, _ in elements}
+    # the fewest bytes the promised rows take: binary xyz floats and 1 + 3 x 4-byte triangles;
+    # ascii "0 0 0\n" and "3 0 0 0\n"
+    per = (6, 8) if fmt == "ascii" else (12, 13)
+    if size - start < per[0] * counts.get("vertex", 0) + per[1] * counts.get("face", 0):
+        raise bad(f"the header promises more elements than its {size} bytes hold")
+    try:
+        with open(path, "rb") as fh:
+            ply = plyfile.PlyData.read(fh, known_list_len={"face": {"vertex_indices": 3}})
+        vert = ply["vertex"].data
+        names = vert.dtype.names or ()
+        pts = np.stack([vert[k] for k in ("x", "y", "z")], -1).astype(np.float32)
+        if "face" in ply and len(ply["face"].data):
+            lists = ply["face"].data[ply["face"].data.dtype.names[0]]
+            tri = np.stack([np.asarray(t) for t in lists]).astype(np.int64)
+        else:
+            tri = np.zeros((0, 3), np.int64)
+    except UserError:
+        raise
+    except (plyfile.PlyParseError, KeyError, ValueError, IndexError, TypeError, OSError) as e:
+        raise bad(str(e)[:200]) from None
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise bad("faces must be triangles")
+    if len(tri) and (tri.min() < 0 or tri.max() >= len(pts)):
+        raise bad(f"face indices outside the {len(pts)} vertices")
+    if not np.isfinite(pts).all():
+        raise bad("non-finite vertex coordinates")
+    out = (pts, tri.astype(np.int32))
     if colors:
-        out += (verts["c"].copy() if rgb else None,)
+        rgb = {"red", "green", "blue"} <= set(names)
+        out += (np.stack([vert[k] for k in ("red", "green", "blue")], -1).astype(np.uint8)
+                if rgb else None,)  # fmt: skip
     if normals:
-        out += (verts["n"].copy() if nrm else None,)
+        nrm = {"nx", "ny", "nz"} <= set(names)
+        out += (np.stack([vert[k] for k in ("nx", "ny", "nz")], -1).astype(np.float32)
+                if nrm else None,)  # fmt: skip
     return out
 
 

@@ -30,7 +30,12 @@ The step h follows the coarse-to-fine schedule (Neuralangelo, Li et al. 2023): t
 open one by one (:meth:`set_step`: ``levels_start`` levels at step 0, one more every
 ``level_every`` steps) and h is the cell size of the finest open level, so early normals are
 smooth and later ones resolve detail. Colour: an MLP on (normal, geometry features, spherical
-harmonics of the view direction). The colour head gets the sample positions in the features it
+harmonics of the view direction; with ``color_direction="reflect"`` the view direction
+reflected about the normal, w_r = d - 2 (d . n) n, and n . v instead, Ref-NeRF's
+parameterisation: a mirror-like highlight is then a function of w_r the head can learn once for
+the whole surface rather than something it explains by bending the geometry, and its gradient
+reaches the normal, so the geometry is pulled to where the reflections agree; measured on lego
+and materials: not yet). The colour head gets the sample positions in the features it
 receives from :meth:`density`, so the culling pass (densities only) costs one SDF evaluation and
 only coloured samples pay for the 6-point gradient.
 
@@ -51,9 +56,18 @@ from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
 from .sdf_volume import laplace_cdf
 
-__all__ = ["HashSDFField", "DENSITIES", "logistic_density", "sdf_density"]
+__all__ = ["HashSDFField", "DENSITIES", "COLOR_DIRECTIONS", "logistic_density", "sdf_density",
+           "reflect"]
 
 DENSITIES = ("laplace", "logistic")
+COLOR_DIRECTIONS = ("view", "reflect")
+
+
+def reflect(directions: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The viewing directions [n, 3] (unit, camera to point) mirrored about the unit normals
+    [n, 3]: w_r = d - 2 (d . n) n, the direction a mirror at the point reflects the view into
+    (Ref-NeRF, Verbin et al. 2022: 2 (w_o . n) n - w_o with w_o = -d). Unit length."""
+    return directions - 2.0 * (directions * normals).sum(-1, keepdim=True) * normals
 
 
 def logistic_density(d: torch.Tensor, beta) -> torch.Tensor:
@@ -82,8 +96,15 @@ class HashSDFField(nn.Module):
                  n_features: int = 15, view_dependence: bool = True, beta: float = 0.1,
                  beta_min: float = 1e-4, learn_beta: bool = True, radius: float = 0.5,
                  levels_start: int = 4, level_every: int = 0, density: str = "laplace",
-                 beta_final: float = 0.0, anneal_steps: int = 1):  # fmt: skip
+                 beta_final: float = 0.0, anneal_steps: int = 1,
+                 color_direction: str = "view"):  # fmt: skip
         super().__init__()
+        if color_direction not in COLOR_DIRECTIONS:
+            raise ValueError(f"color_direction must be one of {COLOR_DIRECTIONS}, got "
+                             f"{color_direction!r}")  # fmt: skip
+        self.reflect = color_direction == "reflect"
+        if self.reflect and not view_dependence:
+            raise ValueError("color_direction 'reflect' needs view_dependence")
         if density not in DENSITIES:
             raise ValueError(f"density must be one of {DENSITIES}, got {density!r}")
         if beta_final > 0 and not (beta_min <= beta_final <= beta and anneal_steps >= 1):
@@ -120,7 +141,7 @@ class HashSDFField(nn.Module):
         )  # fmt: skip
         self._geometric_init(radius, e)
         self.sh = SphericalHarmonics(4) if view_dependence else None
-        d_col = 3 + n_features + (self.sh.out_dim if view_dependence else 0)
+        d_col = 3 + n_features + (self.sh.out_dim if view_dependence else 0) + int(self.reflect)
         self.color_mlp = nn.Sequential(
             nn.Linear(d_col, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
             nn.Linear(hidden, 3),
@@ -228,7 +249,12 @@ class HashSDFField(nn.Module):
         if self.view_dependence:
             if directions is None:
                 raise ValueError("a view-dependent field needs directions")
-            parts.append(self.sh(directions.to(h.dtype)))
+            d = directions.to(h.dtype)
+            if self.reflect:  # the reflected direction (gradients reach the normal) and n . v
+                d = torch.nn.functional.normalize(d, dim=-1)
+                parts += [self.sh(reflect(d, n)), -(d * n).sum(-1, keepdim=True)]
+            else:
+                parts.append(self.sh(d))
         return torch.sigmoid(self.color_mlp(torch.cat(parts, -1)))
 
     def aux_losses(self) -> dict:

@@ -157,6 +157,6 @@ def _hash_sdf(cfg) -> RadianceModel:
         box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, view_dependence=cfg.view_dependence,
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
         level_every=cfg.c2f_every, density=cfg.sdf_density, beta_final=cfg.beta_final,
-        anneal_steps=cfg.beta_anneal_steps,
+        anneal_steps=cfg.beta_anneal_steps, color_direction=cfg.color_direction,
     )  # fmt: skip
     return _on_grid(cfg, f, box)

@@ -94,6 +94,11 @@ class NeRFConfig:
         "laplace", "hash_sdf: SDF-to-density conversion, laplace (VolSDF) or logistic (NeuS, "
         "s = 1/beta)", groups=VOLSDF,
     )  # fmt: skip
+    color_direction: str = option(
+        "view", "hash_sdf: the colour head's direction input, view (the viewing direction) or "
+        "reflect (it reflected about the SDF normal, plus n.v: Ref-NeRF's input for glossy "
+        "surfaces)", groups=VOLSDF,
+    )  # fmt: skip
     eikonal_weight: float | None = option(
         None, "weight of (|grad d| - 1)^2 (samples + random points); default 0.1 (volsdf), "
         "0.01 (hash_sdf: measured +0.7 dB on lego, docs/PERFORMANCE.md)", check="finite",
@@ -246,7 +251,8 @@ class NeRFConfig:
             raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
         choices = {"field": FIELDS, "ndc": ("auto", "on", "off"),
                    "density_activation": ("relu", "softplus"), "data_format": FORMATS,
-                   "sdf_density": ("laplace", "logistic")}  # fmt: skip
+                   "sdf_density": ("laplace", "logistic"),
+                   "color_direction": ("view", "reflect")}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
@@ -259,8 +265,12 @@ class NeRFConfig:
             if self.beta_final > 0 and not self.beta_min <= self.beta_final <= self.beta:
                 raise fail("beta_final", f"must be in [beta_min, beta] = [{self.beta_min}, "
                            f"{self.beta}] (or 0: off), got {self.beta_final}")  # fmt: skip
-            if self.field != "hash_sdf" and (self.beta_final > 0 or self.sdf_density != "laplace"):
-                raise fail("field", "--beta-final and --sdf-density need --field hash_sdf")
+            if self.field != "hash_sdf" and (self.beta_final > 0 or self.sdf_density != "laplace"
+                                             or self.color_direction != "view"):  # fmt: skip
+                raise fail("field", "--beta-final, --sdf-density and --color-direction need "
+                           "--field hash_sdf")  # fmt: skip
+            if self.color_direction == "reflect" and not self.view_dependence:
+                raise fail("color_direction", "reflect needs view dependence")
             if self.beta_anneal_steps < 1:
                 raise fail("beta_anneal_steps", f"must be >= 1, got {self.beta_anneal_steps}")
             d_in = 3 * (1 + 2 * self.pos_freqs)

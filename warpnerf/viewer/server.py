@@ -10,7 +10,7 @@ A stale frame stops between row blocks when a newer camera arrives.
 
 Overlays drawn by the browser itself (three.js, toggled in the panel): the training cameras as
 frustums showing their images, the scene box, the occupancy grid's occupied cells, a mesh
-(RUN/mesh.ply from ``warpnerf mesh`` or ``--mesh FILE``; one colour), and the camera path being
+(RUN/mesh.ply from ``warpnerf mesh`` or ``--mesh FILE``, with its vertex colours), and the camera path being
 edited. The camera-path editor adds the current view as a keyframe and saves the path as a JSON
 file that ``warpnerf render RUN --path FILE`` renders to video
 (:mod:`warpnerf.data.camera_path`).
@@ -135,7 +135,7 @@ class Viewer:
             n = len(sc.cameras)
             w, h = sc.size
             pick = np.unique(np.linspace(0, n - 1, min(n, 200)).round().astype(int))
-            scale = 0.05 * max(b[3] - b[0], b[4] - b[1], b[5] - b[2])
+            scale = 0.035 * max(b[3] - b[0], b[4] - b[1], b[5] - b[2])
             for i in pick:
                 k = sc.intrinsics[i]
                 wxyz, pos = gl_to_opencv(sc.cameras[i])
@@ -149,8 +149,14 @@ class Viewer:
         self._show_grid()
         self.mesh = None
         if sc.mesh is not None:
-            v, f, _ = sc.mesh
-            self.mesh = s.add_mesh_simple("/mesh", v, f, color=(200, 180, 110), visible=False)
+            v, f, c = sc.mesh
+            if c is not None:  # the baked vertex colours (`mesh --colors`), through trimesh
+                import trimesh
+
+                tm = trimesh.Trimesh(v, f, vertex_colors=c, process=False)
+                self.mesh = s.add_mesh_trimesh("/mesh", tm, visible=False)
+            else:
+                self.mesh = s.add_mesh_simple("/mesh", v, f, color=(200, 180, 110), visible=False)
 
     def _show_grid(self) -> None:
         pts = self.scene.occupied_cells()
@@ -255,10 +261,11 @@ class Viewer:
             self._clients[client.client_id] = st
         sc = self.scene
         target = sc.target()
-        if sc.cameras is not None:  # start where the first training camera stands
-            w, h = sc.size
+        if sc.cameras is not None:  # start behind the first training camera: the scene and
+            w, h = sc.size  # the nearer cameras in view
             client.camera.fov = float(2 * np.arctan(0.5 * h / float(sc.intrinsics[0][1])))
-            client.camera.position = tuple(sc.cameras[0][:3, 3])
+            c0 = np.asarray(sc.cameras[0][:3, 3], dtype=np.float64)
+            client.camera.position = tuple(target + 1.8 * (c0 - target))
         else:
             client.camera.position = tuple(target + 2.5 * np.asarray(sc.up)[[1, 2, 0]])
         client.camera.look_at = tuple(target)
