@@ -114,7 +114,9 @@ def main() -> int:
                 rows.append(dict(one(mode, argv, Path(tmp), k), repeat=k))
                 print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     plain = {r["repeat"]: r["mean_step_ms"] for r in rows if r["mode"] == "plain"}
-    print("| mode | runs | median step ms | mean step ms | hooks ms/step | mean slowdown vs plain |")
+    print(
+        "| mode | runs | median step ms | mean step ms | hooks ms/step | mean slowdown vs plain |"
+    )
     print("|---|---|---|---|---|---|")
     summary = {}
     for mode in MODES:
@@ -132,7 +134,9 @@ def main() -> int:
               f"{s['hook_ms_per_step']:.4f} | {100 * s['slowdown']:+.2f} % "
               f"({', '.join(f'{100 * x:+.1f}' for x in slow)}) |")  # fmt: skip
     if a.json:
-        Path(a.json).write_text(json.dumps({"argv": argv, "rows": rows, "summary": summary}, indent=1))
+        Path(a.json).write_text(
+            json.dumps({"argv": argv, "rows": rows, "summary": summary}, indent=1)
+        )
     return 0
 
 

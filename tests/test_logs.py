@@ -32,7 +32,7 @@ def _scalars(logdir) -> dict:
 def test_training_logs_what_the_history_holds(tmp_path):
     run = tmp_path / "r"
     assert main(["train", "nerf", *TINY, "--iters", "6", "--val-every", "3", "--val-images", "1",
-                 "--out", str(run)]) == 0  # fmt: skip
+                 "--log-every", "1", "--out", str(run)]) == 0  # fmt: skip
     hist = json.loads((run / "history.json").read_text())
     s = _scalars(run / TENSORBOARD_DIR)
     assert [st for st, _ in s["train/loss"]] == hist["step"] == list(range(1, 7))
@@ -43,7 +43,23 @@ def test_training_logs_what_the_history_holds(tmp_path):
     assert len(s["train/lr"]) == 6 and len(s["train/step_ms"]) == 5
     assert set(s["images"]) == {"val/rgb", "val/depth"}
     # a resumed run continues the curves: steps 1..9 once each
-    assert main(["train", "nerf", "--out", str(run), "--resume", "--iters", "9", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "train",
+                "nerf",
+                "--out",
+                str(run),
+                "--resume",
+                "--iters",
+                "9",
+                "--quiet",
+                "--log-every",
+                "1",
+            ]
+        )
+        == 0
+    )
     s = _scalars(run / TENSORBOARD_DIR)
     assert [st for st, _ in s["train/loss"]] == list(range(1, 10))
     assert len(os.listdir(run / TENSORBOARD_DIR)) == 2
@@ -53,7 +69,7 @@ def test_a_resume_purges_what_was_logged_past_the_checkpoint(tmp_path):
     """Steps logged after the last checkpoint (an interrupted run) are replaced, not doubled."""
 
     def log(first, last, start, value):
-        h = TensorBoardLog(tmp_path)
+        h = TensorBoardLog(tmp_path, log_every=1)
         h.on_start(None, start)
         hist = {"step": [], "loss": [], "seconds": []}
         for st in range(first, last + 1):
@@ -80,3 +96,16 @@ def test_no_tensorboard_and_foreign_folders(tmp_path, capsys):
     assert rc == 2 and "is not a folder warpnerf made" in capsys.readouterr().err
     assert sorted(os.listdir(bad)) == [TENSORBOARD_DIR]  # nothing written
     assert os.listdir(tmp_path / "elsewhere") == []
+
+
+def test_scalars_every_n_steps(tmp_path):
+    """--log-every N (default 10): one record every N steps, step_ms the mean since the last."""
+    run = tmp_path / "r"
+    assert main(["train", "nerf", *TINY, "--iters", "25", "--val-images", "0",
+                 "--out", str(run)]) == 0  # fmt: skip
+    hist = json.loads((run / "history.json").read_text())
+    s = _scalars(run / TENSORBOARD_DIR)
+    assert [st for st, _ in s["train/loss"]] == [10, 20]
+    assert [v for _, v in s["train/loss"]] == pytest.approx([hist["loss"][9], hist["loss"][19]])
+    sec = hist["seconds"]
+    assert s["train/step_ms"][0][1] == pytest.approx(1e3 * (sec[19] - sec[9]) / 10, rel=1e-5)

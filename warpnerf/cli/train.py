@@ -20,7 +20,7 @@ from ._common import (
     _device,
     _saved_config,
 )
-from .view import live_hooks, watch_flags
+from .view import live_hooks, tensorboard_every, watch_flags
 
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
 
@@ -40,7 +40,7 @@ def cmd_train_box(args) -> int:
             frames=args.frames,
             progress=not args.quiet,
             resume=True,
-            tensorboard=args.tensorboard,
+            tensorboard=tensorboard_every(args),
         )
         print(json_dumps(res))
         return 0
@@ -56,7 +56,7 @@ def cmd_train_box(args) -> int:
         device=_device(args.device or DEVICE),
         frames=args.frames,
         progress=not args.quiet,
-        tensorboard=args.tensorboard,
+        tensorboard=tensorboard_every(args),
     )
     print(json_dumps(res))
     return 0
@@ -75,6 +75,7 @@ _RESUME_FLAGS = {
     "model",
     "frames",  # train box: the spiral video written at the end, not part of the fit
     "tensorboard",  # watching a training changes nothing in it
+    "log_every",
     "viewer",
     "host",
     "port",
@@ -134,7 +135,7 @@ def cmd_train_nerf(args) -> int:
     else:
         cfg, device = nerf_config_from_args(args), None
     hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet, device=device,
-                      hooks=live_hooks(args), tensorboard=args.tensorboard)  # fmt: skip
+                      hooks=live_hooks(args), tensorboard=tensorboard_every(args))  # fmt: skip
     last = {
         "step": hist["step"][-1] if hist["step"] else 0,
         "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,
@@ -153,7 +154,7 @@ def cmd_train_sdf(args) -> int:
         dev = _resume_device(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
         m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev,
-                      tensorboard=args.tensorboard)  # fmt: skip
+                      tensorboard=tensorboard_every(args))  # fmt: skip
     else:
         if args.points is None:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
@@ -161,7 +162,7 @@ def cmd_train_sdf(args) -> int:
         kw.update(n_random=kw["batch"], skip=max(1, kw["n_layers"] // 2))
         kw["device"] = _device(args.device or SDFConfig.device)
         cfg = SDFConfig(**kw)
-        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=args.tensorboard)
+        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=tensorboard_every(args))
     keys = ("step", "seconds", "chamfer", "vertices", "faces")
     out = {k: m[k] for k in keys}
     out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]

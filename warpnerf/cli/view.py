@@ -38,10 +38,22 @@ def watch_flags(p, viewer: bool) -> None:
         action="store_false",
         help="no TensorBoard event files in RUN/tensorboard (default: written)",
     )
+    p.add_argument(
+        "--log-every",
+        type=_positive(int),
+        default=10,
+        metavar="N",
+        help="TensorBoard: scalars every N steps (default 10; history.json has all)",
+    )
     if viewer:
         p.add_argument("--viewer", action="store_true", help="serve the web viewer during "
                        "training (frames render between steps; see `warpnerf view`)")  # fmt: skip
         _host_port_flags(p, "--viewer-port")
+
+
+def tensorboard_every(args) -> int:
+    """The `tensorboard` argument of the trainers: a record every N steps, 0 for none."""
+    return args.log_every if args.tensorboard else 0
 
 
 def check_port(port: int) -> None:

@@ -56,8 +56,14 @@ from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
 from .sdf_volume import laplace_cdf
 
-__all__ = ["HashSDFField", "DENSITIES", "COLOR_DIRECTIONS", "logistic_density", "sdf_density",
-           "reflect"]
+__all__ = [
+    "HashSDFField",
+    "DENSITIES",
+    "COLOR_DIRECTIONS",
+    "logistic_density",
+    "sdf_density",
+    "reflect",
+]
 
 DENSITIES = ("laplace", "logistic")
 COLOR_DIRECTIONS = ("view", "reflect")

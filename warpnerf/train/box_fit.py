@@ -294,7 +294,7 @@ def run_box_fit_on_folder(
     progress: bool = False,
     resume: bool = False,
     log=print,
-    tensorboard: bool = False,
+    tensorboard: int = 0,
 ):
     """The seed's box task on a Blender-format folder: images alpha-composited on black, fits the
     rainbow box in run folder ``out`` (``config.json``, atomic ``checkpoint.pt`` and
@@ -307,7 +307,7 @@ def run_box_fit_on_folder(
     and every other setting come from the run's config.json, and ``device`` (if given) moves it.
     ``device`` None: cpu for a new fit.
 
-    ``tensorboard``: also TensorBoard event files in OUT/tensorboard.
+    ``tensorboard`` N > 0: also TensorBoard event files in OUT/tensorboard, every N steps.
 
     Returns {"center": [x, y, z], "side_lengths": [a, b, c], "final_loss": float}.
     """
@@ -317,7 +317,7 @@ def run_box_fit_on_folder(
 
 
 def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, locks,
-                 tensorboard=False):  # fmt: skip
+                 tensorboard=0):  # fmt: skip
     from ..data.blender import load_blender
 
     state = None
@@ -339,7 +339,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     # every frame is fitted (holdout 0: no frames held out of a single transforms.json)
     ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
     dev = torch.device(device)
-    tb = [TensorBoardLog(out)] if tensorboard else []  # (checks the folder; writes nothing)
+    tb = [TensorBoardLog(out, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:
         locks.enter_context(output_lock(out, "run folder"))
         old = _read_config(out)  # again, under the lock

@@ -1,15 +1,17 @@
 """Training logs that plotting tools read: TensorBoard event files beside ``history.json``.
 
-:class:`TensorBoardLog` is a :class:`~warpnerf.train.loop.LoopHook`: after every step it writes
-the step's history entries as scalars (``train/loss``, ``train/psnr``, ``train/samples_per_ray``,
-``train/beta``, ... whatever the task records), the learning rate (``train/lr``) and the step's
-training time (``train/step_ms``); after every validation its figures (``val/val_psnr``) and,
-when the task kept them, the first validation image's prediction beside its ground truth
-(``val/rgb``) and its depth (``val/depth``). Files go to ``RUN/tensorboard/`` (``tensorboard
---logdir RUN``); writing happens on tensorboardX's background thread, so a step pays only for
-queuing a few records. A resumed run writes a new file that starts with a purge marker at the
-resumed step, so TensorBoard drops what an interrupted run logged past its last checkpoint and
-the curves continue without overlap.
+:class:`TensorBoardLog` is a :class:`~warpnerf.train.loop.LoopHook`. Every ``log_every`` steps
+(default 10, nerfstudio's default) it writes one event holding that step's history entries as
+scalars (``train/loss``, ``train/psnr``, ``train/samples_per_ray``, ``train/beta``, ... whatever
+the task records), the learning rate (``train/lr``) and the mean training time per step since the
+previous record (``train/step_ms``); ``history.json`` keeps every step. After every validation
+it writes the figures (``val/val_psnr``) and, when the task kept them, the first validation
+image's prediction beside its ground truth (``val/rgb``) and its depth (``val/depth``). Files go
+to ``RUN/tensorboard/`` (``tensorboard --logdir RUN``); tensorboardX's background thread writes
+them. A resumed run writes a new file that starts with a purge marker at the first step it logs,
+so TensorBoard drops what an interrupted run logged past its last checkpoint and the curves
+continue without overlap. Cost: about 15 us in the training thread per record plus the writer
+thread's pure-Python CRC (about 80 us a record), measured in docs/PERFORMANCE.md.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ def _finite(v) -> bool:
 class TensorBoardLog(LoopHook):
     """Writes a training's curves to ``run/tensorboard`` (see the module's docstring)."""
 
-    def __init__(self, run, flush_secs: float = 10.0):
+    def __init__(self, run, log_every: int = 10, flush_secs: float = 10.0):
         try:
             from tensorboardX import SummaryWriter
         except ImportError as e:  # a dependency; a broken install says how to fix it
@@ -47,10 +49,12 @@ class TensorBoardLog(LoopHook):
         if self.dir.is_symlink() or (self.dir.exists() and not self.dir.is_dir()):
             raise UserError(f"{self.dir}: exists and is not a folder warpnerf made; move it away "
                             "or pass --no-tensorboard")  # fmt: skip
+        if int(log_every) < 1:
+            raise UserError(f"--log-every must be a positive number of steps, got {log_every}")
         self._writer_cls = SummaryWriter
         self.writer = None
-        self.flush_secs = flush_secs
-        self._last_seconds = None
+        self.flush_secs, self.log_every = flush_secs, int(log_every)
+        self._last = None  # (step, training seconds) of the last logged step
 
     def on_start(self, task, step: int) -> None:
         self.dir.mkdir(exist_ok=True)
@@ -65,16 +69,23 @@ class TensorBoardLog(LoopHook):
         )  # fmt: skip
 
     def on_step(self, step: int, history: dict, lr: float) -> None:
-        w, n = self.writer, len(history["step"])
+        if step % self.log_every:
+            return
+        from tensorboardX.proto.summary_pb2 import Summary
+
+        n, vals = len(history["step"]), []
         for k, v in history.items():
             if k in _SKIP or not isinstance(v, list) or len(v) != n or not _finite(v[-1]):
                 continue
-            w.add_scalar(f"train/{k}", v[-1], step)
-        w.add_scalar("train/lr", lr, step)
+            vals.append((f"train/{k}", v[-1]))
+        vals.append(("train/lr", lr))
         s = history["seconds"][-1]
-        if self._last_seconds is not None:
-            w.add_scalar("train/step_ms", 1e3 * (s - self._last_seconds), step)
-        self._last_seconds = s
+        if self._last is not None and step > self._last[0]:  # mean over the steps since
+            vals.append(("train/step_ms", 1e3 * (s - self._last[1]) / (step - self._last[0])))
+        self._last = (step, s)
+        # one event per logged step, all scalars in it (a tenth of add_scalar's cost)
+        summary = Summary(value=[Summary.Value(tag=t, simple_value=float(v)) for t, v in vals])
+        self.writer._get_file_writer().add_summary(summary, step)
 
     def on_validation(self, step: int, figures: dict, task) -> None:
         for k, v in figures.items():

@@ -203,13 +203,13 @@ def train_nerf(
     log=print,
     device: str | None = None,
     hooks=(),
-    tensorboard: bool = False,
+    tensorboard: int = 0,
 ):
     """Trains (or resumes) a run in folder ``run``; returns the history dict.
 
     ``hooks``: :class:`~warpnerf.train.loop.LoopHook` s that watch the training (the live
-    viewer); ``tensorboard``: also write TensorBoard event files to RUN/tensorboard (the
-    command line's default).
+    viewer); ``tensorboard`` N > 0: also TensorBoard event files in RUN/tensorboard, a record
+    every N steps (the command line's default: 10).
 
     On resume only ``cfg.iters`` (the total to reach) and ``cfg.max_seconds`` are taken from
     ``cfg``; everything else comes from the run's config.json, and ``device`` (if given) moves it.
@@ -239,7 +239,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     # Data first: a bad dataset stops the run before anything is written.
     train = load_data(cfg, "train")
     val = load_data(cfg, "val") if cfg.val_images > 0 else None
-    tb = [TensorBoardLog(run)] if tensorboard else []  # (checks the folder; writes nothing)
+    tb = [TensorBoardLog(run, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())

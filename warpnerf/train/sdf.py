@@ -331,9 +331,10 @@ def sdf_loss(model, surf, normals, rand, cfg, uniform_dist=None):
 
 
 def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None,
-              tensorboard: bool = False):  # fmt: skip
+              tensorboard: int = 0):  # fmt: skip
     """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict
-    (``tensorboard``: also TensorBoard event files in RUN/tensorboard).
+    (``tensorboard`` N > 0: also TensorBoard event files in RUN/tensorboard, a record every N
+    steps).
 
     SIGINT/SIGTERM during training finish the current step, checkpoint it and raise
     :class:`~warpnerf.errors.Interrupted` (no mesh or metrics); ``resume=True`` then continues
@@ -360,7 +361,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard
     center, scale = normalisation(pts_np)
     if model is None:
         model = _build(cfg)
-    tb = [TensorBoardLog(run)] if tensorboard else []  # (checks the folder; writes nothing)
+    tb = [TensorBoardLog(run, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
     write_json(run / "config.json", cfg.to_dict())
