@@ -20,6 +20,7 @@ blocks, so a frame that a newer camera has made stale stops early.
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import threading
 from pathlib import Path
@@ -148,25 +149,46 @@ class RunScene:
         dev, ndc = cfg.device, cfg.ndc_camera()
         sdf = model.kind == "sdf"
         far = float(cfg.far)
+        cams = train.c2w.detach().cpu().double() if train is not None else None
+        if cams is not None and len(cams) > 1:
+            from ..data.cameras import camera_target
+
+            centre = camera_target(cams)
+            dist0 = float((cams[:, :3, 3] - centre).norm(dim=-1).mean())
+        else:
+            centre, dist0 = torch.zeros(3, dtype=torch.float64), 0.5 * (cfg.near + cfg.far)
+        moved = copy.copy(cfg)
+
+        def window(cam):
+            """The run's near..far window, kept at the same distance from the scene centre: a
+            camera further out (or closer) than the training cameras moves it along."""
+            if ndc is not None:
+                return cfg
+            shift = float((cam.double().cpu() - centre).norm()) - dist0
+            if abs(shift) <= 0.05 * (cfg.far - cfg.near):
+                return cfg
+            moved.near, moved.far = max(0.0, cfg.near + shift), cfg.far + shift
+            return moved
 
         def render_rays(o, d, mode):
             o, d = o.to(dev), d.to(dev)
+            c = window(o[0])
             if ndc is not None:
                 o, d = ndc_rays(o, d, ndc)
-            res = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+            res = render_rays_of(model, c, o, d, chunk=cfg.chunk)
             acc = res["opacity"].reshape(-1, 1)
             if mode == "rgb":
                 return res["rgb"]
             if mode == "opacity":
                 return acc.expand(-1, 3)
             if mode == "depth":  # near: bright, far or empty: dark
-                dep = (1.0 - res["depth"].reshape(-1, 1) / far).clamp(0, 1)
+                dep = (1.0 - res["depth"].reshape(-1, 1) / max(c.far, 1e-6)).clamp(0, 1)
                 return (dep * (acc > 0.5)).expand(-1, 3)
             x = o + d * res["depth"].reshape(-1, 1)  # normals of an SDF field at the depth
             n = model.coarse.normals(x)
             return torch.where(acc > 0.5, (n + 1) / 2, torch.ones_like(n))
 
-        cams = intr = images = size = None
+        intr = images = size = None
         if train is not None:
             cams, intr = train.c2w.detach().cpu().numpy(), train.intrinsics.detach().cpu().numpy()
             size = (int(train.width), int(train.height))
