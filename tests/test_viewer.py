@@ -282,16 +282,22 @@ def test_viewer_overlays_and_the_path_editor(tmp_path):
                        0.7, 1.5, 64)  # fmt: skip
             viewer._add_keyframe(st.client)
         viewer.path_frames.value = 7
-        viewer.path_file.value = str(tmp_path / "p.json")
+        viewer.path_file.value = "p.json"
         viewer._save_path(st.client)
         assert "saved 3 keyframes" in viewer.path_info.content
-        path = load_camera_path(tmp_path / "p.json")
+        path = load_camera_path(run / "p.json")
         assert path.keyframes.shape == (3, 4, 4) and path.frames == 7
         assert math.isclose(path.fov_y, 0.7) and math.isclose(path.aspect, 1.5)
-        (tmp_path / "mine.json").write_text("{}")  # a user's file is never replaced
-        viewer.path_file.value = str(tmp_path / "mine.json")
+        (run / "mine.json").write_text("{}")  # a user's file is never replaced
+        viewer.path_file.value = "mine.json"
         viewer._save_path(st.client)
         assert "not saved" in viewer.path_info.content
-        assert (tmp_path / "mine.json").read_text() == "{}"
+        assert (run / "mine.json").read_text() == "{}"
+        # the browser names a file, never a folder: nothing is written outside the run folder
+        for name in (str(tmp_path / "x.json"), "../x.json", "sub/x.json", "x.txt", ".."):
+            viewer.path_file.value = name
+            viewer._save_path(st.client)
+            assert "plain file name" in viewer.path_info.content
+        assert not (tmp_path / "x.json").exists()
     finally:
         viewer.close()

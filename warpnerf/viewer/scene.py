@@ -270,10 +270,10 @@ def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunSc
         from ..train.nerf import load_data, load_run
 
         cfg, model, _ = load_run(run, device)
+        train = None
         with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
             train = load_data(cfg, "train")
-        scene = RunScene.of_radiance(model, cfg, locals().get("train"),
-                                     title=f"{run.name}: {cfg.field}")  # fmt: skip
+        scene = RunScene.of_radiance(model, cfg, train, title=f"{run.name}: {cfg.field}")
     else:
         raise UserError(f"{run}: a {kind} run; the viewer shows trained fields (train nerf, "
                         "volsdf or sdf runs)")  # fmt: skip

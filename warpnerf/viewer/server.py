@@ -199,8 +199,7 @@ class Viewer:
             clear = g.add_button("Clear")
             self.path_frames = g.add_number("Frames", 120, min=1, max=100000, step=1)
             self.path_loop = g.add_checkbox("Loop", False)
-            default = str(self.run / "camera_path.json") if self.run else "camera_path.json"
-            self.path_file = g.add_text("File", default)
+            self.path_file = g.add_text("File (in the run folder)", "camera_path.json")
             save = g.add_button("Save path")
             self.path_info = g.add_markdown("keyframes: 0")
         add.on_click(lambda e: self._add_keyframe(e.client))
@@ -244,10 +243,22 @@ class Viewer:
         return CameraPath([k[0] for k in keys], fov, aspect, int(self.path_frames.value),
                           bool(self.path_loop.value))  # fmt: skip
 
+    def path_target(self) -> Path:
+        """Where "Save path" writes: the file name typed in the panel, inside the run folder (or
+        the working folder without one). The browser chooses the name only: no folders, so a
+        client can never write elsewhere on the machine."""
+        name = str(self.path_file.value).strip()
+        if (not name or "/" in name or "\\" in name or name in (".", "..") or "\0" in name
+                or not name.endswith(".json") or len(name) > 200):  # fmt: skip
+            raise UserError(f"{name!r}: give a plain file name ending in .json (it is saved in "
+                            "the run folder)")  # fmt: skip
+        return (self.run if self.run is not None else Path(".")) / name
+
     def _save_path(self, client) -> None:
         try:
-            self.path().save(self.path_file.value)
-            msg = f"saved {len(self._path)} keyframes to {self.path_file.value}"
+            target = self.path_target()
+            self.path().save(target)
+            msg = f"saved {len(self._path)} keyframes to {target}"
         except (UserError, OSError) as e:
             msg = f"not saved: {e}"
         self.path_info.content = msg
