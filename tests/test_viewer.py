@@ -301,3 +301,25 @@ def test_viewer_overlays_and_the_path_editor(tmp_path):
         assert not (tmp_path / "x.json").exists()
     finally:
         viewer.close()
+
+
+def test_reload_picks_up_a_newer_checkpoint(tmp_path):
+    """`view` while another process trains: "Reload checkpoint" swaps in the latest weights, so
+    the frames equal those of a viewer opened afresh on the newer checkpoint."""
+    from warpnerf.viewer import Viewer, load_scene
+
+    run = tmp_path / "r"
+    assert main(["train", "nerf", *TINY, "--out", str(run)]) == 0
+    scene = load_scene(run)
+    eye = look_at((0.0, -4.0, 1.0), (0, 0, 0)).numpy()
+    before = scene.render(eye, 20.0, 20.0, 16, 16)
+    assert main(["train", "nerf", "--out", str(run), "--resume", "--iters", "30", "--quiet"]) == 0
+    viewer = Viewer(scene, port=_free_port(), run=run, log=lambda *a: None)
+    try:
+        viewer._reload()
+        assert "step 30" in viewer.status.content and viewer.weights_version == 1
+    finally:
+        viewer.close()
+    after = scene.render(eye, 20.0, 20.0, 16, 16)
+    assert np.array_equal(after, load_scene(run).render(eye, 20.0, 20.0, 16, 16))
+    assert not np.array_equal(before, after)

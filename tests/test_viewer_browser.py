@@ -1,8 +1,8 @@
 """`warpnerf view` in a real headless browser: the system's Chromium (driven by selenium through
 the system's chromedriver) loads the page of a tiny run on a free localhost port, waits for the
-first rendered frame, and the screenshot shows the scene; the server then stops cleanly on
-Ctrl-C and frees its port. Skipped, with the reason, where no browser is installed (`.ci/run`
-installs Chromium and its driver with apt)."""
+first rendered frame, and the screenshot shows the scene; the panel's camera-path editor saves a
+path into the run; the server then stops cleanly on Ctrl-C and frees its port. Skipped, with the
+reason, where no browser is installed (`.ci/run` installs Chromium and its driver with apt)."""
 
 from __future__ import annotations
 
@@ -106,6 +106,23 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
         red = (img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)
         # the rendered frame fills the background; the control panel covers about a third
         assert red.mean() > 0.3, f"only {red.mean():.1%} of the page shows the rendered scene"
+        # the camera-path editor from the page: two keyframes of this view, saved in the run
+        from selenium.webdriver.common.by import By
+
+        def click(label):
+            driver.find_element(By.XPATH, f"//button[contains(., '{label}')]").click()
+            time.sleep(0.5)
+
+        click("Add keyframe")
+        click("Add keyframe")
+        click("Save path")
+        deadline = time.time() + 30
+        while not (run / "camera_path.json").exists() and time.time() < deadline:
+            time.sleep(0.5)
+        from warpnerf.data.camera_path import load_camera_path
+
+        path = load_camera_path(run / "camera_path.json")
+        assert path.keyframes.shape == (2, 4, 4)
     finally:
         if driver is not None:
             driver.quit()

@@ -64,6 +64,7 @@ class RunScene:
         self.title = title
         self.lock = threading.Lock()  # held while rendering (a trainer holds it while stepping)
         self.mesh = None  # (vertices [v, 3], faces [f, 3], colours [v, 3] uint8 or None)
+        self.reload = None  # () -> step: re-reads the run's checkpoint (a run folder's scene)
 
     # --------------------------------------------------------------------------- overlays
 
@@ -274,6 +275,18 @@ def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunSc
         with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
             train = load_data(cfg, "train")
         scene = RunScene.of_radiance(model, cfg, train, title=f"{run.name}: {cfg.field}")
+
+        def reload() -> int:
+            """Loads the run's latest checkpoint into the shown model (a training in another
+            process keeps writing it); returns its step."""
+            _, fresh, ck = load_run(run, device)
+            with scene.lock:
+                for k, part in model.parts().items():
+                    if part is not None:
+                        part.load_state_dict(fresh.parts()[k].state_dict())
+            return int(ck["step"])
+
+        scene.reload = reload
     else:
         raise UserError(f"{run}: a {kind} run; the viewer shows trained fields (train nerf, "
                         "volsdf or sdf runs)")  # fmt: skip

@@ -177,6 +177,9 @@ class Viewer:
         self.max_res = g.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
         self.max_res.on_update(lambda _: self._bump())
         self.status = g.add_markdown("rendered frames: 0")
+        if self.scene.reload is not None and not self.live:
+            reload = g.add_button("Reload checkpoint")
+            reload.on_click(lambda _: self._reload())
         with g.add_folder("Overlays"):
             show_cams = g.add_checkbox("Training cameras", True)
             show_cams.on_update(lambda e: [setattr(f, "visible", show_cams.value)
@@ -201,7 +204,10 @@ class Viewer:
             self.path_loop = g.add_checkbox("Loop", False)
             self.path_file = g.add_text("File (in the run folder)", "camera_path.json")
             save = g.add_button("Save path")
+            preview = g.add_button("Preview path (this browser)")
             self.path_info = g.add_markdown("keyframes: 0")
+        preview.on_click(lambda e: threading.Thread(target=self._preview, args=(e.client,),
+                                                    daemon=True).start())  # fmt: skip
         add.on_click(lambda e: self._add_keyframe(e.client))
         undo.on_click(lambda _: self._set_path(self._path[:-1]))
         clear.on_click(lambda _: self._set_path([]))
@@ -253,6 +259,29 @@ class Viewer:
             raise UserError(f"{name!r}: give a plain file name ending in .json (it is saved in "
                             "the run folder)")  # fmt: skip
         return (self.run if self.run is not None else Path(".")) / name
+
+    def _preview(self, client, fps: float = 20.0) -> None:
+        """Flies the browser's camera along the path (frames at ``fps``; the viewer renders what
+        it can keep up with)."""
+        if not self._path:
+            return
+        for c2w in self.path().cameras().double().numpy():
+            if self._stop.is_set():
+                return
+            wxyz, pos = gl_to_opencv(c2w)
+            with client.atomic():
+                client.camera.wxyz, client.camera.position = wxyz, pos
+            time.sleep(1.0 / fps)
+
+    def _reload(self) -> None:
+        try:
+            step = self.scene.reload()
+            self.weights_version += 1
+            msg = f"reloaded the checkpoint of step {step}"
+        except Exception as e:  # a checkpoint being replaced, a broken file: keep the old one
+            msg = f"reload failed: {e}"
+        self.status.content = msg
+        self.log(f"viewer: {msg}")
 
     def _save_path(self, client) -> None:
         try:
