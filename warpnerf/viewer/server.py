@@ -11,9 +11,10 @@ A stale frame stops between row blocks when a newer camera arrives.
 Overlays drawn by the browser itself (three.js, toggled in the panel): the training cameras as
 frustums showing their images, the scene box, the occupancy grid's occupied cells, a mesh
 (RUN/mesh.ply from ``warpnerf mesh`` or ``--mesh FILE``, with its vertex colours), and the
-camera path being edited. The camera-path editor adds the current view as a keyframe and saves
-the path as a JSON file that ``warpnerf render RUN --path FILE`` renders to video
-(:mod:`warpnerf.data.camera_path`).
+camera path being edited. The camera-path editor adds the current view as a keyframe, flies the
+browser's camera along the path ("Preview") and saves it as a JSON file in the run folder that
+``warpnerf render RUN --path FILE`` renders to video (:mod:`warpnerf.data.camera_path`). "Reload
+checkpoint" re-reads the run's checkpoint (a training in another process keeps writing it).
 
 The server binds 127.0.0.1 unless told otherwise (``host``): other machines cannot connect.
 """
