@@ -110,14 +110,37 @@ def test_sdf_scenes_render_normals_and_point_sdf_runs_work(tmp_path):
         assert s2.render(eye, 20.0, 20.0, 8, 8, mode).shape == (8, 8, 3)
 
 
-def test_box_runs_and_missing_runs_are_clean_errors(tmp_path):
+def test_box_fits_render_and_unknown_runs_are_clean_errors(tmp_path):
+    """A box fit (the main job's task) is shown too: its frame of a training camera equals the
+    fit's own renderer's image; missing or unknown runs are one-line errors."""
+    from tests._scene import write_box_folder
+    from warpnerf.data.blender import load_blender
+    from warpnerf.io import to_uint8
+    from warpnerf.train.box_fit import load_box_run, render_box_views
     from warpnerf.viewer import load_scene
 
+    write_box_folder(tmp_path / "scene", n_views=4, size=16, name="transforms_train.json")
+    run = tmp_path / "box"
+    assert main(["train", "box", "--data", str(tmp_path / "scene"), "--out", str(run), "--iters",
+                 "3", "--frames", "0", "--quiet", "--samples", "16"]) == 0  # fmt: skip
+    scene = load_scene(run)
+    assert scene.cameras.shape[0] == 4 and scene.modes == ("rgb", "depth", "opacity")
+    cfg, data, dev, _ = load_box_run(run)
+    ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
+    from warpnerf.fields.sdf_volume import SDFVolume
+    from warpnerf.io import load_checkpoint
+
+    vol = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta)
+    vol.load_state_dict(load_checkpoint(run / "checkpoint.pt")["volume"])
+    rgb, _ = render_box_views(vol, ds.c2w[:1], ds.intrinsics[:1], 16, 16, cfg)
+    k = ds.intrinsics[0]
+    img = scene.render(ds.c2w[0].numpy(), float(k[0]), float(k[1]), 16, 16)
+    assert np.abs(img.astype(int) - to_uint8(rgb[0]).astype(int)).max() <= 1
     with pytest.raises(UserError, match="no such run folder"):
         load_scene(tmp_path / "nothing")
     (tmp_path / "b").mkdir()
-    (tmp_path / "b" / "config.json").write_text('{"model": "box"}')
-    with pytest.raises(UserError, match="box run"):
+    (tmp_path / "b" / "config.json").write_text('{"model": "teapot"}')
+    with pytest.raises(UserError, match="not one the viewer knows"):
         load_scene(tmp_path / "b")
     (tmp_path / "b" / "config.json").write_text("[1, 2")
     with pytest.raises(UserError, match="config"):

@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--no-screenshot", action="store_true")
     m.set_defaults(func=cmd_mesh)
 
-    v = sub.add_parser("view", help="web viewer of a run on a local port (viser): renders, "
+    v = sub.add_parser("view", help="web viewer of any run on a local port (viser): renders, "
                        "training cameras, occupancy grid, mesh, camera-path editor")  # fmt: skip
     view_flags(v)
     v.set_defaults(func=cmd_view)

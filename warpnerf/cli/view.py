@@ -18,7 +18,7 @@ def _host_port_flags(p, port_flag: str) -> None:
 
 
 def view_flags(v) -> None:
-    v.add_argument("run", help="a run folder (train nerf, volsdf or sdf)")
+    v.add_argument("run", help="a run folder (train nerf, volsdf, sdf or box)")
     _host_port_flags(v, "--port")
     v.add_argument("--device", default=None, help="default: the run's device")
     v.add_argument("--mesh", default=None, help="a PLY to overlay (default RUN/mesh.ply if any)")

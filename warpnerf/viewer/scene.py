@@ -9,7 +9,9 @@ Two kinds of run:
   rendered in chunks by :func:`~warpnerf.render.render_chunks`); modes ``rgb``, ``depth``,
   ``opacity`` and, for SDF fields, ``normals`` (the field's SDF gradient at the rendered depth);
 - neural SDFs fitted to points (``train sdf``): the SDF sphere-traced inside its normalised box,
-  modes ``shaded`` (grey, headlight), ``normals``, ``depth`` and ``opacity`` (hits).
+  modes ``shaded`` (grey, headlight), ``normals``, ``depth`` and ``opacity`` (hits);
+- box fits (``train box``, the main job's task): the fitted analytic box volume-rendered with
+  the fit's settings, modes ``rgb``, ``depth``, ``opacity``.
 
 Cameras are OpenGL camera-to-world matrices [4, 4] (x right, y up, looking down -z) with pixel
 intrinsics, as everywhere in the project. :meth:`RunScene.render` takes a ``lock`` (shared with a
@@ -150,25 +152,14 @@ class RunScene:
         dev, ndc = cfg.device, cfg.ndc_camera()
         sdf = model.kind == "sdf"
         far = float(cfg.far)
-        cams = train.c2w.detach().cpu().double() if train is not None else None
-        if cams is not None and len(cams) > 1:
-            from ..data.cameras import camera_target
-
-            centre = camera_target(cams)
-            dist0 = float((cams[:, :3, 3] - centre).norm(dim=-1).mean())
-        else:
-            centre, dist0 = torch.zeros(3, dtype=torch.float64), 0.5 * (cfg.near + cfg.far)
+        cams = train.c2w if train is not None else None
+        shifted = _window(cams, cfg.near, cfg.far)
         moved = copy.copy(cfg)
 
         def window(cam):
-            """The run's near..far window, kept at the same distance from the scene centre: a
-            camera further out (or closer) than the training cameras moves it along."""
             if ndc is not None:
                 return cfg
-            shift = float((cam.double().cpu() - centre).norm()) - dist0
-            if abs(shift) <= 0.05 * (cfg.far - cfg.near):
-                return cfg
-            moved.near, moved.far = max(0.0, cfg.near + shift), cfg.far + shift
+            moved.near, moved.far = shifted(cam)
             return moved
 
         def render_rays(o, d, mode):
@@ -203,6 +194,36 @@ class RunScene:
                    title=title)  # fmt: skip
 
     @classmethod
+    def of_box(cls, volume, cfg, train=None, title: str = "") -> RunScene:
+        """A box fit (``train box``): its analytic SDF volume rendered with the fit's settings."""
+        from ..render import render_rays as render_volume
+
+        dev = volume.center.device
+        shifted = _window(train.c2w if train is not None else None, cfg.near, cfg.far)
+
+        def render_rays(o, d, mode):
+            o, d = o.to(dev), d.to(dev)
+            near, far = shifted(o[0])
+            res = render_volume(o, d, near, far, volume, **cfg.render_kwargs())
+            acc = res["opacity"].reshape(-1, 1)
+            if mode == "rgb":
+                return res["rgb"]
+            if mode == "opacity":
+                return acc.expand(-1, 3)
+            return ((1.0 - res["depth"].reshape(-1, 1) / far).clamp(0, 1) * (acc > 0.5)).expand(
+                -1, 3)  # fmt: skip
+
+        c = volume.center.detach().cpu().tolist()
+        h = (0.5 * volume.side_lengths.detach().abs().cpu()).tolist()
+        box = [c[0] - h[0], c[1] - h[1], c[2] - h[2], c[0] + h[0], c[1] + h[1], c[2] + h[2]]
+        cams = intr = images = size = None
+        if train is not None:
+            cams, intr = train.c2w.cpu().numpy(), train.intrinsics.cpu().numpy()
+            size, images = (int(train.width), int(train.height)), _thumbnails(train.images)
+        return cls(render_rays, RADIANCE_MODES, box, up=_up_of(cams), cameras=cams,
+                   intrinsics=intr, size=size, images=images, far=cfg.far, title=title)  # fmt: skip
+
+    @classmethod
     def of_point_sdf(cls, model, cfg, title: str = "") -> RunScene:
         """A neural SDF fitted to points: sphere-traced in its normalised box [-1, 1]^3."""
         from ..ops import ray_aabb_intersect
@@ -228,6 +249,29 @@ class RunScene:
             return ((1.0 - tr.t.reshape(-1, 1) / max(far, 1e-6)).clamp(0, 1) * m).expand(-1, 3)
 
         return cls(render_rays, POINT_SDF_MODES, box, up=(0.0, 1.0, 0.0), title=title)
+
+
+def _window(c2w, near: float, far: float):
+    """``cam [3] -> (near, far)``: the run's near..far window kept at the same distance from
+    the scene centre (the training cameras' target), so that a viewer camera further out (or
+    closer) than the training cameras sees the scene instead of a clipped part of it; unchanged
+    within 5 % of the window of the training cameras' mean distance."""
+    if c2w is not None and len(c2w) > 1:
+        from ..data.cameras import camera_target
+
+        c2w = torch.as_tensor(c2w).detach().cpu().double()
+        centre = camera_target(c2w)
+        dist0 = float((c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+    else:
+        centre, dist0 = torch.zeros(3, dtype=torch.float64), 0.5 * (near + far)
+
+    def shifted(cam):
+        shift = float((torch.as_tensor(cam).double().cpu() - centre).norm()) - dist0
+        if abs(shift) <= 0.05 * (far - near):
+            return near, far
+        return max(0.0, near + shift), far + shift
+
+    return shifted
 
 
 def _thumbnails(images: torch.Tensor) -> np.ndarray:
@@ -287,9 +331,22 @@ def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunSc
             return int(ck["step"])
 
         scene.reload = reload
+    elif kind == "box":
+        from ..data.blender import load_blender
+        from ..fields.sdf_volume import SDFVolume
+        from ..io import load_weights
+        from ..train.box_fit import load_box_run
+
+        cfg, data, dev, ckpt = load_box_run(run, device)
+        volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
+        load_weights(volume, ckpt["volume"], run / "checkpoint.pt", "box parameters")
+        train = None
+        with contextlib.suppress(UserError):  # the cameras are an overlay
+            train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
+        scene = RunScene.of_box(volume, cfg, train, title=f"{run.name}: box fit")
     else:
-        raise UserError(f"{run}: a {kind} run; the viewer shows trained fields (train nerf, "
-                        "volsdf or sdf runs)")  # fmt: skip
+        raise UserError(f"{run}: config.json's model {kind!r} is not one the viewer knows "
+                        "(train nerf, volsdf, sdf or box runs)")  # fmt: skip
     if mesh is not None:
         if not scene.load_mesh(mesh):
             raise UserError(f"{mesh}: no such mesh file")
