@@ -113,11 +113,12 @@ def test_sdf_scenes_render_normals_and_point_sdf_runs_work(tmp_path):
 def test_box_fits_render_and_unknown_runs_are_clean_errors(tmp_path):
     """A box fit (the main job's task) is shown too: its frame of a training camera equals the
     fit's own renderer's image; missing or unknown runs are one-line errors."""
-    from tests._scene import write_box_folder
     from warpnerf.data.blender import load_blender
     from warpnerf.io import to_uint8
     from warpnerf.train.box_fit import load_box_run, render_box_views
     from warpnerf.viewer import load_scene
+
+    from ._scene import write_box_folder
 
     write_box_folder(tmp_path / "scene", n_views=4, size=16, name="transforms_train.json")
     run = tmp_path / "box"
