@@ -347,3 +347,34 @@ def test_reload_picks_up_a_newer_checkpoint(tmp_path):
     after = scene.render(eye, 20.0, 20.0, 16, 16)
     assert np.array_equal(after, load_scene(run).render(eye, 20.0, 20.0, 16, 16))
     assert not np.array_equal(before, after)
+
+
+def test_live_viewer_of_every_task(tmp_path, monkeypatch):
+    """`--viewer` on `train box` and `train sdf` too: the live scene of the task renders."""
+    import warpnerf.viewer
+    from warpnerf.viewer import LiveViewer
+
+    from ._scene import write_box_folder
+
+    frames = []
+
+    class OneFrame(LiveViewer):
+        def on_start(self, task, step):
+            super().on_start(task, step)
+            eye = look_at((0.0, -4.0, 1.0), (0, 0, 0)).numpy()
+            sc = self.viewer.scene
+            frames.append(sc.render(eye, 10.0, 10.0, 8, 8, sc.modes[0]))
+
+    monkeypatch.setattr(warpnerf.viewer, "LiveViewer", OneFrame)  # (what --viewer builds)
+    write_box_folder(tmp_path / "scene", n_views=3, size=8, name="transforms_train.json")
+    assert main(["train", "box", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "b"),
+                 "--iters", "2", "--frames", "0", "--quiet", "--samples", "8", "--viewer",
+                 "--viewer-port", str(_free_port())]) == 0  # fmt: skip
+    pts = tmp_path / "p.npz"
+    ang = np.random.default_rng(0).normal(size=(300, 3))
+    np.savez(pts, points=(ang / np.linalg.norm(ang, axis=1, keepdims=True)).astype("f4"))
+    assert main(["train", "sdf", "--points", str(pts), "--out", str(tmp_path / "s"), "--iters",
+                 "2", "--batch", "64", "--resolution", "8", "--width", "16", "--layers", "2",
+                 "--pos-freqs", "2", "--quiet", "--viewer",
+                 "--viewer-port", str(_free_port())]) == 0  # fmt: skip
+    assert len(frames) == 2 and all(f.shape == (8, 8, 3) for f in frames)

@@ -41,6 +41,7 @@ def cmd_train_box(args) -> int:
             progress=not args.quiet,
             resume=True,
             tensorboard=tensorboard_every(args),
+            hooks=live_hooks(args),
         )
         print(json_dumps(res))
         return 0
@@ -57,6 +58,7 @@ def cmd_train_box(args) -> int:
         frames=args.frames,
         progress=not args.quiet,
         tensorboard=tensorboard_every(args),
+        hooks=live_hooks(args),
     )
     print(json_dumps(res))
     return 0
@@ -154,7 +156,7 @@ def cmd_train_sdf(args) -> int:
         dev = _resume_device(args)
         cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
         m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev,
-                      tensorboard=tensorboard_every(args))  # fmt: skip
+                      tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
     else:
         if args.points is None:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
@@ -162,7 +164,8 @@ def cmd_train_sdf(args) -> int:
         kw.update(n_random=kw["batch"], skip=max(1, kw["n_layers"] // 2))
         kw["device"] = _device(args.device or SDFConfig.device)
         cfg = SDFConfig(**kw)
-        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=tensorboard_every(args))
+        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=tensorboard_every(args),
+                      hooks=live_hooks(args))  # fmt: skip
     keys = ("step", "seconds", "chamfer", "vertices", "faces")
     out = {k: m[k] for k in keys}
     out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
@@ -183,7 +186,7 @@ def _box_flags(tb) -> None:
     tb.add_argument("--frames", type=CHECKS[("int", "nonnegative")], default=40,
                     help="spiral video frames (0: none)")  # fmt: skip
     tb.add_argument("--quiet", action="store_true", help="no progress bar")
-    watch_flags(tb, viewer=False)
+    watch_flags(tb)
     add_flags(tb, BoxFitConfig, unset=("iters",))
 
 
@@ -193,7 +196,7 @@ def _sdf_flags(ts) -> None:
     ts.add_argument("--out", required=True, help="run folder")
     ts.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
     ts.add_argument("--quiet", action="store_true", help="no progress bar")
-    watch_flags(ts, viewer=False)
+    watch_flags(ts)
     add_flags(ts, SDFConfig, exclude=("points",), unset=("iters", "device"))
 
 
@@ -212,5 +215,5 @@ def _nerf_flags(tn, model: str) -> None:
     tn.add_argument("--fine-samples", type=CHECKS[("int", "positive")],
                     default=cls.n_fine or FINE_SAMPLES, help="fine samples per ray")  # fmt: skip
     tn.add_argument("--quiet", action="store_true", help="no progress bar")
-    watch_flags(tn, viewer=True)
+    watch_flags(tn)
     add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=("iters", "device"))

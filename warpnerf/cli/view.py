@@ -30,8 +30,8 @@ def view_flags(v) -> None:
                    help="stop the server after S seconds (scripts, tests)")  # fmt: skip
 
 
-def watch_flags(p, viewer: bool) -> None:
-    """`train ...`: --no-tensorboard, and (radiance trainings) --viewer, --host, --viewer-port."""
+def watch_flags(p) -> None:
+    """`train ...`: --no-tensorboard, --log-every, --viewer, --host, --viewer-port."""
     p.add_argument(
         "--no-tensorboard",
         dest="tensorboard",
@@ -45,10 +45,9 @@ def watch_flags(p, viewer: bool) -> None:
         metavar="N",
         help="TensorBoard: scalars every N steps (default 10; history.json has all)",
     )
-    if viewer:
-        p.add_argument("--viewer", action="store_true", help="serve the web viewer during "
-                       "training (frames render between steps; see `warpnerf view`)")  # fmt: skip
-        _host_port_flags(p, "--viewer-port")
+    p.add_argument("--viewer", action="store_true", help="serve the web viewer during "
+                   "training (frames render between steps; see `warpnerf view`)")  # fmt: skip
+    _host_port_flags(p, "--viewer-port")
 
 
 def tensorboard_every(args) -> int:

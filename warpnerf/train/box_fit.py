@@ -295,6 +295,7 @@ def run_box_fit_on_folder(
     resume: bool = False,
     log=print,
     tensorboard: int = 0,
+    hooks=(),
 ):
     """The seed's box task on a Blender-format folder: images alpha-composited on black, fits the
     rainbow box in run folder ``out`` (``config.json``, atomic ``checkpoint.pt`` and
@@ -307,17 +308,18 @@ def run_box_fit_on_folder(
     and every other setting come from the run's config.json, and ``device`` (if given) moves it.
     ``device`` None: cpu for a new fit.
 
-    ``tensorboard`` N > 0: also TensorBoard event files in OUT/tensorboard, every N steps.
+    ``tensorboard`` N > 0: also TensorBoard event files in OUT/tensorboard, every N steps;
+    ``hooks``: :class:`~warpnerf.train.loop.LoopHook` s (the live viewer).
 
     Returns {"center": [x, y, z], "side_lengths": [a, b, c], "final_loss": float}.
     """
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
         return _run_box_fit(data, Path(out), cfg, device, frames, progress, resume, log, locks,
-                            tensorboard)  # fmt: skip
+                            tensorboard, hooks)  # fmt: skip
 
 
 def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, locks,
-                 tensorboard=0):  # fmt: skip
+                 tensorboard=0, hooks=()):  # fmt: skip
     from ..data.blender import load_blender
 
     state = None
@@ -359,7 +361,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
         run=out,
         state=state,
         log=log,
-        hooks=tb,
+        hooks=[*hooks, *tb],
     )
     volume = fit.pop("volume")
     result = {k: fit[k] for k in ("center", "side_lengths", "final_loss")}

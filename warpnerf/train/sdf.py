@@ -331,19 +331,20 @@ def sdf_loss(model, surf, normals, rand, cfg, uniform_dist=None):
 
 
 def train_sdf(cfg: SDFConfig, run, resume=False, progress=True, log=print, device=None,
-              tensorboard: int = 0):  # fmt: skip
+              tensorboard: int = 0, hooks=()):  # fmt: skip
     """Trains (or resumes) a neural SDF in folder ``run``; returns the final metrics dict
     (``tensorboard`` N > 0: also TensorBoard event files in RUN/tensorboard, a record every N
-    steps).
+    steps; ``hooks``: :class:`~warpnerf.train.loop.LoopHook` s, e.g. the live viewer).
 
     SIGINT/SIGTERM during training finish the current step, checkpoint it and raise
     :class:`~warpnerf.errors.Interrupted` (no mesh or metrics); ``resume=True`` then continues
     exactly (bit-identical on CPU with the same seed)."""
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
-        return _train_sdf(cfg, Path(run), resume, progress, log, device, locks, tensorboard)
+        return _train_sdf(cfg, Path(run), resume, progress, log, device, locks, tensorboard,
+                          hooks)  # fmt: skip
 
 
-def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard):
+def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard, hooks):
     ckpt = None
     if resume:
         lock_run(run, locks)
@@ -377,7 +378,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard
     settings = LoopSettings.of(cfg, "train sdf")
     history = run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress,
-        log=log, hooks=tb,
+        log=log, hooks=[*hooks, *tb],
     )  # fmt: skip
     metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
     metrics.update(step=history["step"][-1] if history["step"] else 0,

@@ -1,5 +1,5 @@
-"""``warpnerf train ... --viewer``: the web viewer live during training, as a
-:class:`~warpnerf.train.loop.LoopHook`.
+"""``warpnerf train ... --viewer``: the web viewer live during training (every task: NeRF and
+VolSDF, neural SDFs from points, the box fit), as a :class:`~warpnerf.train.loop.LoopHook`.
 
 Frames are rendered in the training thread, between steps (:meth:`Viewer.tick`): training waits
 while a frame renders, so a frame never sees a half-updated model or occupancy grid, and the
@@ -16,6 +16,23 @@ from ..train.loop import LoopHook
 __all__ = ["LiveViewer"]
 
 
+def scene_of_task(task, title: str = ""):
+    """The :class:`~warpnerf.viewer.scene.RunScene` of a training task's live model: a box fit
+    (its volume and cameras), a neural SDF fitted to points, or a NeRF/VolSDF task."""
+    from types import SimpleNamespace
+
+    from .scene import RunScene
+
+    if hasattr(task, "volume"):  # the box fit
+        n, h, w = task.images.shape[:3]
+        cams = SimpleNamespace(c2w=task.c2w, intrinsics=task.intrinsics, width=w, height=h,
+                               images=task.images)  # fmt: skip
+        return RunScene.of_box(task.volume, task.cfg, cams, title=title)
+    if hasattr(task, "pts"):  # a neural SDF fitted to points
+        return RunScene.of_point_sdf(task.model, task.cfg, title=title)
+    return RunScene.of_radiance(task.model, task.cfg, getattr(task, "train", None), title=title)
+
+
 class LiveViewer(LoopHook):
     """Serves the training model on ``host:port`` from the first step to the end."""
 
@@ -25,12 +42,9 @@ class LiveViewer(LoopHook):
         self.viewer = None
 
     def on_start(self, task, step: int) -> None:
-        from .scene import RunScene
         from .server import Viewer
 
-        model, cfg = task.model, task.cfg
-        scene = RunScene.of_radiance(model, cfg, getattr(task, "train", None),
-                                     title=f"{self.run}: {cfg.field} (training)")  # fmt: skip
+        scene = scene_of_task(task, f"{self.run} (training)")
         self.viewer = Viewer(scene, host=self.host, port=self.port, run=self.run, live=True,
                              log=self.log, **self.viewer_kw)  # fmt: skip
         self.log(f"viewer: {self.viewer.url} (live; frames render between training steps)")
