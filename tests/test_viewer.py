@@ -280,6 +280,16 @@ def test_live_viewer_leaves_training_unchanged(tmp_path):
     assert _train(tmp_path / "c", [w])["loss"] == base["loss"]
     assert len(w.client.images) >= 4 and w.client.images[-1].shape[2] == 3
 
+    class Hostile(Watching):  # a browser sending a broken camera: the training goes on
+        def on_start(self, task, step):
+            super().on_start(task, step)
+            st = self.viewer._clients[1]
+            st.pose = (np.full((4, 4), np.nan), 0.8, 1.0, 32)
+
+    h = Hostile(tmp_path / "d", port=_free_port(), log=lambda *a: None)
+    assert _train(tmp_path / "d", [h])["loss"] == base["loss"]
+    assert h.client.images == []
+
 
 def test_viewer_overlays_and_the_path_editor(tmp_path):
     """A hash_sdf run with a coloured mesh: the viewer builds its grid, mesh and camera overlays;

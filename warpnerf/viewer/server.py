@@ -415,7 +415,12 @@ class Viewer:
         if job is None:
             return
         t0 = time.perf_counter()
-        self._render_job(job, abortable=False)
+        try:
+            self._render_job(job, abortable=False)
+        except Exception as e:  # a bad camera from a browser must not stop the training
+            job[0].shown = (job[1], job[2], True)  # (not retried until the camera moves)
+            self.status.content = f"render failed: {e}"
+            self.log(f"viewer: render failed: {e}")
         self._last_frame_seconds = time.perf_counter() - t0
         self._last_tick_frame = time.perf_counter()
 
