@@ -143,6 +143,7 @@ def launch_tiled(kernel, n_blocks: int, block_dim: int, inputs: list, device: to
     if n_blocks == 0:
         return
     dev = wp_device(device)
+    kernel = _overload(kernel, inputs)
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
     wp.launch_tiled(
         kernel, dim=[n_blocks], inputs=inputs, device=dev, block_dim=block_dim, stream=stream
