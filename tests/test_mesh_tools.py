@@ -156,3 +156,14 @@ def test_hostile_ply_files_are_refused(tmp_path, mutate, match):
     bad.write_bytes(mutate((tmp_path / "m.ply").read_bytes()))
     with pytest.raises(UserError, match=match):
         read_ply(bad)
+
+
+def test_ply_with_a_huge_extra_element_is_refused(tmp_path):
+    from warpnerf.errors import UserError
+
+    f = tmp_path / "junk.ply"
+    f.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+                  b"property float y\nproperty float z\nelement junk 100000000000000000\n"
+                  b"property uchar a\nend_header\n" + b"\0" * 64)  # fmt: skip
+    with pytest.raises(UserError, match="promises more"):
+        read_ply(f)

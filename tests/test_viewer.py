@@ -54,7 +54,7 @@ def test_camera_conventions_round_trip():
 
     c2w = look_at((1.0, -2.0, 0.5), (0.1, 0.2, 0.0)).double().numpy()
     wxyz, pos = gl_to_opencv(c2w)
-    assert np.allclose(opencv_to_gl(wxyz, pos), c2w, atol=1e-9)
+    assert np.allclose(opencv_to_gl(wxyz, pos), c2w, atol=1e-6)  # (a float32 pose)
     # OpenCV's +z (viser's look direction) is OpenGL's -z
     r_cv = opencv_to_gl(wxyz, pos)[:3, :3] @ np.diag([1.0, -1.0, -1.0])
     assert np.allclose(r_cv[:, 2], -c2w[:3, 2])
@@ -388,3 +388,35 @@ def test_live_viewer_of_every_task(tmp_path, monkeypatch):
                  "--pos-freqs", "2", "--quiet", "--viewer",
                  "--viewer-port", str(_free_port())]) == 0  # fmt: skip
     assert len(frames) == 2 and all(f.shape == (8, 8, 3) for f in frames)
+
+
+def test_review_fixes(tmp_path, nerf_run, capsys):
+    """Half turns round-trip through the quaternions; a path never replaces a run's own file;
+    an address the machine does not have is an error, not a hang; --max-resolution is bounded."""
+    from warpnerf.viewer.server import gl_to_opencv, opencv_to_gl
+
+    for r in (np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.0]]), np.diag([1.0, -1.0, -1.0]),
+              np.array([[0, -1, 0], [-1, 0, 0], [0, 0, -1.0]])):  # fmt: skip
+        c2w = np.eye(4)
+        c2w[:3, :3] = r
+        assert np.allclose(opencv_to_gl(*gl_to_opencv(c2w)), c2w, atol=1e-12)
+        assert np.allclose(interpolate_path(np.stack([np.eye(4), c2w]), 3)[-1].numpy(), c2w,
+                           atol=1e-6)  # fmt: skip
+    before = (nerf_run / "config.json").read_text()
+    with pytest.raises(UserError, match="not a camera path"):
+        CameraPath(_keys()).save(nerf_run / "config.json")
+    assert (nerf_run / "config.json").read_text() == before
+    CameraPath(_keys()).save(tmp_path / "p.json")
+    CameraPath(_keys()[:2]).save(tmp_path / "p.json")  # a camera path: replaced
+    assert load_camera_path(tmp_path / "p.json").keyframes.shape[0] == 2
+    t0 = __import__("time").perf_counter()
+    assert main(["view", str(nerf_run), "--host", "10.255.255.1", "--exit-after", "1"]) == 2
+    assert "--host 10.255.255.1" in capsys.readouterr().err
+    assert __import__("time").perf_counter() - t0 < 30
+    with pytest.raises(SystemExit) as e:  # (argparse)
+        main(["view", str(nerf_run), "--max-resolution", "9000"])
+    assert e.value.code == 2
+    big = {"warpnerf_camera_path": 1, "frames": 10**400, "keyframes": [{"c2w": np.eye(4).tolist()}]}
+    (tmp_path / "big.json").write_text(json.dumps(big))
+    with pytest.raises(UserError, match="frames"):
+        load_camera_path(tmp_path / "big.json")

@@ -140,9 +140,11 @@ def read_ply(path, colors: bool = False, normals: bool = False):
     fmt, elements, start = _ply_header(head, bad)
     counts = {name: n for name, n, _ in elements}
     # the fewest bytes the promised rows take: binary xyz floats and 1 + 3 x 4-byte triangles;
-    # ascii "0 0 0\n" and "3 0 0 0\n"
+    # ascii "0 0 0\n" and "3 0 0 0\n"; any other element at least a byte a row
     per = (6, 8) if fmt == "ascii" else (12, 13)
-    if size - start < per[0] * counts.get("vertex", 0) + per[1] * counts.get("face", 0):
+    least = per[0] * counts.get("vertex", 0) + per[1] * counts.get("face", 0)
+    least += sum(n for name, n, _ in elements if name not in ("vertex", "face"))
+    if size - start < least:
         raise bad(f"the header promises more elements than its {size} bytes hold")
     try:
         with open(path, "rb") as fh:
@@ -157,8 +159,9 @@ def read_ply(path, colors: bool = False, normals: bool = False):
             tri = np.zeros((0, 3), np.int64)
     except UserError:
         raise
-    except (plyfile.PlyParseError, KeyError, ValueError, IndexError, TypeError, OSError) as e:
-        raise bad(str(e)[:200]) from None
+    except (plyfile.PlyParseError, KeyError, ValueError, IndexError, TypeError, OSError,
+            MemoryError) as e:  # fmt: skip
+        raise bad(str(e)[:200] or type(e).__name__) from None
     if tri.ndim != 2 or tri.shape[1] != 3:
         raise bad("faces must be triangles")
     if len(tri) and (tri.min() < 0 or tri.max() >= len(pts)):

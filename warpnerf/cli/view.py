@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 from ..errors import UserError
+from ..options import number_type
 from ._common import _device, _positive
 
 
@@ -22,7 +23,8 @@ def view_flags(v) -> None:
     _host_port_flags(v, "--port")
     v.add_argument("--device", default=None, help="default: the run's device")
     v.add_argument("--mesh", default=None, help="a PLY to overlay (default RUN/mesh.ply if any)")
-    v.add_argument("--max-resolution", type=_positive(int), default=800,
+    v.add_argument("--max-resolution", default=800,
+                   type=number_type(int, lambda n: 64 <= n <= 4096, "in 64..4096"),
                    help="longest side of a still frame, pixels (default 800)")  # fmt: skip
     v.add_argument("--frame-ms", type=_positive(float), default=100.0,
                    help="render time aimed at while the camera moves (default 100 ms)")  # fmt: skip

@@ -54,12 +54,20 @@ class CameraPath:
         }  # fmt: skip
 
     def save(self, path) -> None:
-        """Writes the path atomically (never over a file warpnerf did not write)."""
+        """Writes the path atomically; an existing file is replaced only when it is a camera
+        path warpnerf wrote (never a run's config, history or another file)."""
         from ..io import write_json
 
         if len(self.keyframes) == 0:
             raise UserError(f"{path}: a camera path needs at least one keyframe")
-        write_json(Path(path), self.to_dict())
+        p = Path(path)
+        if p.exists() or p.is_symlink():
+            try:
+                load_camera_path(p)
+            except UserError:
+                raise UserError(f"{p}: exists and is not a camera path; refusing to replace "
+                                "it (choose another name)") from None  # fmt: skip
+        write_json(p, self.to_dict())
 
     def cameras(self, frames: int | None = None) -> torch.Tensor:
         """[frames, 4, 4] float32 cameras along the path (:func:`interpolate_path`)."""
@@ -81,7 +89,10 @@ def load_camera_path(path) -> CameraPath:
 
     def number(key, lo, hi, default, kind=float):
         v = d.get(key, default)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        try:
+            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        except OverflowError:  # an integer too large for a float
+            ok = False
         if not ok or not lo <= v <= hi or (kind is int and v != int(v)):
             what = "an integer" if kind is int else "a number"
             raise UserError(f"{p}: field '{key}' must be {what} in [{lo}, {hi}], got {v!r}")
@@ -102,7 +113,7 @@ def load_camera_path(path) -> CameraPath:
         m = k.get("c2w") if isinstance(k, dict) else None
         try:
             a = np.asarray(m, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             a = None
         if a is None or a.shape != (4, 4) or not np.isfinite(a).all():
             raise UserError(f"{p}: keyframes[{i}].c2w must be a 4x4 matrix of finite numbers")
@@ -114,15 +125,24 @@ def load_camera_path(path) -> CameraPath:
 
 
 def _quat(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix [3, 3]."""
-    w = math.sqrt(max(0.0, 1.0 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
-    x = math.sqrt(max(0.0, 1.0 + r[0, 0] - r[1, 1] - r[2, 2])) / 2
-    y = math.sqrt(max(0.0, 1.0 - r[0, 0] + r[1, 1] - r[2, 2])) / 2
-    z = math.sqrt(max(0.0, 1.0 - r[0, 0] - r[1, 1] + r[2, 2])) / 2
-    x = math.copysign(x, r[2, 1] - r[1, 2])
-    y = math.copysign(y, r[0, 2] - r[2, 0])
-    z = math.copysign(z, r[1, 0] - r[0, 1])
-    q = np.array([w, x, y, z])
+    """Unit quaternion (w, x, y, z) of a rotation matrix [3, 3] (Shepperd's method: branch on
+    the largest of 4w^2, 4x^2, 4y^2, 4z^2, exact for half turns too)."""
+    t = np.trace(r)
+    d = [t, r[0, 0], r[1, 1], r[2, 2]]
+    k = int(np.argmax(d))
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + t, 1e-300))
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 1e-300))
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 + r[1, 1] - r[0, 0] - r[2, 2], 1e-300))
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r[2, 2] - r[0, 0] - r[1, 1], 1e-300))
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
     return q / np.linalg.norm(q)
 
 

@@ -14,9 +14,10 @@ Two kinds of run:
   the fit's settings, modes ``rgb``, ``depth``, ``opacity``.
 
 Cameras are OpenGL camera-to-world matrices [4, 4] (x right, y up, looking down -z) with pixel
-intrinsics, as everywhere in the project. :meth:`RunScene.render` takes a ``lock`` (shared with a
-training loop that mutates the model) and an ``abort`` callable that is polled between row
-blocks, so a frame that a newer camera has made stale stops early.
+intrinsics, as everywhere in the project. :meth:`RunScene.render` holds the scene's ``lock`` per
+row block (a checkpoint reload swaps the weights under it; a live training renders in its own
+thread between steps, so it needs no lock) and polls an ``abort`` callable between row blocks,
+so a frame that a newer camera has made stale stops early.
 """
 
 from __future__ import annotations
@@ -64,7 +65,7 @@ class RunScene:
         self.grid = grid
         self.far = far
         self.title = title
-        self.lock = threading.Lock()  # held while rendering (a trainer holds it while stepping)
+        self.lock = threading.Lock()  # held while rendering and while reloading weights
         self.mesh = None  # (vertices [v, 3], faces [f, 3], colours [v, 3] uint8 or None)
         self.reload = None  # () -> step: re-reads the run's checkpoint (a run folder's scene)
 
@@ -245,8 +246,8 @@ class RunScene:
                 return torch.where(m, (tr.normals + 1) / 2, torch.ones_like(tr.normals))
             if mode == "opacity":
                 return m.float().expand(-1, 3)
-            far = float(t1.max()) if t1.numel() else 1.0
-            return ((1.0 - tr.t.reshape(-1, 1) / max(far, 1e-6)).clamp(0, 1) * m).expand(-1, 3)
+            far = float(o[0].norm()) + math.sqrt(3.0)  # the box's far side: one scale a frame
+            return ((1.0 - tr.t.reshape(-1, 1) / far).clamp(0, 1) * m).expand(-1, 3)
 
         return cls(render_rays, POINT_SDF_MODES, box, up=(0.0, 1.0, 0.0), title=title)
 

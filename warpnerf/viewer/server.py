@@ -34,6 +34,7 @@ from .scene import Aborted, RunScene
 __all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv"]
 
 _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL camera axes
+MAX_RESOLUTION = 4096  # pixels on the longest side of a frame
 
 
 def _quat_to_matrix(wxyz) -> np.ndarray:
@@ -64,6 +65,25 @@ def gl_to_opencv(c2w) -> tuple:
     """(wxyz, position) of viser's OpenCV-axes camera for an OpenGL camera-to-world [4, 4]."""
     c2w = np.asarray(c2w, dtype=np.float64)
     return _matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
+
+
+def _check_address(host: str) -> None:
+    """UserError unless ``host`` is an address this machine can listen on (viser would try 1000
+    ports on it and then wait forever)."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise UserError(f"--host {host}: not an address of this machine ({e})") from None
+    for family, kind, proto, _, addr in infos:
+        try:
+            with socket.socket(family, kind, proto) as s:
+                s.bind(addr)
+                return
+        except OSError as e:
+            err = e
+    raise UserError(f"--host {host}: cannot listen there ({err.strerror or err})")
 
 
 class _ClientState:
@@ -103,6 +123,7 @@ class Viewer:
         self._path: list = []
         self._path_handles: list = []
         self.render_seconds = 0.0  # time spent rendering (live: taken from training)
+        _check_address(host)
         try:
             self.server = viser.ViserServer(host=host, port=port, label="warpnerf", verbose=False)
         except OSError as e:
@@ -175,7 +196,8 @@ class Viewer:
         g.add_markdown(f"**warpnerf** {self.scene.title}")
         self.mode = g.add_dropdown("Mode", self.scene.modes, initial_value=self.scene.modes[0])
         self.mode.on_update(lambda _: self._bump())
-        self.max_res = g.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
+        self.max_res = g.add_slider("Max resolution", 64, MAX_RESOLUTION, 32,
+                                    min(max(self.max_resolution, 64), MAX_RESOLUTION))  # fmt: skip
         self.max_res.on_update(lambda _: self._bump())
         self.status = g.add_markdown("rendered frames: 0")
         if self.scene.reload is not None and not self.live:
@@ -278,6 +300,8 @@ class Viewer:
         try:
             step = self.scene.reload()
             self.weights_version += 1
+            if self.grid_points is not None:
+                self._show_grid()
             msg = f"reloaded the checkpoint of step {step}"
         except Exception as e:  # a checkpoint being replaced, a broken file: keep the old one
             msg = f"reload failed: {e}"
@@ -341,13 +365,16 @@ class Viewer:
     # -------------------------------------------------------------------------- rendering
 
     def _size(self, aspect: float, canvas: int, full: bool) -> tuple:
+        """(width, height) of the next frame: the longest side at most the slider's value."""
+        aspect = min(max(aspect, 1e-2), 1e2)
         cap = min(int(self.max_res.value), canvas or self.max_resolution)
+        cap_w = cap if aspect >= 1 else max(1, int(cap * aspect))  # the longest side <= cap
         if full or self.ray_seconds is None:
-            w = cap if full else min(cap, 128)
+            w = cap_w if full else min(cap_w, 128)
         else:
             w = int((self.frame_seconds / self.ray_seconds * aspect) ** 0.5)
-        w = max(32, min(cap, w))
-        return w, max(16, int(round(w / max(aspect, 1e-3))))
+        w = max(16, min(cap_w, w))
+        return w, max(8, min(cap, int(round(w / aspect))))
 
     def _next_job(self):
         """(state, version, full) of the frame most worth rendering now, or None."""
@@ -398,9 +425,9 @@ class Viewer:
             try:
                 self._render_job(job, abortable=True)
             except Exception as e:  # a broken frame must not kill the server
+                job[0].shown = (job[1], job[2], True)  # (not retried until the camera moves)
                 self.status.content = f"render failed: {e}"
                 self.log(f"viewer: render failed: {e}")
-                time.sleep(0.5)
 
     def tick(self) -> None:
         """Live training: renders at most one frame, in the caller's thread; frames are spaced
