@@ -324,3 +324,21 @@ def test_color_direction_flag(tmp_path, capsys):
     assert main(["train", "volsdf", *tiny, "--field", "volsdf", "--color-direction", "reflect",
                  "--out", str(tmp_path / "v")]) == 2  # fmt: skip
     assert "--color-direction" in capsys.readouterr().err
+
+
+def test_a_loaded_run_has_its_steps_schedule(tmp_path):
+    """load_run sets the step's schedules (open hash levels, so the normals' step), which are
+    not all in the weights."""
+    from warpnerf.cli.parser import main
+    from warpnerf.train.nerf import load_run
+
+    run = tmp_path / "r"
+    assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--hash-levels",
+                 "6", "--hash-log2-size", "8", "--hash-max-res", "32", "--grid-res", "8",
+                 "--builtin-size", "16", "--batch", "64", "--val-images", "0", "--quiet",
+                 "--iters", "3", "--c2f-every", "1", "--out", str(run)]) == 0  # fmt: skip
+    _, model, ckpt = load_run(run)
+    f = model.field
+    # the last step (index 2) had 4 + 2 levels open: the saved mask and the normals' step agree
+    assert ckpt["step"] == 3 and f.open_levels == 6 and int(f.level_mask.sum()) == 6 * 2
+    assert f.fd_step == pytest.approx(2 * f.half / f.resolutions[5])

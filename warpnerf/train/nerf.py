@@ -192,6 +192,8 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
     for k, f in model.parts().items():
         if f is not None and k in ckpt["fields"]:  # (runs before the grid existed have none)
             load_weights(f, ckpt["fields"][k], ckpt_path, f"{k} field's weights")
+    if hasattr(model.coarse, "set_step"):  # the last step's schedules (open levels, beta), as
+        model.coarse.set_step(max(int(ckpt["step"]) - 1, 0))  # its saved buffers hold them
     return cfg, model, ckpt
 
 
