@@ -231,14 +231,25 @@ def test_server_binds_loopback_and_frees_its_port(nerf_run):
 
 
 class _FakeClient:
-    """What the viewer touches of a viser client: the id and set_background_image."""
+    """What the viewer touches of a viser client: the id, set_background_image, the camera."""
 
     def __init__(self):
-        self.client_id, self.images = 1, []
+        self.client_id, self.images, self.poses = 1, [], []
         self.scene = self
+        self.camera = self
 
     def set_background_image(self, img, **kw):
         self.images.append(img)
+
+    def atomic(self):
+        import contextlib
+
+        return contextlib.nullcontext()
+
+    def __setattr__(self, name, value):
+        if name == "position":  # set after wxyz by the preview
+            self.poses.append((self.__dict__.get("wxyz"), value))
+        object.__setattr__(self, name, value)
 
 
 def _train(run, hooks=()):
@@ -276,9 +287,15 @@ def test_live_viewer_leaves_training_unchanged(tmp_path):
             self.viewer._last_tick_frame = 0.0  # a frame after every step
             super().on_step(step, history, lr)
 
-    w = Watching(tmp_path / "c", port=_free_port(), log=lambda *a: None)
+    class Noting(Watching):
+        def close(self):
+            self.text = self.viewer.train_info.content
+            super().close()
+
+    w = Noting(tmp_path / "c", port=_free_port(), log=lambda *a: None)
     assert _train(tmp_path / "c", [w])["loss"] == base["loss"]
     assert len(w.client.images) >= 4 and w.client.images[-1].shape[2] == 3
+    assert w.text.startswith("training: step ") and "loss" in w.text
 
     class Hostile(Watching):  # a browser sending a broken camera: the training goes on
         def on_start(self, task, step):
@@ -296,7 +313,7 @@ def test_viewer_overlays_and_the_path_editor(tmp_path):
     keyframes added from a client's camera are saved as a path file `render --path` reads."""
     from warpnerf.mesh import write_ply
     from warpnerf.viewer import Viewer, load_scene
-    from warpnerf.viewer.server import _ClientState
+    from warpnerf.viewer.server import _ClientState, opencv_to_gl
 
     run = tmp_path / "s"
     assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--hash-levels",
@@ -316,6 +333,10 @@ def test_viewer_overlays_and_the_path_editor(tmp_path):
                        0.7, 1.5, 64)  # fmt: skip
             viewer._add_keyframe(st.client)
         viewer.path_frames.value = 7
+        viewer._preview(st.client, fps=1e6)  # flies the camera through the 7 path frames
+        assert len(st.client.poses) == 7
+        wxyz, pos = st.client.poses[-1]
+        assert np.allclose(opencv_to_gl(wxyz, pos), st.pose[0], atol=1e-5)  # ends on the last
         viewer.path_file.value = "p.json"
         viewer._save_path(st.client)
         assert "saved 3 keyframes" in viewer.path_info.content

@@ -11,6 +11,8 @@ the loop does not count that time as training time (as for validation).
 
 from __future__ import annotations
 
+import time
+
 from ..train.loop import LoopHook
 
 __all__ = ["LiveViewer"]
@@ -33,6 +35,14 @@ def scene_of_task(task, title: str = ""):
     return RunScene.of_radiance(task.model, task.cfg, getattr(task, "train", None), title=title)
 
 
+def training_text(step: int, history: dict) -> str:
+    """The panel's line about a training: step, training seconds, loss and PSNR (if any)."""
+    parts = [f"step {step}", f"{history['seconds'][-1]:.0f} s", f"loss {history['loss'][-1]:.4g}"]
+    if history.get("psnr"):
+        parts.append(f"psnr {history['psnr'][-1]:.2f}")
+    return ", ".join(parts)
+
+
 class LiveViewer(LoopHook):
     """Serves the training model on ``host:port`` from the first step to the end."""
 
@@ -40,6 +50,7 @@ class LiveViewer(LoopHook):
         self.run, self.host, self.port, self.log = run, host, port, log
         self.viewer_kw = viewer_kw
         self.viewer = None
+        self._shown_at, self._last_val = 0.0, ""
 
     def on_start(self, task, step: int) -> None:
         from .server import Viewer
@@ -52,7 +63,18 @@ class LiveViewer(LoopHook):
     def on_step(self, step: int, history: dict, lr: float) -> None:
         v = self.viewer
         v.weights_changed()
-        v.tick()
+        if v.watched():
+            now = time.perf_counter()
+            if now - self._shown_at >= 1.0:  # the panel's training line, once a second
+                self._shown_at = now
+                v.set_training_text(training_text(step, history))
+            v.tick()
+
+    def on_validation(self, step: int, figures: dict, task) -> None:
+        if self.viewer is not None:
+            self._last_val = ", ".join(f"{k} {v:.2f}" for k, v in figures.items()
+                                       if isinstance(v, (int, float)))  # fmt: skip
+            self.viewer.set_training_text(self._last_val)
 
     def close(self) -> None:
         if self.viewer is not None:

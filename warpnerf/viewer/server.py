@@ -200,6 +200,7 @@ class Viewer:
                                     min(max(self.max_resolution, 64), MAX_RESOLUTION))  # fmt: skip
         self.max_res.on_update(lambda _: self._bump())
         self.status = g.add_markdown("rendered frames: 0")
+        self.train_info = g.add_markdown("training: starting") if self.live else None
         if self.scene.reload is not None and not self.live:
             reload = g.add_button("Reload checkpoint")
             reload.on_click(lambda _: self._reload())
@@ -354,6 +355,15 @@ class Viewer:
         with self._lock:
             for st in self._clients.values():
                 st.version += 1
+
+    def watched(self) -> bool:
+        """Whether a browser is connected."""
+        return bool(self._clients)
+
+    def set_training_text(self, text: str) -> None:
+        """Live training: the panel's training line (step, loss, PSNR, validation)."""
+        if self.train_info is not None:
+            self.train_info.content = f"training: {text}"
 
     def weights_changed(self) -> None:
         """Live training: the model changed (re-rendered at most every refresh_seconds)."""
