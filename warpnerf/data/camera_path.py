@@ -30,7 +30,14 @@ from ..errors import UserError
 from ._json import read_json
 from .cameras import check_poses
 
-__all__ = ["CameraPath", "load_camera_path", "interpolate_path", "PATH_FORMAT"]
+__all__ = [
+    "CameraPath",
+    "load_camera_path",
+    "interpolate_path",
+    "PATH_FORMAT",
+    "matrix_to_quat",
+    "quat_to_matrix",
+]
 
 PATH_FORMAT = 1
 MAX_KEYFRAMES = 1000
@@ -124,7 +131,7 @@ def load_camera_path(path) -> CameraPath:
     return CameraPath(np.asarray(c2w, dtype=np.float64), fov, aspect, frames, loop)
 
 
-def _quat(r: np.ndarray) -> np.ndarray:
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) of a rotation matrix [3, 3] (Shepperd's method: branch on
     the largest of 4w^2, 4x^2, 4y^2, 4z^2, exact for half turns too)."""
     t = np.trace(r)
@@ -146,7 +153,8 @@ def _quat(r: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
-def _rot(q: np.ndarray) -> np.ndarray:
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix [3, 3] of a quaternion (w, x, y, z), normalised first."""
     w, x, y, z = q / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -173,7 +181,7 @@ def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor
     k = np.asarray(keyframes, dtype=np.float64).reshape(-1, 4, 4)
     if len(k) == 0 or frames < 1:
         raise ValueError("need at least one keyframe and one frame")
-    pos, quats = k[:, :3, 3], [_quat(m[:3, :3]) for m in k]
+    pos, quats = k[:, :3, 3], [matrix_to_quat(m[:3, :3]) for m in k]
     n = len(k)
     segments = n if loop else n - 1
     out = []
@@ -192,7 +200,7 @@ def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor
         c = 0.5 * ((2 * p1) + (-p0 + p2) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t * t
                    + (-p0 + 3 * p1 - 3 * p2 + p3) * t ** 3)  # fmt: skip
         m = np.eye(4)
-        m[:3, :3] = _rot(_slerp(quats[i], quats[(i + 1) % n], t))
+        m[:3, :3] = quat_to_matrix(_slerp(quats[i], quats[(i + 1) % n], t))
         m[:3, 3] = c
         out.append(m)
     return torch.as_tensor(np.stack(out), dtype=torch.float32)

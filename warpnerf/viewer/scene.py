@@ -169,17 +169,11 @@ class RunScene:
             if ndc is not None:
                 o, d = ndc_rays(o, d, ndc)
             res = render_rays_of(model, c, o, d, chunk=cfg.chunk)
-            acc = res["opacity"].reshape(-1, 1)
-            if mode == "rgb":
-                return res["rgb"]
-            if mode == "opacity":
-                return acc.expand(-1, 3)
-            if mode == "depth":  # near: bright, far or empty: dark
-                dep = (1.0 - res["depth"].reshape(-1, 1) / max(c.far, 1e-6)).clamp(0, 1)
-                return (dep * (acc > 0.5)).expand(-1, 3)
+            if mode != "normals":
+                return _image_values(res, mode, c.far)
             x = o + d * res["depth"].reshape(-1, 1)  # normals of an SDF field at the depth
             n = model.coarse.normals(x)
-            return torch.where(acc > 0.5, (n + 1) / 2, torch.ones_like(n))
+            return torch.where(res["opacity"].reshape(-1, 1) > 0.5, (n + 1) / 2, torch.ones_like(n))
 
         intr = images = size = None
         if train is not None:
@@ -205,14 +199,8 @@ class RunScene:
         def render_rays(o, d, mode):
             o, d = o.to(dev), d.to(dev)
             near, far = shifted(o[0])
-            res = render_volume(o, d, near, far, volume, **cfg.render_kwargs())
-            acc = res["opacity"].reshape(-1, 1)
-            if mode == "rgb":
-                return res["rgb"]
-            if mode == "opacity":
-                return acc.expand(-1, 3)
-            return ((1.0 - res["depth"].reshape(-1, 1) / far).clamp(0, 1) * (acc > 0.5)).expand(
-                -1, 3)  # fmt: skip
+            return _image_values(render_volume(o, d, near, far, volume, **cfg.render_kwargs()),
+                                 mode, far)  # fmt: skip
 
         c = volume.center.detach().cpu().tolist()
         h = (0.5 * volume.side_lengths.detach().abs().cpu()).tolist()
@@ -250,6 +238,18 @@ class RunScene:
             return ((1.0 - tr.t.reshape(-1, 1) / far).clamp(0, 1) * m).expand(-1, 3)
 
         return cls(render_rays, POINT_SDF_MODES, box, up=(0.0, 1.0, 0.0), title=title)
+
+
+def _image_values(res: dict, mode: str, far: float) -> torch.Tensor:
+    """[n, 3] pixel values of a volume renderer's output for ``mode``: rgb, opacity, or depth
+    (near: bright; beyond ``far`` or on rays with opacity below 0.5: black)."""
+    acc = res["opacity"].reshape(-1, 1)
+    if mode == "rgb":
+        return res["rgb"]
+    if mode == "opacity":
+        return acc.expand(-1, 3)
+    dep = (1.0 - res["depth"].reshape(-1, 1) / max(far, 1e-6)).clamp(0, 1)
+    return (dep * (acc > 0.5)).expand(-1, 3)
 
 
 def _window(c2w, near: float, far: float):

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.camera_path import CameraPath
+from ..data.camera_path import CameraPath, matrix_to_quat, quat_to_matrix
 from ..errors import UserError
 from .scene import Aborted, RunScene
 
@@ -37,26 +37,11 @@ _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL camera axes
 MAX_RESOLUTION = 4096  # pixels on the longest side of a frame
 
 
-def _quat_to_matrix(wxyz) -> np.ndarray:
-    w, x, y, z = np.asarray(wxyz, dtype=np.float64) / np.linalg.norm(wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])  # fmt: skip
-
-
-def _matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    from ..data.camera_path import _quat
-
-    return _quat(r)
-
-
 def opencv_to_gl(wxyz, position) -> np.ndarray:
     """OpenGL camera-to-world [4, 4] of a viser camera (rotation ``wxyz`` of OpenCV camera axes:
     x right, y down, looking down +z; ``position`` in world)."""
     m = np.eye(4)
-    m[:3, :3] = _quat_to_matrix(wxyz) @ _FLIP
+    m[:3, :3] = quat_to_matrix(np.asarray(wxyz, dtype=np.float64)) @ _FLIP
     m[:3, 3] = np.asarray(position, dtype=np.float64)
     return m
 
@@ -64,7 +49,7 @@ def opencv_to_gl(wxyz, position) -> np.ndarray:
 def gl_to_opencv(c2w) -> tuple:
     """(wxyz, position) of viser's OpenCV-axes camera for an OpenGL camera-to-world [4, 4]."""
     c2w = np.asarray(c2w, dtype=np.float64)
-    return _matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
+    return matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
 
 
 def _check_address(host: str) -> None:
@@ -122,6 +107,7 @@ class Viewer:
         self._stop = threading.Event()
         self._path: list = []
         self._path_handles: list = []
+        self._last_tick_frame = self._last_frame_seconds = 0.0  # live: when and how long
         self.render_seconds = 0.0  # time spent rendering (live: taken from training)
         _check_address(host)
         try:
@@ -445,8 +431,7 @@ class Viewer:
         if not self._clients:
             return
         now = time.perf_counter()
-        last = getattr(self, "_last_tick_frame", 0.0)
-        if now - last < max(0.05, 4.0 * getattr(self, "_last_frame_seconds", 0.0)):
+        if now - self._last_tick_frame < max(0.05, 4.0 * self._last_frame_seconds):
             return
         job = self._next_job()
         if job is None:
