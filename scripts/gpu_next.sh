@@ -7,6 +7,7 @@
 #   STAGE=step      the hash-field training step on materials after the bridge change
 #                   (scripts/profile_train_step.py, as the "Issue 18" profile), and what watching
 #                   costs there (scripts/watch_overhead.py, TensorBoard + idle viewer)
+#   STAGE=ttq       issue 18's time to quality on lego (DATA=.gpu/lego; BUDGETS, LABEL, EXTRA)
 #   STAGE=reflect   hash_sdf on materials with the reflection-aware colour head (issue 17's
 #                   materials gap): the lapB run of PERFORMANCE.md plus --color-direction reflect
 # Usage on the device (Warp on PYTHONPATH, package installed, data in .gpu/materials):
@@ -35,5 +36,18 @@ case "${STAGE:-cuda}" in
       --beta-final 0.005 --beta-anneal-steps 6000 --march-step 0.0029 --max-samples 2048 \
       --color-direction reflect" bash "$(dirname "$0")/gpu_hash_sdf.sh"
     ;;
-  *) echo "STAGE must be cuda, step or reflect"; exit 2 ;;
+  ttq)
+    # issue 18's figure: lego 400x400, hash field + occupancy grid, one training with snapshots at
+    # the budgets, every val image scored at each (scripts/time_to_quality.py), plus eval frame ms
+    L=${DATA:-.gpu/lego}
+    python3 scripts/time_to_quality.py run /tmp/ttq_lego --budgets ${BUDGETS:-5,15,30,60,120,300} \
+      --label "warpnerf ${LABEL:-main}" --chunk 400000 -- train nerf --data "$L" --field hash \
+      --device cuda --tf32 --batch 4096 --target-samples 262144 --val-images 0 --quiet \
+      ${EXTRA:-} 2>&1 | tail -12 | tee "$OUT/ttq_lego.txt"
+    cp /tmp/ttq_lego/ttq.json "$OUT/ttq_lego.json"; cp /tmp/ttq_lego/ttq.png "$OUT/ttq_lego.png"
+    cp /tmp/ttq_lego/run/history.json "$OUT/ttq_lego_history.json"
+    python3 -m warpnerf.cli eval /tmp/ttq_lego/run --split val --chunk 400000 --max-images 20 \
+      --out /tmp/ttq_eval > "$OUT/ttq_eval.json" 2>&1; tail -c 600 "$OUT/ttq_eval.json"
+    ;;
+  *) echo "STAGE must be cuda, step, reflect or ttq"; exit 2 ;;
 esac
