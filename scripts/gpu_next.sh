@@ -8,6 +8,8 @@
 #                   (scripts/profile_train_step.py, as the "Issue 18" profile), and what watching
 #                   costs there (scripts/watch_overhead.py, TensorBoard + idle viewer)
 #   STAGE=ttq       issue 18's time to quality on lego (DATA=.gpu/lego; BUDGETS, LABEL, EXTRA)
+#   STAGE=variants  short time-to-quality runs of several flag sets (VARIANTS="a;b", BUDGETS)
+#   STAGE=syncs     where the training step synchronises (scripts/sync_sites.py)
 #   STAGE=reflect   hash_sdf on materials with the reflection-aware colour head (issue 17's
 #                   materials gap): the lapB run of PERFORMANCE.md plus --color-direction reflect
 # Usage on the device (Warp on PYTHONPATH, package installed, data in .gpu/materials):
@@ -29,7 +31,7 @@ case "${STAGE:-cuda}" in
       --target-samples 262144 --aabb 1.7 2>&1 | tail -30
     python3 scripts/watch_overhead.py --repeats 3 --json "$OUT/watch_cuda.json" -- --data "$M" \
       --field hash --device cuda --tf32 --batch 4096 --target-samples 262144 --aabb 1.7 \
-      --iters 1500 --val-images 0 2>&1 | tail -6
+      --iters 1500 --val-images 0 ${WATCH_EXTRA:-} 2>&1 | tail -6
     ;;
   reflect)
     DATA=${DATA:-.gpu/materials} SECS=300 TAG=reflect GEOMETRY=1 EXTRA="--aabb 1.7 \
@@ -49,5 +51,24 @@ case "${STAGE:-cuda}" in
     python3 -m warpnerf.cli eval /tmp/ttq_lego/run --split val --chunk 400000 --max-images 20 \
       --out /tmp/ttq_eval > "$OUT/ttq_eval.json" 2>&1; tail -c 600 "$OUT/ttq_eval.json"
     ;;
-  *) echo "STAGE must be cuda, step, reflect or ttq"; exit 2 ;;
+  variants)
+    # short time-to-quality runs of several flag sets (VARIANTS: sets separated by ';'), in order
+    L=${DATA:-.gpu/lego}
+    i=0
+    IFS=';' read -ra sets <<< "${VARIANTS:-}"
+    for v in "${sets[@]}"; do
+      i=$((i+1))
+      python3 scripts/time_to_quality.py run /tmp/ttq_v$i --budgets ${BUDGETS:-5,15,30,60} \
+        --label "v$i:$v" --chunk 400000 -- train nerf --data "$L" --field hash --device cuda \
+        --tf32 --batch 4096 --val-images 0 --quiet --no-tensorboard $v 2>&1 | tail -7 \
+        | tee "$OUT/ttq_v$i.txt"
+      cp /tmp/ttq_v$i/ttq.json "$OUT/ttq_v$i.json"
+    done
+    ;;
+  syncs)
+    python3 scripts/sync_sites.py --json "$OUT/sync_sites.json" -- train nerf --data \
+      ${DATA:-builtin} --field hash --device cuda --tf32 --batch 4096 \
+      --target-samples 262144 ${EXTRA:-} 2>&1 | tail -25
+    ;;
+  *) echo "STAGE must be cuda, step, reflect, ttq, variants or syncs"; exit 2 ;;
 esac

@@ -120,7 +120,7 @@ class Task:
         raise NotImplementedError
 
     def optimizer(self, params: list, lr: float) -> torch.optim.Optimizer:
-        return torch.optim.Adam(params, lr=lr)
+        return adam(params, lr=lr)
 
     def loss(self, step: int) -> tuple:
         """(loss, terms) of step ``step`` (0-based): draws its batch, renders or evaluates, and
@@ -337,3 +337,15 @@ def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) 
     if (run / checkpoint).exists():
         raise UserError(f"{run}: already holds a run; choose another --out")
     check_foreign([run / n for n in outputs])
+
+
+def adam(params, **kw) -> torch.optim.Adam:
+    """Adam, fused (one multi-tensor kernel per step instead of a dozen launches: the hash-field
+    step is host-bound) when every parameter is a floating CUDA tensor; PyTorch's default
+    implementation otherwise (CPU runs). Both compute the same update and share the state dict
+    layout, so a checkpoint resumes on either."""
+    params = list(params)
+    tensors = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
+    fused = bool(tensors) and all(p.is_cuda and p.is_floating_point() for p in tensors)
+    return torch.optim.Adam(params, fused=fused or None, **kw)
+

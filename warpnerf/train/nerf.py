@@ -21,7 +21,7 @@ from ..io import (
 from ..ops import random_pixels
 from ..render import render_chunks, render_marched, render_nerf
 from .logs import TensorBoardLog
-from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
+from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
 
 __all__ = [
@@ -136,8 +136,8 @@ def _psnr(mse: float) -> float:
 
 def _optimizer(cfg, params):
     if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
-        return torch.optim.Adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
-    return torch.optim.Adam(params, lr=cfg.lr)
+        return adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    return adam(params, lr=cfg.lr)
 
 
 def load_run(run, device: str | None = None, snapshot: float | None = None):

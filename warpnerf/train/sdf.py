@@ -40,7 +40,7 @@ from ..io import (
 )
 from ..options import option
 from .logs import TensorBoardLog
-from .loop import LoopSettings, Task, claim_run, lock_run, resume_checks, run_loop
+from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
@@ -404,8 +404,8 @@ class SDFTask(Task):
 
     def optimizer(self, params, lr):
         if self.cfg.field == "hash":  # instant-ngp's Adam: tiny eps for the sparse table updates
-            return torch.optim.Adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
-        return torch.optim.Adam(params, lr=lr)
+            return adam(params, lr=lr, betas=(0.9, 0.99), eps=1e-15)
+        return adam(params, lr=lr)
 
     def loss(self, step):
         cfg, pts, gen, dev = self.cfg, self.pts, self.gen, self.pts.device
