@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import json
 import sys
 import traceback
 import warnings
@@ -58,10 +57,8 @@ def main():
 
     def record(message, category, filename, lineno, file=None, line=None):
         frames = [f for f in traceback.extract_stack() if "/warpnerf/" in f.filename]
-        where = (
-            " < ".join(f"{f.filename.split('/warpnerf/')[-1]}:{f.lineno}" for f in frames[-3:][::-1])
-            or f"{filename}:{lineno}"
-        )
+        names = [f"{f.filename.split('/warpnerf/')[-1]}:{f.lineno}" for f in frames[-3:]]
+        where = " < ".join(names[::-1]) or f"{filename}:{lineno}"
         sites[f"{str(message).split(chr(10))[0][:60]} @ {where}"] += 1
 
     old = warnings.showwarning

@@ -1,6 +1,5 @@
 """The training optimiser: fused Adam on CUDA, PyTorch's default on CPU, the same updates."""
 
-import pytest
 import torch
 
 from warpnerf.train.loop import adam
