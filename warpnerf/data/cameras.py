@@ -170,15 +170,20 @@ def camera_rays(
     py=None,  # [n]
     distortion=None,  # [n_cams, 4] (k1, k2, p1, p2) or None
     ndc=None,  # (fx, fy, W, H) of the NDC camera, or None
+    check: bool = True,
 ):
     """Rays of dataset pixels: :func:`warpnerf.ops.generate_rays` after undistorting the pixel
     positions (when ``distortion`` is non-zero), then mapped to NDC (when ``ndc`` is given).
+    ``check=False`` skips the range check of ``cam_idx`` (a host sync on CUDA) for indices the
+    caller drew itself (a training batch from :func:`warpnerf.ops.random_pixels`).
     Returns origins [n, 3], unit directions [n, 3]."""
     from ..ops import generate_rays
 
     undistort = distortion is not None and bool(torch.as_tensor(distortion).abs().max() > 0)
     if not undistort:
-        o, d = generate_rays(c2w, intrinsics, width, height, cam_idx=cam_idx, px=px, py=py)
+        o, d = generate_rays(
+            c2w, intrinsics, width, height, cam_idx=cam_idx, px=px, py=py, check=check
+        )
     else:
         k = intrinsics if intrinsics.dim() == 2 else intrinsics[None]
         dist = torch.as_tensor(distortion, device=k.device)
@@ -197,7 +202,7 @@ def camera_rays(
             (px - kk[:, 2]) / kk[:, 0], (py - kk[:, 3]) / kk[:, 1], dist[cam_idx]
         )
         px, py = x * kk[:, 0] + kk[:, 2], y * kk[:, 1] + kk[:, 3]
-        o, d = generate_rays(c2w, intrinsics, cam_idx=cam_idx, px=px, py=py)
+        o, d = generate_rays(c2w, intrinsics, cam_idx=cam_idx, px=px, py=py, check=check)
     if ndc is not None:
         o, d = ndc_rays(o, d, ndc)
     return o, d

@@ -180,6 +180,31 @@ def check_index(name: str, t, shape: tuple, device=None) -> None:
     _check_placement(name, t, shape, device)
 
 
+_CONSTANTS: dict = {}  # (device, dtype, values) -> a small read-only device tensor
+
+
+def constant(values, device, dtype) -> torch.Tensor:
+    """A small tensor of Python numbers on ``device``, made once per (device, dtype, values) and
+    reused: building it anew copies host memory to the GPU, and that copy synchronises the host
+    with the GPU on every call (the training step's ray box, near/far and background did this).
+    Callers must not write into it. Values that are not plain numbers (tensors) are copied as
+    usual, uncached."""
+    if isinstance(values, torch.Tensor):
+        return values.to(device=device, dtype=dtype)
+    flat = tuple(values) if isinstance(values, (list, tuple)) else (values,)
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in flat):
+        return torch.as_tensor(values, device=device, dtype=dtype)
+    dev = torch.device(device)
+    key = (dev.type, dev.index, dtype, isinstance(values, (list, tuple)), tuple(map(float, flat)))
+    t = _CONSTANTS.get(key)
+    if t is None:
+        if len(_CONSTANTS) > 256:  # (a long viewer session with many boxes)
+            _CONSTANTS.clear()
+        t = torch.tensor(values if isinstance(values, (list, tuple)) else flat[0], dtype=dtype)
+        t = _CONSTANTS[key] = t.to(dev)
+    return t
+
+
 def host_flags(*flags: torch.Tensor) -> list:
     """Python ints of 0-dim bool/int device tensors, copied in one transfer (one host sync on
     CUDA however many checks ride on it)."""

@@ -205,7 +205,7 @@ def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
 def _background(background, n_rays, device, dtype):
     if background is None:
         return torch.zeros(1, 3, device=device, dtype=dtype)
-    bg = torch.as_tensor(background, device=device, dtype=dtype)
+    bg = _bridge.constant(background, device, dtype)  # (numbers: made once, no sync per call)
     if bg.dim() == 0:
         bg = bg.expand(3)
     if bg.shape == (3,):

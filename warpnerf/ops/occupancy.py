@@ -197,8 +197,8 @@ def march_rays(
     max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
     if n_rays > _bridge.INT32_MAX:
         raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
-    near = torch.as_tensor(near, device=dev, dtype=torch.float32).expand(n_rays)
-    far = torch.as_tensor(far, device=dev, dtype=torch.float32).expand(n_rays)
+    near = _bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = _bridge.constant(far, dev, torch.float32).expand(n_rays)
     box = _box(aabb)
     t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
     t_lo = torch.maximum(t_in, near)

@@ -117,7 +117,10 @@ def random_pixels(n_cams: int, width: int, height: int, batch: int, generator=No
     if n_cams * width * height >= 2**62:
         raise ValueError(f"n_cams * width * height = {n_cams * width * height} pixels is too many")
     flat = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
-    flat = flat.to(device)
+    if torch.device(device).type == "cuda":  # (a pageable copy would synchronise the host)
+        flat = flat.pin_memory().to(device, non_blocking=True)
+    else:
+        flat = flat.to(device)
     cam = flat // (width * height)
     rem = flat % (width * height)
     py = (rem // width).to(torch.float32) + 0.5
@@ -152,7 +155,7 @@ def ray_aabb_intersect(
         )
     if t_min != t_min:
         raise ValueError("t_min must not be NaN")
-    box = box.to(dev)
+    box = _bridge.constant(box.tolist(), dev, dt) if box.device.type == "cpu" else box.to(dev)
     t_near = torch.empty(n, device=dev, dtype=dt)
     t_far = torch.empty(n, device=dev, dtype=dt)
     hit = torch.empty(n, device=dev, dtype=torch.bool)

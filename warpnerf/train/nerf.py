@@ -59,9 +59,12 @@ def load_data(cfg: NeRFConfig, split: str):
     ).to(cfg.device)
 
 
-def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None):
+def dataset_rays(
+    cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None, check=True
+):
     """Rays of a batch of pixels (cam_idx, px, py) or of every pixel of ``image``: undistorted
-    when the dataset has distortion, in NDC when the run uses it."""
+    when the dataset has distortion, in NDC when the run uses it (``check=False``: cam_idx drawn
+    by :func:`random_pixels`, no range check and no host sync)."""
     from ..data.cameras import camera_rays
 
     dist = ds.distortion
@@ -73,7 +76,7 @@ def dataset_rays(cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int
         )  # fmt: skip
     return camera_rays(
         ds.c2w, ds.intrinsics, cam_idx=cam_idx, px=px, py=py, distortion=dist,
-        ndc=cfg.ndc_camera(),
+        ndc=cfg.ndc_camera(), check=check,
     )  # fmt: skip
 
 
@@ -314,7 +317,7 @@ class NeRFTask(Task):
         cam, px, py, idx = random_pixels(
             self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device
         )
-        o, d = dataset_rays(cfg, self.train, cam, px, py)
+        o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
         seed = cfg.seed * 1000003 + step
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
         terms = {}
