@@ -348,4 +348,3 @@ def adam(params, **kw) -> torch.optim.Adam:
     tensors = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     fused = bool(tensors) and all(p.is_cuda and p.is_floating_point() for p in tensors)
     return torch.optim.Adam(params, fused=fused or None, **kw)
-
