@@ -274,3 +274,33 @@ def test_signal_checkpoints_the_step_and_resume_is_exact(tmp_path, sig):
     b = torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)
     for k, v in a["fields"]["coarse"].items():
         assert torch.equal(v, b["fields"]["coarse"][k]), k
+
+
+def test_images_on_host_gives_the_same_training(tmp_path, device):
+    """--images-on host (a CUDA run's images in host memory, each batch gathered there) trains
+    exactly as images on the device: the same batches, targets and losses."""
+    if device.type != "cuda":
+        pytest.skip("host-resident images are a CUDA matter (a CPU run's images are on the host)")
+    runs = {}
+    for where in ("device", "host"):
+        cfg = tiny(device="cuda", images_on=where, **GRID)
+        runs[where] = train_nerf(cfg, tmp_path / where, progress=False, log=lambda *a: 0)
+    assert runs["host"]["loss"] == runs["device"]["loss"]
+    assert runs["host"]["val_psnr"] == runs["device"]["val_psnr"]
+
+
+def test_images_on_choice_and_host_index(tmp_path):
+    from warpnerf.ops import random_pixels
+    from warpnerf.train.nerf import images_stay_on_host
+
+    img = torch.zeros(2, 4, 4, 3)
+    assert not images_stay_on_host("cpu", img, "host")  # a CPU run's images are there already
+    assert images_stay_on_host("cuda", img, "host")
+    assert not images_stay_on_host("cuda:0", img, "device")
+    with pytest.raises(UserError, match="--images-on"):
+        tiny(images_on="disk").validate()
+    g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
+    cam, px, py, flat = random_pixels(3, 5, 4, 64, generator=g1)
+    cam2, px2, py2, (flat2, host) = random_pixels(3, 5, 4, 64, generator=g2, host_index=True)
+    assert torch.equal(flat, flat2) and torch.equal(flat, host) and host.device.type == "cpu"
+    assert torch.equal(cam, cam2) and torch.equal(px, px2) and torch.equal(py, py2)

@@ -106,9 +106,15 @@ def generate_rays(
     return origins, directions
 
 
-def random_pixels(n_cams: int, width: int, height: int, batch: int, generator=None, device="cpu"):
+def random_pixels(
+    n_cams: int, width: int, height: int, batch: int, generator=None, device="cpu",
+    host_index: bool = False,
+):  # fmt: skip
     """A uniform random batch of pixels across all images: cam_idx [batch] int64, px, py [batch]
-    float32 at pixel centres, plus the flat pixel index [batch] (cam, row, column order).
+    float32 at pixel centres, plus the flat pixel index [batch] (cam, row, column order); with
+    ``host_index`` that last item is the pair (index on ``device``, the same on the host), for
+    gathering from images kept in host memory. The indices are drawn on the host from
+    ``generator`` (a CPU generator), so a batch is the same on every device.
     Sizes must be ints: n_cams, width, height >= 1 and batch >= 0 (ValueError otherwise)."""
     n_cams = _bridge.check_int("n_cams", n_cams, lo=1)
     width = _bridge.check_int("width", width, lo=1)
@@ -116,16 +122,16 @@ def random_pixels(n_cams: int, width: int, height: int, batch: int, generator=No
     batch = _bridge.check_int("batch", batch, lo=0, hi=2**62)
     if n_cams * width * height >= 2**62:
         raise ValueError(f"n_cams * width * height = {n_cams * width * height} pixels is too many")
-    flat = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
+    host = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
     if torch.device(device).type == "cuda":  # (a pageable copy would synchronise the host)
-        flat = flat.pin_memory().to(device, non_blocking=True)
+        flat = host.pin_memory().to(device, non_blocking=True)
     else:
-        flat = flat.to(device)
+        flat = host.to(device)
     cam = flat // (width * height)
     rem = flat % (width * height)
     py = (rem // width).to(torch.float32) + 0.5
     px = (rem % width).to(torch.float32) + 0.5
-    return cam, px, py, flat
+    return cam, px, py, ((flat, host) if host_index else flat)
 
 
 def ray_aabb_intersect(

@@ -6,6 +6,7 @@ restored)."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from pathlib import Path
 
@@ -41,9 +42,34 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     return cfg.validate(scene_settings(cfg))
 
 
-def load_data(cfg: NeRFConfig, split: str):
+def load_data(cfg: NeRFConfig, split: str, images_on: str = "device"):
     """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
-    cfg.device (the built-in scene when cfg.data == "builtin")."""
+    cfg.device (the built-in scene when cfg.data == "builtin"); ``images_on="host"`` keeps the
+    images in host memory (a training batch's pixels are gathered there into pinned memory and
+    copied, see :class:`NeRFTask`), "auto" does so when they would take more than
+    a quarter of the GPU's free memory (see :func:`images_stay_on_host`)."""
+
+    ds = _load_split(cfg, split)
+    if images_stay_on_host(cfg.device, ds.images, images_on):
+        images = ds.images.cpu()
+        ds = dataclasses.replace(ds, images=images[:0]).to(cfg.device)
+        return dataclasses.replace(ds, images=images)
+    return ds.to(cfg.device)
+
+
+def images_stay_on_host(device, images: torch.Tensor, images_on: str) -> bool:
+    """Whether a CUDA run keeps ``images`` in host memory: ``images_on`` is "host", or "auto"
+    and they would take more than a quarter of the GPU's free memory (CPU runs: never, they are
+    there already)."""
+    if images_on == "device" or not str(device).startswith("cuda"):
+        return False
+    if images_on == "host":
+        return True
+    free, _ = torch.cuda.mem_get_info(torch.device(device))
+    return images.numel() * images.element_size() > free // 4
+
+
+def _load_split(cfg: NeRFConfig, split: str):
     from ..data import load_dataset
 
     return load_dataset(
@@ -56,7 +82,7 @@ def load_data(cfg: NeRFConfig, split: str):
         holdout=cfg.holdout,
         builtin_size=cfg.builtin_size,
         device=cfg.device,
-    ).to(cfg.device)
+    )
 
 
 def dataset_rays(
@@ -242,8 +268,8 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad dataset stops the run before anything is written.
-    train = load_data(cfg, "train")
-    val = load_data(cfg, "val") if cfg.val_images > 0 else None
+    train = load_data(cfg, "train", cfg.images_on)
+    val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
     tb = [TensorBoardLog(run, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:
         claim_run(run, locks, OUTPUTS, CHECKPOINT)
@@ -278,6 +304,9 @@ class NeRFTask(Task):
         self.cfg, self.model, self.train, self.val = cfg, model, train, val
         self.n_img, self.h, self.w = train.images.shape[:3]
         self.flat = train.images.reshape(-1, 3)
+        # images in host memory on a CUDA run (--images-on): each batch's pixels are gathered
+        # on the host, by the indices drawn there, and copied without blocking
+        self.host_images = self.flat.device.type == "cpu" and cfg.device.startswith("cuda")
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.grid = model.grid
         # The grid's updates and lattice jitter draw from a generator on the device (saved too).
@@ -315,8 +344,14 @@ class NeRFTask(Task):
             else:
                 grid.update(lambda x: field.density(x)[0], self.grid_gen)
         cam, px, py, idx = random_pixels(
-            self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device
-        )
+            self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device,
+            host_index=self.host_images,
+        )  # fmt: skip
+        if self.host_images:
+            idx, idx_host = idx
+            target = torch.empty(idx_host.shape[0], 3, dtype=self.flat.dtype, pin_memory=True)
+            torch.index_select(self.flat, 0, idx_host, out=target)
+            target = target.to(cfg.device, non_blocking=True)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
         seed = cfg.seed * 1000003 + step
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
@@ -327,7 +362,8 @@ class NeRFTask(Task):
             if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
                 batch = int(self.batch * cfg.target_samples / max(out["n_kept"], 1))
                 self.batch = min(max(batch, 64), 1 << 16)
-        target = self.flat[idx]
+        if not self.host_images:
+            target = self.flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         terms["psnr"] = loss_fine
         loss = loss_fine
@@ -389,5 +425,5 @@ def validate(model, cfg, val, keep: dict | None = None) -> float:
         rgb, depth, _ = render_dataset_image(model, cfg, val, i)
         if keep is not None and i == 0:
             keep.update(rgb=rgb, depth=depth)
-        mses.append(float(((rgb - val.images[i]) ** 2).mean()))
+        mses.append(float(((rgb - val.images[i].to(rgb.device)) ** 2).mean()))
     return sum(_psnr(m) for m in mses) / max(n, 1)

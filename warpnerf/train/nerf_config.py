@@ -148,6 +148,12 @@ class NeRFConfig:
     background: float = option(1.0, flag=None)  # white, as the NeRF-synthetic evaluation
     downscale: int = option(1, "image downscale factor", check="positive")
     max_images: int = option(0, "training images used (0 = all)", check="nonnegative")
+    images_on: str = option(
+        "auto", "where the training images live on a GPU run: device (gathered on the GPU), "
+        "host (host memory; each batch's pixels gathered there into pinned memory and copied: "
+        "GPU memory independent of the number of images) or auto (device while they take at most a "
+        "quarter of the free GPU memory)",
+    )  # fmt: skip
     builtin_size: int = option(48, "image size of the built-in scene", check="positive")
     t_threshold: float = option(
         1e-4, "early ray termination below this transmittance (0: off)", check="finite"
@@ -252,7 +258,8 @@ class NeRFConfig:
         choices = {"field": FIELDS, "ndc": ("auto", "on", "off"),
                    "density_activation": ("relu", "softplus"), "data_format": FORMATS,
                    "sdf_density": ("laplace", "logistic"),
-                   "color_direction": ("view", "reflect")}  # fmt: skip
+                   "color_direction": ("view", "reflect"),
+                   "images_on": ("auto", "device", "host")}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")

@@ -108,7 +108,7 @@ def evaluate_run(
         setattr(cfg, key, type(getattr(cfg, key))(value))
     if grid is not None:
         grid.dt = cfg.march_step
-    ds = load_data(cfg, split)
+    ds = load_data(cfg, split, cfg.images_on)  # (large splits stay in host memory)
     sub = f"eval_{split}" + ("_sphere" if renderer == "sphere" else "")
     out_dir = Path(out_dir) if out_dir else Path(run) / sub
     n = ds.images.shape[0] if not max_images else min(max_images, ds.images.shape[0])
@@ -140,7 +140,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
             rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
         sync()
         render_ms = 1e3 * (time.perf_counter() - tr)
-        gt = ds.images[i]
+        gt = ds.images[i].to(rgb.device)
         rows.append(
             {
                 "image": i,

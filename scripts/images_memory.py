@@ -1,0 +1,91 @@
+"""Peak GPU memory of NeRF training against the number of training images (issue 20: "GPU memory
+of training independent of the number of images"). A generated capture (random pixel values,
+cameras on a sphere looking at the origin; the content does not matter for memory) of N images
+of W x H is held as the training split with ``--images-on host`` (pixels gathered on the host
+each step) or ``device`` (all images on the GPU); a hash field + occupancy grid trains STEPS steps
+and the peak of ``torch.cuda.max_memory_allocated`` over the training is reported, per N.
+
+    python3 scripts/images_memory.py --images 100,2000 --width 1920 --height 1080 --steps 40 \
+        [--images-on host] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--images", default="100,2000", help="numbers of images, comma-separated")
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--images-on", default="host", choices=("host", "device"))
+    p.add_argument("--json", default=None)
+    a = p.parse_args()
+    counts = [int(x) for x in a.images.split(",")]
+    if min(counts) < 1 or a.width < 1 or a.height < 1 or a.steps < 1:
+        raise SystemExit("images, width, height and steps must be positive")
+
+    import torch
+
+    from warpnerf.data.cameras import orbit_views
+    from warpnerf.data.dataset import Dataset
+    from warpnerf.train import NeRFConfig
+    from warpnerf.train.nerf import NeRFTask, build_model
+
+    if not torch.cuda.is_available():
+        raise SystemExit("images_memory.py measures GPU memory: it needs CUDA")
+    rows = []
+    for n in counts:
+        t0 = time.perf_counter()
+        images = torch.empty(n, a.height, a.width, 3)
+        gen = torch.Generator().manual_seed(n)
+        for i in range(0, n, 16):  # (in slices: a single torch.rand of tens of GB is slow)
+            images[i : i + 16] = torch.rand(images[i : i + 16].shape, generator=gen)
+        f = 0.6 * a.width
+        ds = Dataset(
+            images=images,
+            c2w=orbit_views(n, radius=4.0),
+            intrinsics=torch.tensor([[f, f, a.width / 2, a.height / 2]]).repeat(n, 1),
+        )
+        made_s = time.perf_counter() - t0
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+        cfg = NeRFConfig(data="generated", field="hash", device="cuda", tf32=True, batch=4096,
+                         target_samples=262144, aabb=1.5, near=2.0, far=6.0,
+                         images_on=a.images_on)  # fmt: skip
+        train = ds if a.images_on == "host" else ds.to("cuda")
+        model = build_model(cfg)
+        task = NeRFTask(cfg, model, train, None, log=lambda *x: None)
+        opt = task.optimizer(task.parameters(), cfg.lr)
+        t1 = time.perf_counter()
+        for i in range(a.steps):
+            loss, _ = task.loss(i)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            float(loss)
+        torch.cuda.synchronize()
+        step_ms = 1e3 * (time.perf_counter() - t1) / a.steps
+        peak = torch.cuda.max_memory_allocated() - base
+        rows.append({"images": n, "width": a.width, "height": a.height, "images_on": a.images_on,
+                     "host_gib": images.numel() * 4 / 2**30, "peak_gpu_mib": peak / 2**20,
+                     "step_ms": step_ms, "make_s": made_s})  # fmt: skip
+        print(rows[-1], flush=True)
+        del task, model, opt, train, ds, images
+    print("| images | W x H | images on | host GiB | peak GPU MiB | step ms |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['images']} | {r['width']}x{r['height']} | {r['images_on']} | "
+              f"{r['host_gib']:.1f} | {r['peak_gpu_mib']:.0f} | {r['step_ms']:.1f} |")  # fmt: skip
+    if a.json:
+        from warpnerf.io import write_json
+
+        write_json(a.json, {"rows": rows, "steps": a.steps, "device": torch.cuda.get_device_name()})
+
+
+if __name__ == "__main__":
+    main()
