@@ -12,6 +12,7 @@ and the peak of ``torch.cuda.max_memory_allocated`` over the training is reporte
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 
@@ -57,7 +58,12 @@ def main():
         cfg = NeRFConfig(data="generated", field="hash", device="cuda", tf32=True, batch=4096,
                          target_samples=262144, aabb=1.5, near=2.0, far=6.0,
                          images_on=a.images_on)  # fmt: skip
-        train = ds if a.images_on == "host" else ds.to("cuda")
+        if a.images_on == "device":
+            train = ds.to("cuda")
+        else:  # cameras on the GPU, the images in host memory
+            train = dataclasses.replace(ds.__class__(images=images[:0], c2w=ds.c2w,
+                                                     intrinsics=ds.intrinsics).to("cuda"),
+                                        images=images)  # fmt: skip
         model = build_model(cfg)
         task = NeRFTask(cfg, model, train, None, log=lambda *x: None)
         opt = task.optimizer(task.parameters(), cfg.lr)

@@ -285,8 +285,11 @@ def test_images_on_host_gives_the_same_training(tmp_path, device):
     for where in ("device", "host"):
         cfg = tiny(device="cuda", images_on=where, **GRID)
         runs[where] = train_nerf(cfg, tmp_path / where, progress=False, log=lambda *a: 0)
-    assert runs["host"]["loss"] == runs["device"]["loss"]
-    assert runs["host"]["val_psnr"] == runs["device"]["val_psnr"]
+    # (the same batches and targets; the hash backward's atomics sum in any order on CUDA)
+    torch.testing.assert_close(runs["host"]["loss"], runs["device"]["loss"], rtol=1e-4, atol=0)
+    torch.testing.assert_close(
+        runs["host"]["val_psnr"], runs["device"]["val_psnr"], rtol=1e-4, atol=0
+    )
 
 
 def test_images_on_choice_and_host_index(tmp_path):

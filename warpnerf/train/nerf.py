@@ -389,7 +389,7 @@ class NeRFTask(Task):
         if keep:  # the first image, for the TensorBoard log: prediction | truth, and depth
             rgb, depth = keep["rgb"], keep["depth"]
             self.val_images = {
-                "rgb": torch.cat([rgb, self.val.images[0]], 1).cpu().numpy(),
+                "rgb": torch.cat([rgb.cpu(), self.val.images[0].cpu()], 1).numpy(),
                 "depth": (depth / max(self.cfg.far, 1e-6)).clamp(0, 1).cpu().numpy(),
             }
         return {"val_psnr": psnr}
