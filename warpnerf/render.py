@@ -212,17 +212,19 @@ def render_marched(
     round_samples: int = 0,
     half: bool = False,
     sample_budget: int = SAMPLE_BUDGET,
+    jitter: torch.Tensor | None = None,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
     ``grid`` (:class:`warpnerf.OccupancyGrid`) emits lattice samples of step ``grid.dt`` in
     occupied cells (the lattice shifted by a random fraction of a step per ray when ``perturb``,
-    drawn from ``generator`` on the rays' device). ``field`` is a module with ``density(positions)
-    -> (sigmas [n], features)`` and ``color(features, directions) -> rgbs [n, 3]``. Densities of
-    all marched samples are computed first without gradients; each ray keeps its samples before
-    transmittance drops below ``t_threshold`` (the compositing kernels' own rule, so forward and
-    backward see the same samples); the field then runs again with gradients on the kept samples
-    only.
+    drawn from ``generator`` on the rays' device, or given as ``jitter`` [n_rays] in [0, 1): a
+    data-parallel rank passes its share of the global batch's draws). ``field`` is a module
+    with ``density(positions) -> (sigmas [n], features)`` and ``color(features, directions) ->
+    rgbs [n, 3]``. Densities of all marched samples are computed first without gradients; each
+    ray keeps its samples before transmittance drops below ``t_threshold`` (the compositing
+    kernels' own rule, so forward and backward see the same samples); the field then runs again
+    with gradients on the kept samples only.
 
     Without gradients (rendering) the field's density runs once on the marched samples, their
     weights are composited, and the colour MLP runs only on samples whose weight reaches
@@ -257,8 +259,7 @@ def render_marched(
             round_samples or max_samples, max_samples, half, sample_budget,
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
-    jitter = None
-    if perturb:
+    if jitter is None and perturb:
         jitter = torch.rand(n_rays, device=dev, generator=generator)
     smp, _ = grid.march(origins, directions, near, far, jitter=jitter, max_samples=max_samples)
     ri = smp.ray_indices

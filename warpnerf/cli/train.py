@@ -136,8 +136,20 @@ def cmd_train_nerf(args) -> int:
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
     else:
         cfg, device = nerf_config_from_args(args), None
-    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet, device=device,
-                      hooks=live_hooks(args), tensorboard=tensorboard_every(args))  # fmt: skip
+    # started by torchrun (WORLD_SIZE > 1): one rank of a data-parallel run (train/distributed.py)
+    from ..train.distributed import from_env
+
+    want = cfg.device if not args.resume else device or _saved_config(args.out).get("device")
+    dist, rank_device = from_env(str(want or "cpu"))
+    if dist is not None:
+        device = rank_device if args.resume else device
+        cfg.device = rank_device if not args.resume else cfg.device
+    main = dist is None or dist.main
+    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
+                      device=device, hooks=live_hooks(args) if main else [],
+                      tensorboard=tensorboard_every(args), dist=dist)  # fmt: skip
+    if not main:
+        return 0
     last = {
         "step": hist["step"][-1] if hist["step"] else 0,
         "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,

@@ -175,13 +175,19 @@ class LoopHook:
         """When the loop ends, however it ends (also on errors)."""
 
 
-def _read_terms(loss, terms: dict, flags):
-    """Host values of the loss, the tensor terms and the divergence flags, in one transfer."""
+def _read_terms(loss, terms: dict, flags, dist=None):
+    """Host values of the loss, the tensor terms and the divergence flags, in one transfer (in a
+    data-parallel run: the loss and terms averaged over the ranks, a flag set if any rank's
+    is, in one all-reduce)."""
     names = [k for k, v in terms.items() if isinstance(v, torch.Tensor)]
     parts = [loss.detach().reshape(1)] + [terms[k].detach().reshape(1) for k in names]
     parts.append(flags)
     dev = loss.device
-    vals = torch.cat([p.to(dev, torch.float64) for p in parts]).tolist()
+    vals = torch.cat([p.to(dev, torch.float64) for p in parts])
+    if dist is not None:
+        dist.sum_(vals)
+        vals[: 1 + len(names)] /= dist.world
+    vals = vals.tolist()
     out = {k: (v if not isinstance(v, torch.Tensor) else None) for k, v in terms.items()}
     for k, v in zip(names, vals[1 : 1 + len(names)]):
         out[k] = v
@@ -227,8 +233,11 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
     elapsed0 = history["seconds"][-1] if history["seconds"] else 0.0
     t0, val_time = time.perf_counter(), 0.0  # training time excludes validation
     cuda = any(p.is_cuda for p in params)
+    dist = getattr(task, "dist", None)  # data-parallel (train/distributed.py): rank 0 writes
+    main = dist is None or dist.main
+    hooks = hooks if main else ()
     bar = None
-    if progress:
+    if progress and main:
         from tqdm import tqdm
 
         bar = tqdm(total=s.iters, initial=start, desc=s.desc, unit="step", disable=None)
@@ -239,7 +248,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
         if name == checkpoint:
             write_json(Path(run) / "history.json", history)
 
-    pending = [b for b in s.snapshot_seconds if b > elapsed0] if run is not None else []
+    pending = [b for b in s.snapshot_seconds if b > elapsed0] if run is not None and main else []
     if pending:  # before any work: refuse to replace files warpnerf did not write
         (Path(run) / SNAPSHOTS).mkdir(exist_ok=True)
         check_foreign([Path(run) / snapshot_name(b) for b in pending])
@@ -257,16 +266,24 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
             loss, terms = task.loss(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if dist is not None:
+                dist.average_grads(params)
             flags = nonfinite_flags(loss, params)
             opt.step()
             done = step + 1
             # the step's one host sync: the loss, the terms and the divergence flags (a step
             # that diverged is never saved: the run keeps its last good checkpoint)
-            loss_v, values, bad = _read_terms(loss, terms, flags)
+            loss_v, values, bad = _read_terms(loss, terms, flags, dist)
             raise_if_diverged(bad, done, loss_v, where, lr)
             if cuda:
                 torch.cuda.synchronize()
             seconds = elapsed0 + time.perf_counter() - t0 - val_time
+            if dist is not None:  # rank 0's clock, and a stop asked of any rank, for all
+                shared = torch.tensor([seconds if main else 0.0, stop["signum"] or 0],
+                                      dtype=torch.float64, device=loss.device)  # fmt: skip
+                seconds, signum = dist.max_(shared).tolist()
+                if signum and stop["signum"] is None:
+                    stop["signum"] = int(signum)
             history["step"].append(done)
             history["loss"].append(loss_v)
             task.record(history, values)
@@ -286,7 +303,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
                 bar.update(1)
                 bar.set_postfix(task.postfix(history))
             out_of_time = s.max_seconds > 0 and seconds - elapsed0 >= s.max_seconds
-            if s.val_every and (done % s.val_every == 0 or done == s.iters or out_of_time):
+            if main and s.val_every and (done % s.val_every == 0 or done == s.iters or out_of_time):
                 tv = time.perf_counter()
                 figures = task.validate(done)
                 if figures is not None:
@@ -299,7 +316,11 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
                 if figures is not None:
                     log(f"step {done}: {task.validation_text(history)}, {seconds:.0f} s")
             stopping = out_of_time or stop["signum"] is not None
-            if run is not None and (done % s.ckpt_every == 0 or done == s.iters or stopping):
+            if (
+                run is not None
+                and main
+                and (done % s.ckpt_every == 0 or done == s.iters or stopping)
+            ):
                 save(done)
             if out_of_time:
                 log(f"stopping at step {done}: --max-seconds {s.max_seconds} reached")

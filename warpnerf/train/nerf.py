@@ -107,11 +107,12 @@ def dataset_rays(
 
 
 def render_rays_of(
-    model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None
-):
+    model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
+    jitter=None,
+):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
-    (``generator``, on the rays' device, jitters the lattice when ``perturb``), otherwise
-    stratified (+ hierarchical) samples."""
+    (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
+    are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples."""
     if model.grid is not None:
         return render_chunks(
             o.shape[0],
@@ -130,6 +131,7 @@ def render_rays_of(
                 max_samples=cfg.max_samples,
                 round_samples=cfg.round_samples,
                 half=cfg.render_half,
+                jitter=None if jitter is None else jitter[sl],
             ),
         )
     return render_nerf(
@@ -235,6 +237,7 @@ def train_nerf(
     device: str | None = None,
     hooks=(),
     tensorboard: int = 0,
+    dist=None,
 ):
     """Trains (or resumes) a run in folder ``run``; returns the history dict.
 
@@ -244,17 +247,24 @@ def train_nerf(
 
     On resume only ``cfg.iters`` (the total to reach) and ``cfg.max_seconds`` are taken from
     ``cfg``; everything else comes from the run's config.json, and ``device`` (if given) moves it.
+
+    ``dist`` (:class:`~warpnerf.train.distributed.Dist`): this process is one rank of a
+    data-parallel run (``torchrun``); only rank 0 takes the folder's lock and writes files.
     """
     with contextlib.ExitStack() as locks:  # the run folder's lock, held to the end
         return _train_nerf(cfg, Path(run), resume, progress, log, device, locks, hooks,
-                           tensorboard)  # fmt: skip
+                           tensorboard, dist)  # fmt: skip
 
 
-def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, tensorboard):
+def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, tensorboard,
+                dist=None):  # fmt: skip
+    main = dist is None or dist.main
     if resume:
-        lock_run(run, locks)
+        if main:
+            lock_run(run, locks)
         saved_cfg, model, ckpt = load_run(run, device)
-        resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
+        if main:
+            resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
         saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
         cfg = saved_cfg
         cfg.validate()
@@ -270,11 +280,12 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     # Data first: a bad dataset stops the run before anything is written.
     train = load_data(cfg, "train", cfg.images_on)
     val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
-    tb = [TensorBoardLog(run, tensorboard)] if tensorboard else []  # (checks; writes nothing)
-    if not resume:
-        claim_run(run, locks, OUTPUTS, CHECKPOINT)
-    write_json(run / "config.json", cfg.to_dict())
-    task = NeRFTask(cfg, model, train, val, log)
+    tb = [TensorBoardLog(run, tensorboard)] if tensorboard and main else []  # (writes nothing)
+    if main:
+        if not resume:
+            claim_run(run, locks, OUTPUTS, CHECKPOINT)
+        write_json(run / "config.json", cfg.to_dict())
+    task = NeRFTask(cfg, model, train, val, log, dist=dist)
     if not resume and getattr(cfg, "beta_final", 0) > 0 and model.grid is not None:
         if cfg.beta_final < model.grid.dt:  # measured on materials: val PSNR 30.4 -> 25.6 dB
             log(f"warning: --beta-final {cfg.beta_final:g} is below the marching step "
@@ -300,8 +311,9 @@ class NeRFTask(Task):
     history_keys = ("psnr", "val_step", "val_psnr")
     validation_keys = ("val_psnr",)
 
-    def __init__(self, cfg, model: RadianceModel, train, val, log=print):
+    def __init__(self, cfg, model: RadianceModel, train, val, log=print, dist=None):
         self.cfg, self.model, self.train, self.val = cfg, model, train, val
+        self.dist = dist  # data-parallel: this rank renders its share of each global batch
         self.n_img, self.h, self.w = train.images.shape[:3]
         self.flat = train.images.reshape(-1, 3)
         # images in host memory on a CUDA run (--images-on): each batch's pixels are gathered
@@ -347,29 +359,45 @@ class NeRFTask(Task):
             self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device,
             host_index=self.host_images,
         )  # fmt: skip
+        n = cam.shape[0]  # the global batch (every rank draws it whole)
+        sl, jitter, scale = slice(0, n), None, 1.0
+        if self.dist is not None:  # this rank's share; the lattice jitter drawn for all rays
+            sl = self.dist.share(n)
+            if grid is not None:
+                jitter = torch.rand(n, device=cfg.device, generator=self.grid_gen)[sl]
+            # the share's mean loss weighted so that the ranks' average is the batch's mean
+            scale = (sl.stop - sl.start) * self.dist.world / max(n, 1)
+            cam, px, py = cam[sl], px[sl], py[sl]
+            idx = (idx[0][sl], idx[1][sl]) if self.host_images else idx[sl]
         if self.host_images:
             idx, idx_host = idx
             target = torch.empty(idx_host.shape[0], 3, dtype=self.flat.dtype, pin_memory=True)
             torch.index_select(self.flat, 0, idx_host, out=target)
             target = target.to(cfg.device, non_blocking=True)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
-        seed = cfg.seed * 1000003 + step
-        out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen)
+        seed = cfg.seed * 1000003 + step + sl.start  # (stratified jitter: by seed + ray index)
+        out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
+                             jitter=jitter)  # fmt: skip
+        n_kept = out.get("n_kept")
+        if self.dist is not None and n_kept is not None:  # the global batch's samples
+            n_kept = int(self.dist.sum_(torch.tensor([n_kept], device=cfg.device)).item())
         terms = {}
         if grid is not None:
-            terms["samples_per_ray"] = out["n_kept"] / self.batch
+            terms["samples_per_ray"] = n_kept / self.batch
             terms["batch"] = self.batch
             if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
-                batch = int(self.batch * cfg.target_samples / max(out["n_kept"], 1))
+                batch = int(self.batch * cfg.target_samples / max(n_kept, 1))
                 self.batch = min(max(batch, 64), 1 << 16)
         if not self.host_images:
             target = self.flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
+        if scale != 1.0:
+            loss_fine = loss_fine * scale
         terms["psnr"] = loss_fine
         loss = loss_fine
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
-            loss = loss + torch.mean((coarse - target) ** 2)
+            loss = loss + torch.mean((coarse - target) ** 2) * scale  # (scale 1: exact)
         if model.kind == "sdf":  # eikonal on the rendered samples and on random box points
             f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb

@@ -1,0 +1,95 @@
+"""Data-parallel training through ``torch.distributed`` (launched with ``torchrun``).
+
+Every rank holds the whole model, draws the same global batch of pixels (the same CPU generator
+and seed) and renders its contiguous share of the rays; the gradients are averaged over the ranks
+(one all-reduce of all of them, flattened), so each rank applies the same update and the
+occupancy grid, whose updates draw from a generator every rank advances identically, stays the
+same everywhere. The loss each rank reports is its share's sum over the global batch size, so
+the all-reduced loss is the global batch's mean, whatever the split: N ranks follow the loss
+curve of one process with the whole batch (up to float rounding). Only rank 0 writes files
+(config, checkpoints, history, logs) and validates; a checkpoint holds nothing rank-specific,
+so a run resumes with any number of ranks. NCCL on CUDA, gloo on CPU.
+"""
+
+from __future__ import annotations
+
+import datetime
+import os
+
+import torch
+
+__all__ = ["Dist", "from_env"]
+
+
+class Dist:
+    """This process's place in a data-parallel run (rank, world size) and its collectives."""
+
+    def __init__(self, rank: int, world: int):
+        self.rank, self.world = int(rank), int(world)
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+    def share(self, n: int) -> slice:
+        """This rank's contiguous share of ``n`` items (the first ``n % world`` ranks get one
+        more)."""
+        base, extra = divmod(int(n), self.world)
+        lo = self.rank * base + min(self.rank, extra)
+        return slice(lo, lo + base + (1 if self.rank < extra else 0))
+
+    def sum_(self, t: torch.Tensor) -> torch.Tensor:
+        """In place: the sum over the ranks."""
+        import torch.distributed as td
+
+        td.all_reduce(t, op=td.ReduceOp.SUM)
+        return t
+
+    def max_(self, t: torch.Tensor) -> torch.Tensor:
+        """In place: the maximum over the ranks."""
+        import torch.distributed as td
+
+        td.all_reduce(t, op=td.ReduceOp.MAX)
+        return t
+
+    def average_grads(self, params) -> None:
+        """Every parameter's gradient replaced by its mean over the ranks (missing gradients
+        count as zeros, so that every rank sends the same layout)."""
+        grads = []
+        for p in params:
+            if p.grad is None:
+                p.grad = torch.zeros_like(p)
+            grads.append(p.grad)
+        if not grads:
+            return
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        self.sum_(flat).div_(self.world)
+        o = 0
+        for g in grads:
+            g.copy_(flat[o : o + g.numel()].view_as(g))
+            o += g.numel()
+
+    def barrier(self) -> None:
+        import torch.distributed as td
+
+        td.barrier()
+
+
+def from_env(device: str) -> tuple[Dist | None, str]:
+    """(Dist, this rank's device) when started by ``torchrun`` with WORLD_SIZE > 1 (the process
+    group is initialised: NCCL for cuda, gloo for cpu; a CUDA rank takes cuda:LOCAL_RANK), else
+    (None, device)."""
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world <= 1:
+        return None, device
+    import torch.distributed as td
+
+    rank = int(os.environ.get("RANK", "0"))
+    if device.startswith("cuda"):
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        device = f"cuda:{local}"
+    if not td.is_initialized():
+        timeout = datetime.timedelta(seconds=float(os.environ.get("WARPNERF_DIST_TIMEOUT", 600)))
+        td.init_process_group("nccl" if device.startswith("cuda") else "gloo", timeout=timeout)
+    return Dist(rank, world), device
