@@ -92,3 +92,12 @@ def test_two_rank_run_resumes_on_one(tmp_path):
     assert a["step"] == b["step"] == list(range(1, 7))
     for x, y in zip(a["loss"], b["loss"]):
         assert abs(x - y) <= 1e-4 * abs(x), (a["loss"], b["loss"])
+
+
+@pytest.mark.parametrize("task", ["sdf", "box"])
+def test_single_process_tasks_refuse_torchrun(tmp_path, task):
+    env = dict(os.environ, WORLD_SIZE="2")
+    argv = [sys.executable, "-m", "warpnerf.cli", "train", task, "--out", str(tmp_path / "r")]
+    res = subprocess.run(argv, capture_output=True, text=True, env=env)
+    assert res.returncode == 2 and "runs in one process" in res.stderr
+    assert "Traceback" not in res.stderr and not (tmp_path / "r").exists()
