@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ._images import read_all
 from ._json import read_json
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format
@@ -188,12 +189,23 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
     mats = [_matrix(frames[i], i, path) for i in indices]
     mats = check_poses(mats, path, lambda j: f"frames[{indices[j]}].transform_matrix")
     bg, downscale = req.bg, req.downscale
-    images, paths = [], []
-    first = None
-    for j, i in enumerate(indices):
-        fr = frames[i]
-        img, ip = _read_image(root, fr.get("file_path"), i, path)
+    raws = {}  # j -> (the file's (h, w), its path), filled by the reading threads
+
+    def read_one(j):
+        i = indices[j]
+        img, ip = _read_image(root, frames[i].get("file_path"), i, path)
+        raws[j] = (img.shape[:2], ip)
         hw = img.shape[:2]
+        if hw[0] < downscale or hw[1] < downscale:  # (checked for the first in order below)
+            return img[:0, :0, :3]
+        return _area_downscale(_composite(img, bg), downscale).astype(np.float32)
+
+    first = None
+
+    def check(j, _img):
+        nonlocal first
+        i = indices[j]
+        hw, ip = raws[j]
         if sizes is not None and hw != tuple(sizes[j]):
             raise UserError(
                 f"{ip}: image is {hw[1]}x{hw[0]} (w x h) but {path} frames[{i}] expects "
@@ -210,9 +222,10 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
                 f"{ip}: size {hw[1]}x{hw[0]} differs from {first[1]}'s {first[0][1]}x"
                 f"{first[0][0]} (frames[{i}] in {path}); all images of a split must have one size"
             )
-        images.append(_area_downscale(_composite(img, bg), downscale).astype(np.float32))
-        paths.append(str(ip))
-    return np.stack(images), mats, paths, first[0]
+
+    images = read_all(list(range(len(indices))), read_one, check)
+    paths = [str(raws[j][1]) for j in range(len(indices))]
+    return images, mats, paths, first[0]
 
 
 def make_dataset(req: LoadRequest, images, c2w, intrinsics, paths, fmt: str) -> Dataset:

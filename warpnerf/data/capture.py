@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ._images import read_all
 from .blender import _area_downscale, _composite
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
@@ -441,10 +442,10 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
     idx = req.select(len(sc["names"]), root)
     bg = req.bg
     extra = sc["extra"]
-    images, paths = [], []
-    for i in idx:
-        p = sc["folder"] / sc["names"][i]
-        img = _read(p)
+    paths = [str(sc["folder"] / sc["names"][i]) for i in idx]
+
+    def read_one(p):
+        img = _read(Path(p))
         if img.shape[1::-1] != tuple(sc["size"])[:2]:
             raise UserError(
                 f"{p}: size {img.shape[1]}x{img.shape[0]} differs from "
@@ -452,9 +453,9 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
             )
         if min(img.shape[:2]) < extra:
             raise UserError(f"downscale {extra} is larger than the image {p}")
-        images.append(_area_downscale(_composite(img, bg), extra).astype(np.float32))
-        paths.append(str(p))
-    images = np.stack(images)
+        return _area_downscale(_composite(img, bg), extra).astype(np.float32)
+
+    images = read_all(paths, read_one)
     return Dataset(
         images=torch.from_numpy(np.ascontiguousarray(images)),
         c2w=torch.from_numpy(sc["c2w_norm"][idx]).float(),
