@@ -213,13 +213,15 @@ def render_marched(
     half: bool = False,
     sample_budget: int = SAMPLE_BUDGET,
     jitter: torch.Tensor | None = None,
+    ray_images: torch.Tensor | None = None,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
     ``grid`` (:class:`warpnerf.OccupancyGrid`) emits lattice samples of step ``grid.dt`` in
     occupied cells (the lattice shifted by a random fraction of a step per ray when ``perturb``,
     drawn from ``generator`` on the rays' device, or given as ``jitter`` [n_rays] in [0, 1): a
-    data-parallel rank passes its share of the global batch's draws). ``field`` is a module
+    data-parallel rank passes its share of the global batch's draws; ``ray_images`` [n_rays]:
+    each ray's training image, for a field with appearance codes). ``field`` is a module
     with ``density(positions) -> (sigmas [n], features)`` and ``color(features, directions) ->
     rgbs [n, 3]``. Densities of all marched samples are computed first without gradients; each
     ray keeps its samples before transmittance drops below ``t_threshold`` (the compositing
@@ -273,7 +275,10 @@ def render_marched(
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
     dirs = directions[kept.ray_indices]
     sigmas, feats = field.density(positions[idx])
-    rgbs = field.color(feats, dirs)
+    if ray_images is None:
+        rgbs = field.color(feats, dirs)
+    else:
+        rgbs = field.color(feats, dirs, image_ids=ray_images[kept.ray_indices])
     rgb, depth, opacity = render_packed(
         kept.t_starts,
         kept.t_ends,

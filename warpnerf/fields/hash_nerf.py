@@ -3,7 +3,8 @@
 density: positions in the scene box -> hash features [L * F] -> MLP (one hidden layer) -> 16
 values; sigma = exp(first value) (truncated: the exponent is clamped at 15 in the forward pass,
 its gradient is not cut), zero outside the box. colour: those 16 values + spherical harmonics of
-the direction (degree 4; left out without view dependence) -> MLP (two hidden layers) -> sigmoid.
+the direction (degree 4; left out without view dependence) [+ the image's appearance code] -> MLP
+(two hidden layers) -> sigmoid.
 """
 
 from __future__ import annotations
@@ -40,9 +41,14 @@ class HashNeRFField(nn.Module):
         grid: a :class:`warpnerf.ops.HashGrid` (levels, table size, resolutions).
         hidden: width of the MLPs' hidden layers.
         view_dependence: feed SH-encoded directions to the colour MLP.
+        appearance: (n_images, dim): a learned code of ``dim`` values per training image, fed
+            to the colour MLP (NeRF-W / nerfstudio's appearance embedding: exposure and white
+            balance that change between photos); ``color(..., image_ids=None)`` (held-out views)
+            uses the mean of the codes. None: no codes.
     """
 
-    def __init__(self, aabb, grid: HashGrid | None = None, hidden=64, view_dependence=True):
+    def __init__(self, aabb, grid: HashGrid | None = None, hidden=64, view_dependence=True,
+                 appearance: tuple | None = None):  # fmt: skip
         super().__init__()
         box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1)
         if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
@@ -55,6 +61,12 @@ class HashNeRFField(nn.Module):
             nn.Linear(self.encoding.out_dim, hidden), nn.ReLU(), nn.Linear(hidden, GEO_FEATURES)
         )
         d_col = GEO_FEATURES + (self.sh.out_dim if view_dependence else 0)
+        self.appearance = None
+        if appearance is not None:
+            n_images, dim = (int(v) for v in appearance)
+            self.appearance = nn.Embedding(n_images, dim)
+            nn.init.zeros_(self.appearance.weight)  # (the mean code: zero until trained)
+            d_col += dim
         self.color_mlp = nn.Sequential(
             nn.Linear(d_col, hidden),
             nn.ReLU(),
@@ -72,14 +84,22 @@ class HashNeRFField(nn.Module):
         sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 
-    def color(self, h: torch.Tensor, directions: torch.Tensor | None = None):
-        """rgbs [n, 3] from the density MLP's outputs h [n, 16] (and directions [n, 3])."""
-        feat = h
+    def color(self, h: torch.Tensor, directions: torch.Tensor | None = None, image_ids=None):
+        """rgbs [n, 3] from the density MLP's outputs h [n, 16] (and directions [n, 3]; with
+        appearance codes, ``image_ids`` [n] int: each sample's training image, None: the codes'
+        mean)."""
+        feat = [h]
         if self.view_dependence:
             if directions is None:
                 raise ValueError("a view-dependent field needs directions")
-            feat = torch.cat([h, self.sh(directions.to(h.dtype))], -1)
-        return torch.sigmoid(self.color_mlp(feat))
+            feat.append(self.sh(directions.to(h.dtype)))
+        if self.appearance is not None:
+            if image_ids is None:
+                code = self.appearance.weight.mean(0).to(h.dtype).expand(h.shape[0], -1)
+            else:
+                code = self.appearance(image_ids.to(h.device, torch.int64)).to(h.dtype)
+            feat.append(code)
+        return torch.sigmoid(self.color_mlp(torch.cat(feat, -1) if len(feat) > 1 else h))
 
     kind = "density"  # the field protocol (see VolSDFField for an "sdf" field)
 

@@ -128,7 +128,8 @@ def _hash(cfg) -> RadianceModel:
     from .hash_nerf import HashNeRFField
 
     box = cfg.resolve().aabb_box()
-    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence)
+    app = (cfg.appearance_images, cfg.appearance_dim) if cfg.appearance_dim > 0 else None
+    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence, app)
     return _on_grid(cfg, f, box)
 
 

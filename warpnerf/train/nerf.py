@@ -108,7 +108,7 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None,
+    jitter=None, ray_images=None,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
@@ -132,6 +132,7 @@ def render_rays_of(
                 round_samples=cfg.round_samples,
                 half=cfg.render_half,
                 jitter=None if jitter is None else jitter[sl],
+                ray_images=None if ray_images is None else ray_images[sl],
             ),
         )
     return render_nerf(
@@ -274,12 +275,16 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
             raise UserError(
                 f"{run}: already holds a run; pass --resume to continue it or choose another --out"
             )
-        model, ckpt = build_model(cfg), None
+        model, ckpt = None, None  # (built once the data is known: appearance codes count images)
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad dataset stops the run before anything is written.
     train = load_data(cfg, "train", cfg.images_on)
     val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
+    if model is None:
+        if cfg.appearance_dim:  # one code per training image
+            cfg.appearance_images = len(train)
+        model = build_model(cfg)
     tb = [TensorBoardLog(run, tensorboard)] if tensorboard and main else []  # (writes nothing)
     if main:
         if not resume:
@@ -376,8 +381,9 @@ class NeRFTask(Task):
             target = target.to(cfg.device, non_blocking=True)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
         seed = cfg.seed * 1000003 + step + sl.start  # (stratified jitter: by seed + ray index)
+        images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
-                             jitter=jitter)  # fmt: skip
+                             jitter=jitter, ray_images=images)  # fmt: skip
         n_kept = out.get("n_kept")
         if self.dist is not None and n_kept is not None:  # the global batch's samples
             n_kept = int(self.dist.sum_(torch.tensor([n_kept], device=cfg.device)).item())

@@ -79,6 +79,12 @@ class NeRFConfig:
     hash_base_res: int = option(16, flag=None)
     hash_max_res: int = option(2048, "hash field: finest grid resolution", check="positive")
     hidden: int = option(64, "hash field MLP width", check="positive")
+    appearance_dim: int = option(
+        0, "hash field with a grid: a learned appearance code of this size per training image, "
+        "fed to the colour MLP (exposure / white balance changing between photos); held-out "
+        "views use the codes' mean (0: none)", check="nonnegative",
+    )  # fmt: skip
+    appearance_images: int = option(0, flag=None)  # codes: the training split's size, when set
     # volsdf: the Laplace scale (world units), its floor, learned or fixed; the eikonal weight
     beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
     beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
@@ -265,6 +271,15 @@ class NeRFConfig:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
+        if self.appearance_dim:
+            if self.field != "hash" or not self.grid_res:
+                raise fail("appearance_dim", "appearance codes need --field hash with an "
+                           f"occupancy grid (--grid-res > 0), not --field {self.field} "
+                           f"--grid-res {self.grid_res}")  # fmt: skip
+            if self.appearance_dim > 256:
+                raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
+        if not 0 <= self.appearance_images <= 10**6:
+            raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
         if self.field in SDF_FIELDS:
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
