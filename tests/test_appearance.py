@@ -47,6 +47,7 @@ def test_codes_enter_the_colour_and_held_out_views_use_their_mean():
 
 
 def test_config_rules():
+    NeRFConfig(field="hash", appearance_dim=8).validate()  # the default grid counts as a grid
     with pytest.raises(UserError, match="--appearance-dim"):
         NeRFConfig(field="mlp", appearance_dim=8).validate()
     with pytest.raises(UserError, match="--appearance-dim"):
@@ -87,3 +88,15 @@ def test_codes_absorb_exposure_changes(tmp_path):
     u = w[0::2].mean(0) - w[1::2].mean(0)
     proj = w @ (u / u.norm())
     assert proj[0::2].min() > proj[1::2].max(), proj.tolist()
+
+
+def test_resume_refuses_a_changed_training_split(tmp_path):
+    data = _exposure_folder(tmp_path / "data")
+    cfg = NeRFConfig(data=str(data), iters=2, appearance_dim=4, **HASH)
+    train_nerf(cfg, tmp_path / "run", progress=False, log=lambda *a: 0)
+    js = data / "transforms_train.json"
+    meta = json.loads(js.read_text())
+    js.write_text(json.dumps(dict(meta, frames=meta["frames"][:7])))  # 3 photos fewer
+    with pytest.raises(UserError, match="appearance codes for 10 training images"):
+        train_nerf(NeRFConfig(iters=4), tmp_path / "run", resume=True, progress=False,
+                   log=lambda *a: 0)  # fmt: skip

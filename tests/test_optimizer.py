@@ -36,3 +36,22 @@ def test_mixed_devices_and_empty_fall_back():
     assert not adam([torch.nn.Parameter(torch.zeros(2))], lr=1e-3).defaults["fused"]
     groups = [{"params": [torch.nn.Parameter(torch.zeros(2))], "lr": 1e-3}]
     assert not adam(groups, lr=1e-3).defaults["fused"]
+
+
+def test_resume_keeps_this_process_implementation():
+    """A fused (CUDA) checkpoint's optimiser state loads unfused into a CPU run (and the other
+    way round): the groups' implementation flags are the running optimiser's."""
+    from warpnerf.train.loop import _own_implementation
+
+    p = torch.nn.Parameter(torch.randn(4))
+    opt = adam([p], lr=1e-2)
+    p.grad = torch.ones(4)
+    opt.step()
+    saved = opt.state_dict()
+    saved["param_groups"][0]["fused"] = True  # as written by a CUDA run
+    fresh = adam([torch.nn.Parameter(p.detach().clone())], lr=1e-2)
+    fresh.load_state_dict(_own_implementation(fresh, saved))
+    assert not fresh.param_groups[0]["fused"]
+    assert saved["param_groups"][0]["fused"] is True  # (the checkpoint's dict is not changed)
+    fresh.param_groups[0]["params"][0].grad = torch.ones(4)
+    fresh.step()

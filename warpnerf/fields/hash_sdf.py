@@ -248,8 +248,8 @@ class HashSDFField(nn.Module):
         """rgbs [n, 3] from :meth:`density`'s features (positions + geometry features); records
         the eikonal term of these samples when gradients are enabled."""
         g = self.gradient(h[:, :3])
-        if torch.is_grad_enabled():
-            self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()}
+        if torch.is_grad_enabled():  # (no samples: no term, not the NaN of an empty mean)
+            self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()} if len(g) else {}
         n = torch.nn.functional.normalize(g, dim=-1).to(h.dtype)
         parts = [n, h[:, 3:]]
         if self.view_dependence:

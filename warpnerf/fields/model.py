@@ -128,7 +128,13 @@ def _hash(cfg) -> RadianceModel:
     from .hash_nerf import HashNeRFField
 
     box = cfg.resolve().aabb_box()
-    app = (cfg.appearance_images, cfg.appearance_dim) if cfg.appearance_dim > 0 else None
+    from ..errors import UserError
+
+    app = None
+    if cfg.appearance_dim > 0:
+        if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
+            raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
+        app = (cfg.appearance_images, cfg.appearance_dim)
     f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence, app)
     return _on_grid(cfg, f, box)
 

@@ -194,6 +194,25 @@ def _read_terms(loss, terms: dict, flags, dist=None):
     return vals[0], out, vals[1 + len(names) :]
 
 
+def _own_implementation(opt, saved):
+    """The saved optimiser state with this optimiser's implementation flags (fused, foreach,
+    capturable) in its groups: ``load_state_dict`` takes the groups' flags from the state, so a
+    checkpoint of a CUDA run (fused Adam) would otherwise stay fused on CPU, and a CPU one
+    unfused on CUDA; loading with the right flags also places Adam's step counters right."""
+    if not isinstance(saved, dict) or not isinstance(saved.get("param_groups"), list):
+        return saved  # (load_weights reports a malformed state)
+    groups = []
+    for g_saved, g_now in zip(saved["param_groups"], opt.param_groups):
+        if isinstance(g_saved, dict):
+            g_saved = dict(g_saved)
+            for k in ("fused", "foreach", "capturable"):
+                if k in g_now:
+                    g_saved[k] = g_now[k]
+        groups.append(g_saved)
+    groups += saved["param_groups"][len(groups) :]
+    return {**saved, "param_groups": groups}
+
+
 def run_loop(
     task: Task,
     s: LoopSettings,
@@ -219,7 +238,8 @@ def run_loop(
     history = {"step": [], "loss": [], **{k: [] for k in task.history_keys}, "seconds": []}
     start = 0
     if resume_from is not None:
-        load_weights(opt, resume_from["optimizer"], Path(run) / checkpoint, "optimizer state")
+        load_weights(opt, _own_implementation(opt, resume_from["optimizer"]),
+                     Path(run) / checkpoint, "optimizer state")  # fmt: skip
         history, start = resume_from["history"], resume_from["step"]
     with contextlib.ExitStack() as closing:
         for hook in hooks:
@@ -259,6 +279,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
     val_time += time.perf_counter() - tv
     signals = stop_requests() if run is not None else contextlib.nullcontext({"signum": None})
     with signals as stop:
+        halt = None
         for step in range(start, s.iters):
             lr = lr_at(s, step)
             for group in opt.param_groups:
@@ -278,12 +299,14 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
             if cuda:
                 torch.cuda.synchronize()
             seconds = elapsed0 + time.perf_counter() - t0 - val_time
+            # data-parallel: a stop is decided once a step, from this shared value (a handler
+            # may set stop["signum"] at any moment; the ranks must all decide the same)
+            halt = stop["signum"]
             if dist is not None:  # rank 0's clock, and a stop asked of any rank, for all
-                shared = torch.tensor([seconds if main else 0.0, stop["signum"] or 0],
+                shared = torch.tensor([seconds if main else 0.0, halt or 0],
                                       dtype=torch.float64, device=loss.device)  # fmt: skip
                 seconds, signum = dist.max_(shared).tolist()
-                if signum and stop["signum"] is None:
-                    stop["signum"] = int(signum)
+                halt = int(signum) or None
             history["step"].append(done)
             history["loss"].append(loss_v)
             task.record(history, values)
@@ -315,7 +338,9 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
                 val_time += time.perf_counter() - tv
                 if figures is not None:
                     log(f"step {done}: {task.validation_text(history)}, {seconds:.0f} s")
-            stopping = out_of_time or stop["signum"] is not None
+            if dist is None:  # (one process: a signal during validation counts for this step)
+                halt = stop["signum"]
+            stopping = out_of_time or halt is not None
             if (
                 run is not None
                 and main
@@ -325,12 +350,13 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
             if out_of_time:
                 log(f"stopping at step {done}: --max-seconds {s.max_seconds} reached")
                 break
-            if stop["signum"] is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
+            if halt is not None:  # SIGINT/SIGTERM: the step is done and checkpointed
                 break
     if bar is not None:
         bar.close()
-    if stop["signum"] is not None:
-        raise Interrupted(stop["signum"], history["step"][-1], run)
+    halt = halt if dist is not None else stop["signum"]
+    if halt is not None:
+        raise Interrupted(halt, history["step"][-1], run)
     return history
 
 

@@ -42,14 +42,16 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     return cfg.validate(scene_settings(cfg))
 
 
-def load_data(cfg: NeRFConfig, split: str, images_on: str = "device"):
+def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None):
     """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
     cfg.device (the built-in scene when cfg.data == "builtin"); ``images_on="host"`` keeps the
     images in host memory (a training batch's pixels are gathered there into pinned memory and
     copied, see :class:`NeRFTask`), "auto" does so when they would take more than
-    a quarter of the GPU's free memory (see :func:`images_stay_on_host`)."""
+    a quarter of the GPU's free memory (see :func:`images_stay_on_host`); None: the run's
+    ``cfg.images_on``."""
 
     ds = _load_split(cfg, split)
+    images_on = cfg.images_on if images_on is None else images_on
     if images_stay_on_host(cfg.device, ds.images, images_on):
         images = ds.images.cpu()
         ds = dataclasses.replace(ds, images=images[:0]).to(cfg.device)
@@ -285,6 +287,11 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
         if cfg.appearance_dim:  # one code per training image
             cfg.appearance_images = len(train)
         model = build_model(cfg)
+    elif cfg.appearance_dim and cfg.appearance_images != len(train):
+        raise UserError(
+            f"{run}: the run has appearance codes for {cfg.appearance_images} training images, "
+            f"but the training split now has {len(train)}; resume with the data it was trained on"
+        )
     tb = [TensorBoardLog(run, tensorboard)] if tensorboard and main else []  # (writes nothing)
     if main:
         if not resume:
@@ -380,7 +387,9 @@ class NeRFTask(Task):
             torch.index_select(self.flat, 0, idx_host, out=target)
             target = target.to(cfg.device, non_blocking=True)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
-        seed = cfg.seed * 1000003 + step + sl.start  # (stratified jitter: by seed + ray index)
+        # (stratified samples: a rank's own jitter stream; the same draws as one process only
+        # for rank 0, see train/distributed.py)
+        seed = cfg.seed * 1000003 + step + sl.start
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
                              jitter=jitter, ray_images=images)  # fmt: skip

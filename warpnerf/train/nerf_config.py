@@ -272,7 +272,7 @@ class NeRFConfig:
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
         if self.appearance_dim:
-            if self.field != "hash" or not self.grid_res:
+            if self.field != "hash" or self.grid_res == 0:  # (None: the default grid)
                 raise fail("appearance_dim", "appearance codes need --field hash with an "
                            f"occupancy grid (--grid-res > 0), not --field {self.field} "
                            f"--grid-res {self.grid_res}")  # fmt: skip
