@@ -50,6 +50,7 @@ def stratified_fwd(
     packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2] (start, count); [0, 2] for dense
     perturb: int,
     seed: int,
+    ray_offset: int,  # this launch's first ray in a larger batch (the generator's ray key)
     t_starts: wp.array(dtype=Any),  # [n] out
     t_ends: wp.array(dtype=Any),  # [n] out
     ray_indices: wp.array(dtype=wp.int64),  # [n] out, or [0] for dense
@@ -66,7 +67,7 @@ def stratified_fwd(
     hi = wp.max(far[r], lo)
     step = (hi - lo) / near.dtype(float(n_samples))
     half = near.dtype(0.5)
-    state = wp.rand_init(seed, r)
+    state = wp.rand_init(seed, r + ray_offset)
     edge = lo
     for k in range(n_samples):
         nxt = hi
@@ -122,6 +123,7 @@ def importance_fwd(
     pad: Any,  # eps, the padding mass per interval on equal bins
     perturb: int,
     seed: int,
+    ray_offset: int,
     out_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2] out (start, count); [0, 2] dense
     out_starts: wp.array(dtype=Any),  # [m] out
     out_ends: wp.array(dtype=Any),  # [m] out
@@ -153,7 +155,7 @@ def importance_fwd(
     one = t_starts.dtype(1.0)
     half = t_starts.dtype(0.5)
     nf = t_starts.dtype(float(n_fine))
-    state = wp.rand_init(seed, r)
+    state = wp.rand_init(seed, r + ray_offset)
     i = int(0)  # current coarse interval (relative to start)
     c = zero  # C_i, the mass before interval i
     m = _interval_mass(weights[start], t_starts[start], t_ends[start], scale)

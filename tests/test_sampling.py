@@ -141,6 +141,25 @@ def test_seeds(device):
     assert torch.equal(W.stratified_samples(near, far, 16, seed=3).t_starts, e.t_starts)
 
 
+def test_ray_offset_gives_a_slice_the_whole_batch_draws(device):
+    """``ray_offset``: the jitter of rays k.. of a slice starting at k is that of the same rays
+    in the whole batch (a data-parallel rank's share), for stratified and importance samples."""
+    near, far = _bounds(40, F64, device)
+    whole = W.stratified_samples(near, far, 8, perturb=True, seed=5, packed=True)
+    part = W.stratified_samples(near[17:], far[17:], 8, perturb=True, seed=5, packed=True,
+                                ray_offset=17)  # fmt: skip
+    torch.testing.assert_close(part.t_starts, whole.t_starts[17 * 8 :], rtol=0, atol=0)
+    unshifted = W.stratified_samples(near[17:], far[17:], 8, perturb=True, seed=5, packed=True)
+    assert not torch.equal(unshifted.t_starts, part.t_starts)
+    w = torch.rand(whole.t_starts.shape, dtype=F64, generator=torch.Generator().manual_seed(2))
+    w = w.to(device)
+    fine = W.importance_samples(whole, w, 6, perturb=True, seed=9)
+    part_fine = W.importance_samples(part, w[17 * 8 :], 6, perturb=True, seed=9, ray_offset=17)
+    torch.testing.assert_close(part_fine.t_starts, fine.t_starts[17 * 14 :], rtol=0, atol=0)
+    with pytest.raises(ValueError, match="ray_offset"):
+        W.stratified_samples(near, far, 8, perturb=True, ray_offset=-1)
+
+
 def test_jitter_is_uniform_and_independent(device):
     n_rays, n_s = 2000, 33
     near, far = _bounds(n_rays, F64, device)

@@ -81,8 +81,9 @@ def render_rays(
 
     def chunk_fn(sl):
         smp = stratified_samples(
-            near[sl], far[sl], n_samples, perturb=perturb, seed=seed + sl.start, packed=True
-        )
+            near[sl], far[sl], n_samples, perturb=perturb, seed=seed, packed=True,
+            ray_offset=sl.start,
+        )  # fmt: skip
         bg = background
         if isinstance(bg, torch.Tensor) and bg.dim() == 2:
             bg = bg[sl]
@@ -132,6 +133,7 @@ def render_nerf(
     t_threshold: float = 1e-4,
     chunk: int | None = None,
     aabb=None,
+    ray_offset: int = 0,
 ):
     """NeRF's hierarchical volume rendering through the Warp kernels.
 
@@ -141,6 +143,9 @@ def render_nerf(
     and fine intervals.
     When both are the same network, the coarse pass runs without gradients (it only places the
     fine samples). ``aabb`` [6] restricts samples to the box (rays that miss it get none).
+    ``perturb`` jitter is keyed by ``seed`` and each ray's index plus ``ray_offset`` (these rays
+    are a slice of a larger batch starting there: a data-parallel rank's share), so chunks and
+    slices draw what the whole batch would.
     Returns rgb, depth, opacity [n_rays(, 3)] from the finest level and ``rgb_coarse``.
     """
     n_fine = check_int("n_fine", n_fine)
@@ -155,7 +160,8 @@ def render_nerf(
             t0, t1, hit = ray_aabb_intersect(o, d, aabb)
             nr = torch.maximum(nr, t0)
             fr = torch.where(hit, torch.minimum(fr, t1), nr)
-        smp = stratified_samples(nr, fr, n_coarse, perturb=perturb, seed=seed + s, packed=True)
+        smp = stratified_samples(nr, fr, n_coarse, perturb=perturb, seed=seed, packed=True,
+                                 ray_offset=ray_offset + s)  # fmt: skip
         shared = fine is coarse and n_fine > 0
         with torch.set_grad_enabled(torch.is_grad_enabled() and not shared):
             res = _shade(coarse, o, d, smp, background, t_threshold, want_weights=True)
@@ -164,7 +170,12 @@ def render_nerf(
             from .ops.sampling import importance_samples
 
             smp_fine = importance_samples(
-                smp, res[3].detach(), n_fine, perturb=perturb, seed=seed + s + 7919
+                smp,
+                res[3].detach(),
+                n_fine,
+                perturb=perturb,
+                seed=seed + 7919,
+                ray_offset=ray_offset + s,
             )
             res = _shade(fine, o, d, smp_fine, background, t_threshold, want_weights=False)
         out.update(rgb=res[0], depth=res[1], opacity=res[2])

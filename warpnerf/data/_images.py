@@ -23,7 +23,7 @@ def read_all(items: list, read_one, check=None, desc: str = "loading images") ->
         raise ValueError("read_all needs at least one item")
     workers = max(1, min(8, os.cpu_count() or 1, len(items)))
     bar = None
-    if len(items) >= PROGRESS_FROM:
+    if len(items) >= PROGRESS_FROM and os.environ.get("RANK", "0") in ("", "0"):  # (rank 0)
         from tqdm import tqdm
 
         bar = tqdm(total=len(items), desc=desc, unit="img", leave=False, disable=None)

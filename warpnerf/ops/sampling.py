@@ -40,13 +40,15 @@ def stratified_samples(
     perturb: bool = False,
     seed: int = 0,
     packed: bool = False,
+    ray_offset: int = 0,
 ) -> Samples:
     """Stratified intervals partitioning [near, far] on every ray.
 
     Evaluation (perturb=False): n equal bins, fields evaluated at bin midpoints. Training
     (perturb=True): interior bin edges jittered uniformly by up to half a bin (Warp RNG keyed by
-    ``seed`` and ray index; pass a new seed every step). Packed: rays with far <= near get no
-    samples.
+    ``seed`` and ray index ``ray_offset + i``: rays i.. of a slice starting at ``ray_offset`` get
+    the draws of the whole batch's rays; pass a new seed every step). Packed: rays with far <=
+    near get no samples.
     Non-finite near/far raise ValueError (they would otherwise yield plausible-looking samples);
     so does an ``n_samples`` that is not an int or whose n_rays * n_samples overflows int32
     offsets.
@@ -57,6 +59,7 @@ def stratified_samples(
     n_rays, dev, dt = near.shape[0], near.device, near.dtype
     _bridge.check_float("far", far, (n_rays,), dt, dev)
     n_samples = _bridge.check_int("n_samples", n_samples, lo=1)
+    ray_offset = _bridge.check_int("ray_offset", ray_offset, lo=0, hi=_bridge.INT32_MAX - n_rays)
     if n_rays * n_samples > _bridge.INT32_MAX:
         raise ValueError(
             f"n_rays * n_samples = {n_rays * n_samples} exceeds int32 offsets: sample fewer rays"
@@ -86,6 +89,7 @@ def stratified_samples(
             a(packed_info),
             int(perturb),
             int(seed) & 0x7FFFFFFF,
+            ray_offset,
             a(t_starts),
             a(t_ends),
             a(ray_indices),
@@ -104,6 +108,7 @@ def importance_samples(
     *,
     perturb: bool = False,
     seed: int = 0,
+    ray_offset: int = 0,
 ) -> Samples:
     """Hierarchical (coarse-to-fine) sampling: the coarse intervals merged with n_fine new edges.
 
@@ -112,7 +117,8 @@ def importance_samples(
     are drawn by the inverse CDF of the piecewise-constant PDF p_i ~ w_i + eps * n_c * len_i / L
     (eps = ``PDF_PADDING``, L = far - near; all-zero weights sample uniformly by length) at
     u_j = (j + 1/2) / n_fine, or u_j = (j + U_j) / n_fine with U_j from Warp's RNG keyed by
-    ``seed`` and ray when ``perturb``. The n_c + 1 coarse edges and the n_fine new ones, merged in
+    ``seed`` and ray (``ray_offset`` + its index, as in :func:`stratified_samples`) when
+    ``perturb``. The n_c + 1 coarse edges and the n_fine new ones, merged in
     order, give n_c + n_fine intervals that still partition [near, far] (zero-length ones allowed):
     evaluate the fine field at their midpoints. Same layout out as in: dense
     [n_rays, n_c + n_fine], or packed with ``packed_info`` counts n_c + n_fine (0 stays 0).
@@ -127,6 +133,7 @@ def importance_samples(
     if not isinstance(samples, Samples):
         raise ValueError(f"samples must be a Samples tuple, got {type(samples).__name__}")
     n_fine = _bridge.check_int("n_fine", n_fine, lo=1)
+    ray_offset = _bridge.check_int("ray_offset", ray_offset, lo=0, hi=_bridge.INT32_MAX // 2)
     ts, te, packed_info = samples.t_starts, samples.t_ends, samples.packed_info
     packed = packed_info is not None
     _bridge.check_float("samples.t_starts", ts, (None,) if packed else (None, None))
@@ -217,6 +224,7 @@ def importance_samples(
             _bridge.scalar(PDF_PADDING, dt),
             int(perturb),
             (int(seed) ^ _IMPORTANCE_SALT) & 0x7FFFFFFF,
+            ray_offset,
             a(out_info),
             a(out_starts),
             a(out_ends),

@@ -5,12 +5,10 @@ and seed) and renders its contiguous share of the rays; the gradients are averag
 (one all-reduce of all of them, flattened), so each rank applies the same update and the
 occupancy grid, whose updates draw from a generator every rank advances identically, stays the
 same everywhere. The loss each rank reports is its share's sum over the global batch size, so
-the all-reduced loss is the global batch's mean, whatever the split. With an occupancy grid
-(the fast path) the lattice jitter is drawn for all rays and sliced, so N ranks follow the loss
-curve of one process with the whole batch up to float rounding; without one (stratified
-samples) each rank's jitter comes from its own seed (Warp's per-ray generator cannot be offset
-to a global ray index), the same distribution but other numbers, so the curves agree only
-statistically. Only rank 0 writes files
+the all-reduced loss is the global batch's mean, whatever the split. The random draws of a step
+are the whole batch's: the grid's lattice jitter is drawn for all rays and sliced, stratified
+and importance jitter are keyed by the global ray index (``ray_offset``), so N ranks follow the
+loss curve of one process with the whole batch up to float rounding. Only rank 0 writes files
 (config, checkpoints, history, logs) and validates; a checkpoint holds nothing rank-specific,
 so a run resumes with any number of ranks. NCCL on CUDA, gloo on CPU.
 """

@@ -110,11 +110,12 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None,
+    jitter=None, ray_images=None, ray_offset=0,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
-    are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples."""
+    are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples (their
+    jitter keyed by ``seed`` and the ray's index + ``ray_offset``)."""
     if model.grid is not None:
         return render_chunks(
             o.shape[0],
@@ -152,6 +153,7 @@ def render_rays_of(
         t_threshold=cfg.t_threshold,
         chunk=chunk,
         aabb=cfg.aabb_box(),
+        ray_offset=ray_offset,
     )
 
 
@@ -387,12 +389,10 @@ class NeRFTask(Task):
             torch.index_select(self.flat, 0, idx_host, out=target)
             target = target.to(cfg.device, non_blocking=True)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
-        # (stratified samples: a rank's own jitter stream; the same draws as one process only
-        # for rank 0, see train/distributed.py)
-        seed = cfg.seed * 1000003 + step + sl.start
+        seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
-                             jitter=jitter, ray_images=images)  # fmt: skip
+                             jitter=jitter, ray_images=images, ray_offset=sl.start)  # fmt: skip
         n_kept = out.get("n_kept")
         if self.dist is not None and n_kept is not None:  # the global batch's samples
             n_kept = int(self.dist.sum_(torch.tensor([n_kept], device=cfg.device)).item())
