@@ -94,10 +94,14 @@ def test_two_rank_run_resumes_on_one(tmp_path):
         assert abs(x - y) <= 1e-4 * abs(x), (a["loss"], b["loss"])
 
 
-@pytest.mark.parametrize("task", ["sdf", "box"])
-def test_single_process_tasks_refuse_torchrun(tmp_path, task):
+@pytest.mark.parametrize("command", ["train sdf", "train box", "eval", "render", "mesh"])
+def test_other_commands_refuse_torchrun(tmp_path, command):
     env = dict(os.environ, WORLD_SIZE="2")
-    argv = [sys.executable, "-m", "warpnerf.cli", "train", task, "--out", str(tmp_path / "r")]
+    argv = [sys.executable, "-m", "warpnerf.cli", *command.split(), str(tmp_path / "r")]
+    if command.startswith("train"):
+        argv.insert(-1, "--out")
+    elif command == "mesh":
+        argv += ["--out", str(tmp_path / "m.ply")]
     res = subprocess.run(argv, capture_output=True, text=True, env=env)
-    assert res.returncode == 2 and "runs in one process" in res.stderr
+    assert res.returncode == 2 and "runs in one process" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "r").exists()

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 
-from ..errors import exit_status
+from ..errors import UserError, exit_status
 from ._common import (
     _data_format_flags,
     _finite,
@@ -187,6 +188,11 @@ def main(argv=None) -> int:
         return 0
 
     def run():
+        # torchrun (WORLD_SIZE > 1) is for the data-parallel trainers; any other command would run
+        # whole on every rank and write the same outputs from each
+        if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
+            raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
+                            "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
         with _sigterm_exits():
             return args.func(args)
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 from ..errors import UserError
 from ..io import json_dumps
 from ..options import CHECKS, add_flags, from_flags
@@ -27,18 +25,9 @@ from .view import live_hooks, tensorboard_every, watch_flags
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
 
 
-def _single_process(task: str) -> None:
-    """Refuses a torchrun launch (WORLD_SIZE > 1) of a task that has no data-parallel mode:
-    each rank would train the whole task and write the same run folder."""
-    if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
-        raise UserError(f"train {task} runs in one process; data-parallel training (torchrun) "
-                        "is for train nerf and train volsdf")  # fmt: skip
-
-
 def cmd_train_box(args) -> int:
     from ..train.box_fit import run_box_fit_on_folder
 
-    _single_process("box")
     _check_out(args.out)
     if args.resume:
         device = _resume_device(args)
@@ -174,7 +163,6 @@ def cmd_train_nerf(args) -> int:
 def cmd_train_sdf(args) -> int:
     from ..train.sdf import train_sdf
 
-    _single_process("sdf")
     _check_out(args.out)
     if args.resume:
         dev = _resume_device(args)
