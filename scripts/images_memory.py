@@ -12,7 +12,6 @@ and the peak of ``torch.cuda.max_memory_allocated`` over the training is reporte
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 
 
@@ -34,6 +33,7 @@ def main():
     from warpnerf.data.cameras import orbit_views
     from warpnerf.data.dataset import Dataset
     from warpnerf.train import NeRFConfig
+    from warpnerf.train.loop import bare_step
     from warpnerf.train.nerf import NeRFTask, build_model
 
     if not torch.cuda.is_available():
@@ -58,22 +58,13 @@ def main():
         cfg = NeRFConfig(data="generated", field="hash", device="cuda", tf32=True, batch=4096,
                          target_samples=262144, aabb=1.5, near=2.0, far=6.0,
                          images_on=a.images_on)  # fmt: skip
-        if a.images_on == "device":
-            train = ds.to("cuda")
-        else:  # cameras on the GPU, the images in host memory
-            train = dataclasses.replace(ds.__class__(images=images[:0], c2w=ds.c2w,
-                                                     intrinsics=ds.intrinsics).to("cuda"),
-                                        images=images)  # fmt: skip
+        train = ds.to("cuda", images=a.images_on == "device")  # (cameras on the GPU)
         model = build_model(cfg)
         task = NeRFTask(cfg, model, train, None, log=lambda *x: None)
         opt = task.optimizer(task.parameters(), cfg.lr)
         t1 = time.perf_counter()
         for i in range(a.steps):
-            loss, _ = task.loss(i)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            float(loss)
+            float(bare_step(task, opt, i))
         torch.cuda.synchronize()
         step_ms = 1e3 * (time.perf_counter() - t1) / a.steps
         peak = torch.cuda.max_memory_allocated() - base

@@ -118,7 +118,7 @@ def main() -> int:
     cases = _cases(a.device)
     rows = {k: {"descriptors": [], "wp.array": []} for k in cases}
     for r in range(a.repeats):
-        for mode in (("descriptors", "wp.array") if r % 2 == 0 else ("wp.array", "descriptors")):
+        for mode in ("descriptors", "wp.array") if r % 2 == 0 else ("wp.array", "descriptors"):
             _old_bridge(mode == "wp.array")
             for k, fn in cases.items():
                 rows[k][mode].append(_time(fn, a.device))
@@ -129,7 +129,8 @@ def main() -> int:
     for k, v in rows.items():
         new, old = statistics.median(v["descriptors"]), statistics.median(v["wp.array"])
         out[k] = {"descriptors_us": new, "wp_array_us": old, "all": v}
-        print(f"| {k} | {new:.1f} | {old:.1f} | {old - new:+.1f} us ({100 * (1 - new / old):.0f} %) |")
+        saved = f"{old - new:+.1f} us ({100 * (1 - new / old):.0f} %)"
+        print(f"| {k} | {new:.1f} | {old:.1f} | {saved} |")
     if a.json:
         with open(a.json, "w") as f:
             json.dump(out, f, indent=1)

@@ -32,32 +32,16 @@ def main():
     import torch
     from torch.profiler import ProfilerActivity, profile
 
-    from warpnerf.cli.parser import build_parser
-    from warpnerf.cli.train import nerf_config_from_args
-    from warpnerf.train.loop import LoopSettings, lr_at
-    from warpnerf.train.nerf import NeRFTask, build_model, load_data, resolve_data
+    from warpnerf.cli.parser import nerf_task_from_argv
+    from warpnerf.train.loop import LoopSettings, bare_step, lr_at
 
-    args = build_parser().parse_args([*train_argv, "--out", "/tmp/_profile_unused"])
-    cfg = nerf_config_from_args(args).validate()
-    resolve_data(cfg)
-    model = build_model(cfg)
-    train = load_data(cfg, "train")
-    task = NeRFTask(cfg, model, train, None, log=lambda *x: None)
-    torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    params = task.parameters()
-    opt = task.optimizer(params, cfg.lr)
+    cfg, task, opt = nerf_task_from_argv(train_argv)
     s = LoopSettings.of(cfg, "profile")
     cuda = cfg.device.startswith("cuda")
     sync = torch.cuda.synchronize if cuda else (lambda: None)
 
     def step(i):
-        for g in opt.param_groups:
-            g["lr"] = lr_at(s, i)
-        loss, terms = task.loss(i)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        return float(loss)  # the loop's one host sync per step
+        return float(bare_step(task, opt, i, lr_at(s, i)))  # the loop's one host sync a step
 
     for i in range(a.warm):
         step(i)

@@ -1,7 +1,8 @@
 """Where a training step synchronises the host with the GPU (issue 18): the NeRF/VolSDF task of
 `warpnerf train` built from the same flags, WARM steps untimed, then STEPS steps under
 ``torch.cuda.set_sync_debug_mode("warn")``: every synchronising PyTorch call is counted by the
-innermost warpnerf frame that made it (file:line, per step), plus the loop's own read of the loss.
+innermost warpnerf frames that made it (file:line, per step; the loss is not read in the window:
+the loop reads it once a step on top).
 Warp calls that synchronise (none on the training path: launches are asynchronous) are not seen.
 
     python3 scripts/sync_sites.py [--warm 200] [--steps 20] [--json out.json] -- \
@@ -12,10 +13,7 @@ Warp calls that synchronise (none on the training path: launches are asynchronou
 from __future__ import annotations
 
 import argparse
-import collections
 import sys
-import traceback
-import warnings
 
 
 def main():
@@ -30,52 +28,21 @@ def main():
 
     import torch
 
-    from warpnerf.cli.parser import build_parser
-    from warpnerf.cli.train import nerf_config_from_args
-    from warpnerf.train.nerf import NeRFTask, build_model, load_data, resolve_data
+    from warpnerf.cli.parser import nerf_task_from_argv
+    from warpnerf.train.loop import bare_step, sync_sites
 
     if not torch.cuda.is_available():
         raise SystemExit("sync_sites.py needs CUDA (the sync debug mode is a CUDA feature)")
-    args = build_parser().parse_args([*train_argv, "--out", "/tmp/_sync_sites_unused"])
-    cfg = nerf_config_from_args(args).validate()
-    resolve_data(cfg)
-    model = build_model(cfg)
-    task = NeRFTask(cfg, model, load_data(cfg, "train"), None, log=lambda *x: None)
-    torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    opt = task.optimizer(task.parameters(), cfg.lr)
-
-    def step(i):
-        loss, _ = task.loss(i)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        return loss
-
+    _, task, opt = nerf_task_from_argv(train_argv)
     for i in range(a.warm):
-        float(step(i))
-    sites = collections.Counter()
+        float(bare_step(task, opt, i))
 
-    def record(message, category, filename, lineno, file=None, line=None):
-        frames = [f for f in traceback.extract_stack() if "/warpnerf/" in f.filename]
-        names = [f"{f.filename.split('/warpnerf/')[-1]}:{f.lineno}" for f in frames[-3:]]
-        where = " < ".join(names[::-1]) or f"{filename}:{lineno}"
-        sites[f"{str(message).split(chr(10))[0][:60]} @ {where}"] += 1
-
-    old = warnings.showwarning
-    warnings.showwarning = record
-    warnings.simplefilter("always")
-    torch.cuda.synchronize()
-    torch.cuda.set_sync_debug_mode("warn")
-    try:
+    def steps():  # (the loss is not read: the loop's one read per step is apart)
         for i in range(a.warm, a.warm + a.steps):
-            loss = step(i)
-            torch.cuda.set_sync_debug_mode(0)
-            float(loss)  # the loop's one read (counted apart)
-            torch.cuda.set_sync_debug_mode("warn")
-    finally:
-        torch.cuda.set_sync_debug_mode(0)
-        warnings.showwarning = old
-    per_step = {k: v / a.steps for k, v in sites.most_common()}
+            bare_step(task, opt, i)
+
+    found = sync_sites(steps)
+    per_step = {k: v / a.steps for k, v in sorted(found.items(), key=lambda kv: -kv[1])}
     total = sum(per_step.values())
     print(f"synchronising calls per step: {total:.2f} (+1: the loop's read of the loss)")
     for k, v in per_step.items():

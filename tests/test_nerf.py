@@ -304,6 +304,11 @@ def test_images_on_choice_and_host_index(tmp_path):
     assert not images_stay_on_host("cuda:0", img, "device")
     with pytest.raises(UserError, match="--images-on"):
         tiny(images_on="disk").validate()
+    from warpnerf.data.dataset import Dataset
+
+    ds = Dataset(images=img, c2w=torch.eye(4).repeat(2, 1, 1), intrinsics=torch.ones(2, 4))
+    kept = ds.to("meta", images=False)  # (any other device: the cameras move, the images stay)
+    assert kept.c2w.device.type == "meta" and kept.images is img
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
     cam, px, py, flat = random_pixels(3, 5, 4, 64, generator=g1)
     cam2, px2, py2, (flat2, host) = random_pixels(3, 5, 4, 64, generator=g2, host_index=True)

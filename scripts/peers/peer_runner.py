@@ -261,6 +261,16 @@ class Clock:
         if self.k >= len(self.budgets):
             raise Stop
 
+    def fetch(self, training: bool):
+        """A peer's dataset hands out an item: a training batch starts a step; anything else
+        means its loop has ended (raises Stop once every budget is rendered)."""
+        if training:
+            self.step_start()
+        else:
+            self.training_ended()
+            if not self.busy and self.k >= len(self.budgets):
+                raise Stop
+
     def training_ended(self, step=None):
         """The peer's loop has ended (its own evaluation begins, or its script returned)."""
         if self.busy or self.t0 is None or self.k >= len(self.budgets):
@@ -374,12 +384,7 @@ def run_nerfacc(a, clock: Clock):
     orig_get = loader_cls.__getitem__
 
     def getitem(self, index):
-        if self.training:
-            clock.step_start()
-        else:
-            clock.training_ended()
-            if not clock.busy and clock.k >= len(clock.budgets):
-                raise Stop
+        clock.fetch(self.training)
         return orig_get(self, index)
 
     loader_cls.__getitem__ = getitem
@@ -447,12 +452,7 @@ def run_taichi(a, clock: Clock):
     orig_get = base.BaseDataset.__getitem__
 
     def getitem(self, idx):
-        if self.split.startswith("train"):
-            clock.step_start()
-        else:
-            clock.training_ended()
-            if not clock.busy and clock.k >= len(clock.budgets):
-                raise Stop
+        clock.fetch(self.split.startswith("train"))
         return orig_get(self, idx)
 
     base.BaseDataset.__getitem__ = getitem

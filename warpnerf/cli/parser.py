@@ -197,3 +197,19 @@ def main(argv=None) -> int:
             return args.func(args)
 
     return exit_status(f"warpnerf {args.command}", run)
+
+
+def nerf_task_from_argv(argv: list):
+    """(cfg, task, optimiser) of a `warpnerf train nerf|volsdf ...` command line, built as the
+    command builds them but without a run folder (for the profiling and measuring tools)."""
+    import torch
+
+    from ..train.nerf import NeRFTask, build_model, load_data, resolve_data
+    from .train import nerf_config_from_args
+
+    cfg = nerf_config_from_args(build_parser().parse_args([*argv, "--out", "unused"])).validate()
+    resolve_data(cfg)
+    task = NeRFTask(cfg, build_model(cfg), load_data(cfg, "train"), None, log=lambda *x: None)
+    if cfg.device.startswith("cuda"):
+        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
+    return cfg, task, task.optimizer(task.parameters(), cfg.lr)

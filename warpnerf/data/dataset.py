@@ -90,12 +90,15 @@ class Dataset:
     def __len__(self) -> int:
         return int(self.images.shape[0])
 
-    def to(self, device) -> Dataset:
-        """The same split with its tensors on ``device`` (self when they are there already)."""
+    def to(self, device, images: bool = True) -> Dataset:
+        """The same split with its tensors on ``device`` (self when they are there already);
+        ``images=False`` leaves the images where they are (host-resident training images)."""
         moved = {
             k: getattr(self, k).to(device)
             for k in _TENSORS
-            if getattr(self, k) is not None and getattr(self, k).device != torch.device(device)
+            if getattr(self, k) is not None
+            and getattr(self, k).device != torch.device(device)
+            and (images or k != "images")
         }
         return dataclasses.replace(self, **moved) if moved else self
 

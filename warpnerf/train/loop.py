@@ -395,3 +395,44 @@ def adam(params, **kw) -> torch.optim.Adam:
     tensors = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     fused = bool(tensors) and all(p.is_cuda and p.is_floating_point() for p in tensors)
     return torch.optim.Adam(params, fused=fused or None, **kw)
+
+
+def bare_step(task: Task, opt, step: int, lr: float | None = None) -> torch.Tensor:
+    """One optimisation step of ``task`` without the loop's bookkeeping (no history, checks,
+    files or syncs): what the profiling and measuring tools time. Returns the loss tensor."""
+    if lr is not None:
+        for group in opt.param_groups:
+            group["lr"] = lr
+    loss, _ = task.loss(step)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+    return loss
+
+
+def sync_sites(fn) -> dict:
+    """Runs ``fn()`` on CUDA under ``torch.cuda.set_sync_debug_mode("warn")`` and returns how
+    often each innermost warpnerf line (file:line) made a synchronising PyTorch call."""
+    import collections
+    import traceback
+    import warnings
+
+    sites = collections.Counter()
+
+    def record(message, category, filename, lineno, file=None, line=None):
+        if "synchronizing" not in str(message):  # (the debug mode's own notice)
+            return
+        frames = [f for f in traceback.extract_stack() if "/warpnerf/" in f.filename]
+        names = [f"{f.filename.split('/warpnerf/')[-1]}:{f.lineno}" for f in frames[-3:]]
+        sites[" < ".join(names[::-1]) or f"{filename}:{lineno}"] += 1
+
+    torch.cuda.synchronize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = record
+        torch.cuda.set_sync_debug_mode("warn")
+        try:
+            fn()
+        finally:
+            torch.cuda.set_sync_debug_mode(0)
+    return dict(sites)

@@ -53,9 +53,7 @@ def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None):
     ds = _load_split(cfg, split)
     images_on = cfg.images_on if images_on is None else images_on
     if images_stay_on_host(cfg.device, ds.images, images_on):
-        images = ds.images.cpu()
-        ds = dataclasses.replace(ds, images=images[:0]).to(cfg.device)
-        return dataclasses.replace(ds, images=images)
+        return dataclasses.replace(ds, images=ds.images.cpu()).to(cfg.device, images=False)
     return ds.to(cfg.device)
 
 
