@@ -220,3 +220,100 @@ def live_counts(
             break
         log_t -= sigmas[i] * (t_ends[i] - t_starts[i])
     n_live[r] = m
+
+
+# --- Unbounded scenes: the contracted grid ---------------------------------------------------
+#
+# Contraction (mip-NeRF 360's map, with the max norm as nerfstudio uses it for grids): with
+# u = p / a (a: the half-size of the inner cube, which holds the cameras) and m = |u|_inf,
+#     contract(p) = p                          for m <= 1
+#                 = a (2 - 1/m) u / m          beyond,
+# so all of space lands in the cube [-2a, 2a]^3; the grid's res^3 cells cover that cube.
+#
+# Marching steps grow with distance (instant-ngp's cone): the lattice is uniform in a coordinate
+# s along the ray whose step in t (distance from the ray's origin) is dt up to t_sw = dt / cone,
+# then cone * t:
+#     t(s) = s dt                          for s <= 1 / cone (and always when cone == 0)
+#          = (dt / cone) exp(cone s - 1)    beyond,
+# interval k = [t(s0 + k + j), min(t(s0 + k + j + 1), t_hi)], s0 = s(t_lo), j the jitter. It is
+# kept when the contracted cell of its midpoint is occupied. Cells in contracted space are not
+# world-space boxes, so there is no DDA skipping: every lattice interval is tested (a few
+# thousand per ray at most: s grows with log t).
+
+
+@wp.func
+def contract(p: wp.vec3, a: float):
+    m = wp.max(wp.abs(p[0]), wp.max(wp.abs(p[1]), wp.abs(p[2]))) / a
+    if m <= 1.0:
+        return p
+    return p * ((2.0 - 1.0 / m) / m)
+
+
+@wp.func
+def lattice_t(s: float, dt: float, cone: float):
+    if cone <= 0.0 or s * cone <= 1.0:
+        return s * dt
+    return dt / cone * wp.exp(cone * s - 1.0)
+
+
+@wp.kernel(enable_backward=False)
+def march_contracted(
+    origins: wp.array(dtype=wp.vec3),  # [n_rays]
+    directions: wp.array(dtype=wp.vec3),  # [n_rays]
+    s_lo: wp.array(dtype=float),  # [n_rays] lattice coordinate of the start, s(near)
+    t_hi: wp.array(dtype=float),  # [n_rays] end (far); <= t(s_lo): no samples
+    jitter: wp.array(dtype=float),  # [n_rays] lattice shift in [0, 1), or [0] for none
+    k_begin: wp.array(dtype=wp.int32),  # [n_rays] first lattice index, or [0] for 0
+    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8] cells of the contracted cube [-2a, 2a]^3
+    res: int,
+    a: float,  # inner cube half-size
+    dt: float,
+    cone: float,
+    max_samples: int,
+    fill: int,
+    offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
+    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass)
+    k_next: wp.array(dtype=wp.int32),  # [n_rays] out (count pass): next index, -1 = done
+    t_starts: wp.array(dtype=float),  # [n] out (fill pass)
+    t_ends: wp.array(dtype=float),  # [n] out (fill pass)
+    ray_indices: wp.array(dtype=wp.int32),  # [n] out (fill pass)
+):
+    r = wp.tid()
+    o = origins[r]
+    d = directions[r]
+    s0 = s_lo[r]
+    t1 = t_hi[r]
+    j = float(0.0)
+    if jitter.shape[0] > 0:
+        j = jitter[r]
+    k = int(0)
+    if k_begin.shape[0] > 0:
+        k = int(k_begin[r])
+    lo = -2.0 * a
+    inv = float(res) / (4.0 * a)
+    n = int(0)
+    base = int(0)
+    if fill != 0:
+        base = int(offsets[r])
+    if k < 0:
+        k = -1
+    while k >= 0 and n < max_samples:
+        s = lattice_t(s0 + float(k) + j, dt, cone)
+        if s >= t1:
+            k = -1
+            break
+        e = wp.min(lattice_t(s0 + float(k + 1) + j, dt, cone), t1)
+        p = contract(o + d * (0.5 * (s + e)), a)
+        ix = cell_coord(p[0], lo, inv, res)
+        iy = cell_coord(p[1], lo, inv, res)
+        iz = cell_coord(p[2], lo, inv, res)
+        if occupied(bits, (ix * res + iy) * res + iz) != 0:
+            if fill != 0:
+                t_starts[base + n] = s
+                t_ends[base + n] = e
+                ray_indices[base + n] = r
+            n += 1
+        k += 1
+    if fill == 0:
+        counts[r] = n
+        k_next[r] = k

@@ -10,6 +10,9 @@
 #   STAGE=ttq       issue 18's time to quality on lego (DATA=.gpu/lego; BUDGETS, LABEL, EXTRA)
 #   STAGE=variants  short time-to-quality runs of several flag sets (VARIANTS="a;b", BUDGETS)
 #   STAGE=syncs     where the training step synchronises (scripts/sync_sites.py)
+#   STAGE=capture   issue 20: a real capture (DATA=.gpu/beer, NAME, LABEL, BUDGETS, EXTRA) trained
+#                   once with snapshots, every val image scored at each budget, spiral frames of
+#                   the final state (RUN/render_spiral, FRAMES at SIZE) and one depth frame
 #   STAGE=reflect   hash_sdf on materials with the reflection-aware colour head (issue 17's
 #                   materials gap): the lapB run of PERFORMANCE.md plus --color-direction reflect
 # Usage on the device (Warp on PYTHONPATH, package installed, data in .gpu/materials):
@@ -51,6 +54,18 @@ case "${STAGE:-cuda}" in
     python3 -m warpnerf.cli eval /tmp/ttq_lego/run --split val --chunk 400000 --max-images 20 \
       --out /tmp/ttq_eval > "$OUT/ttq_eval.json" 2>&1; tail -c 600 "$OUT/ttq_eval.json"
     ;;
+  capture)
+    D=${DATA:-.gpu/beer}; N=${NAME:-beer}
+    python3 scripts/time_to_quality.py run /tmp/cap_$N --budgets ${BUDGETS:-60,120,300} \
+      --label "$N ${LABEL:-main}" --chunk 65536 -- train nerf --data "$D" --field hash \
+      --device cuda --tf32 --batch 4096 --target-samples 262144 --val-images 0 --quiet \
+      --no-tensorboard ${EXTRA:-} 2>&1 | tail -8 | tee "$OUT/cap_$N.txt"
+    cp /tmp/cap_$N/ttq.json "$OUT/cap_$N.json"; cp /tmp/cap_$N/run/config.json "$OUT/cap_${N}_config.json"
+    python3 -m warpnerf.cli render /tmp/cap_$N/run --frames ${FRAMES:-6} --size ${SIZE:-640x360} \
+      2>&1 | tail -2
+    mkdir -p "$OUT/spiral_$N"; cp /tmp/cap_$N/run/render_spiral/*.png "$OUT/spiral_$N/" 2>/dev/null
+    ls /tmp/cap_$N/run/render_spiral | head -20
+    ;;
   variants)
     # short time-to-quality runs of several flag sets (VARIANTS: sets separated by ';'), in order
     L=${DATA:-.gpu/lego}
@@ -70,5 +85,5 @@ case "${STAGE:-cuda}" in
       ${DATA:-builtin} --field hash --device cuda --tf32 --batch 4096 \
       --target-samples 262144 ${EXTRA:-} 2>&1 | tail -25
     ;;
-  *) echo "STAGE must be cuda, step, reflect, ttq, variants or syncs"; exit 2 ;;
+  *) echo "STAGE must be cuda, step, reflect, capture, ttq, variants or syncs"; exit 2 ;;
 esac

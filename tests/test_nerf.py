@@ -88,11 +88,12 @@ HASH_SDF = dict(GRID, field="hash_sdf", c2f_every=2, target_samples=0)
 @pytest.mark.parametrize(
     "n_fine, field",
     [(0, "mlp"), (8, "mlp"), (8, "hash"), (0, "grid"), (8, "volsdf"), (0, "hash_sdf"),
-     (0, "appearance")],
+     (0, "appearance"), (0, "contract")],
 )  # fmt: skip
 def test_resume_continues_exactly(tmp_path, n_fine, field):
     kw = {"hash": HASH, "grid": GRID, "volsdf": VOLSDF, "hash_sdf": HASH_SDF,
-          "appearance": dict(GRID, appearance_dim=4)}.get(field, {})  # fmt: skip
+          "appearance": dict(GRID, appearance_dim=4),
+          "contract": dict(GRID, contract="on", max_samples=256)}.get(field, {})  # fmt: skip
     straight = train_nerf(
         tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
     )

@@ -8,6 +8,12 @@ warm-up (the first ``warmup`` updates), then a random quarter of all cells plus 
 quarter's worth of the occupied ones; ``density = max(decay * density, new)`` and the threshold
 is ``min(-log(1 - occ_threshold) / dt, mean density)`` (a cell is kept when one step of length dt
 through it would have opacity >= occ_threshold, or when the whole field is still dim).
+
+Unbounded scenes (``contract=a``): the grid covers the contracted cube [-2a, 2a]^3 (see
+:func:`warpnerf.ops.occupancy.contract_points`: the inner cube [-a, a]^3 as it is, all of space
+beyond it squeezed into the shell around it); a cell's points are mapped back to world space
+before the field sees them, and rays march with steps that grow as ``cone`` x distance
+(:func:`warpnerf.ops.occupancy.march_rays_contracted`).
 """
 
 from __future__ import annotations
@@ -31,11 +37,22 @@ class OccupancyGrid(nn.Module):
     occ_threshold: opacity of one step below which a cell counts as empty.
     decay: EMA decay of the cell densities per update.
     warmup: updates that evaluate every cell before random subsets take over.
+    contract: 0 (a bounded box), or the inner cube's half-size a of an unbounded scene (then
+        aabb must be the contracted cube [-2a, 2a]^3).
+    cone: with ``contract``: marching steps are dt up to distance dt / cone, cone x distance
+        beyond (0: dt everywhere).
     """
 
-    def __init__(self, aabb, resolution=128, *, dt, occ_threshold=0.01, decay=0.95, warmup=16):
+    def __init__(self, aabb, resolution=128, *, dt, occ_threshold=0.01, decay=0.95, warmup=16,
+                 contract=0.0, cone=0.0):  # fmt: skip
         super().__init__()
         box = ops._box(aabb)
+        contract, cone = float(contract), float(cone)
+        if not (0 <= contract < math.inf and 0 <= cone < math.inf):
+            raise ValueError("need finite contract >= 0 and cone >= 0")
+        if contract and not ops.is_contracted_box(box, contract):
+            raise ValueError("a contracted grid's aabb must be the cube [-2a, 2a]^3, a = contract")
+        self.contract, self.cone = contract, cone
         ops._check_res(resolution)
         if not (0 < dt < math.inf and 0 < occ_threshold < 1 and 0 <= decay <= 1):
             raise ValueError("need finite dt > 0, 0 < occ_threshold < 1 and 0 <= decay <= 1")
@@ -81,6 +98,8 @@ class OccupancyGrid(nn.Module):
         jitter = torch.rand(cells.shape[0], 3, device=cells.device, generator=generator)
         # the cells are the grid's own (no range check, no host sync)
         points = ops.grid_cell_points(cells, jitter, self.res, self.box, check=False)
+        if self.contract:  # the cells tile contracted space: the field sees world points
+            points = ops.uncontract_points(points, self.contract)
         values = torch.cat(
             [density_fn(points[s : s + chunk]).float() for s in range(0, points.shape[0], chunk)]
         )
@@ -89,7 +108,13 @@ class OccupancyGrid(nn.Module):
         self.n_updates += 1
 
     def march(self, origins, directions, near, far, *, jitter=None, k_begin=None, max_samples=1024):
-        """Packed samples in occupied cells (see :func:`warpnerf.ops.occupancy.march_rays`)."""
+        """Packed samples in occupied cells (see :func:`warpnerf.ops.occupancy.march_rays`, and
+        ``march_rays_contracted`` for an unbounded scene)."""
+        if self.contract:
+            return ops.march_rays_contracted(
+                origins, directions, near, far, self.bits, self.res, self.contract, self.dt,
+                self.cone, jitter=jitter, k_begin=k_begin, max_samples=max_samples,
+            )  # fmt: skip
         return ops.march_rays(
             origins,
             directions,

@@ -5,6 +5,10 @@ values; sigma = exp(first value) (truncated: the exponent is clamped at 15 in th
 its gradient is not cut), zero outside the box. colour: those 16 values + spherical harmonics of
 the direction (degree 4; left out without view dependence) [+ the image's appearance code] -> MLP
 (two hidden layers) -> sigmoid.
+
+Unbounded scenes (``contract=a``): positions are first contracted (the inner cube [-a, a]^3 as it
+is, everything beyond squeezed into [-2a, 2a]^3, :func:`warpnerf.ops.occupancy.contract_points`)
+and the grid covers that cube, so all of space has density.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import torch
 from torch import nn
 
 from ..ops.encoding import HashGrid
+from ..ops.occupancy import contract_points, is_contracted_box
 from .encoding import HashEncoding, SphericalHarmonics
 
 __all__ = ["HashNeRFField"]
@@ -45,14 +50,19 @@ class HashNeRFField(nn.Module):
             to the colour MLP (NeRF-W / nerfstudio's appearance embedding: exposure and white
             balance that change between photos); ``color(..., image_ids=None)`` (held-out views)
             uses the mean of the codes. None: no codes.
+        contract: 0, or the inner half-size a of an unbounded scene (aabb is then the contracted
+            cube [-2a, 2a]^3).
     """
 
     def __init__(self, aabb, grid: HashGrid | None = None, hidden=64, view_dependence=True,
-                 appearance: tuple | None = None):  # fmt: skip
+                 appearance: tuple | None = None, contract: float = 0.0):  # fmt: skip
         super().__init__()
         box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1)
         if box.shape != (6,) or not bool((box[3:] > box[:3]).all()):
             raise ValueError("aabb must be [xmin, ymin, zmin, xmax, ymax, zmax] with min < max")
+        self.contract = float(contract)
+        if self.contract and not is_contracted_box(box, self.contract):
+            raise ValueError("a contracted field's aabb must be the cube [-2a, 2a]^3, a = contract")
         self.register_buffer("aabb", box)
         self.encoding = HashEncoding(grid)
         self.view_dependence = view_dependence
@@ -78,7 +88,10 @@ class HashNeRFField(nn.Module):
     def density(self, positions: torch.Tensor):
         """sigmas [n] and the density MLP's outputs [n, 16]."""
         lo, hi = self.aabb[:3].to(positions.dtype), self.aabb[3:].to(positions.dtype)
-        x = (positions.detach() - lo) / (hi - lo)
+        x = positions.detach()
+        if self.contract:
+            x = contract_points(x, self.contract)
+        x = (x - lo) / (hi - lo)
         inside = ((x >= 0) & (x <= 1)).all(-1)
         h = self.density_mlp(self.encoding(x))
         sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)

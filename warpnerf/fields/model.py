@@ -106,6 +106,13 @@ def _mlp(cfg) -> RadianceModel:
     return RadianceModel(coarse, make() if cfg.n_fine > 0 else None)
 
 
+def _contraction(cfg) -> dict:
+    """The grid's contraction settings of a run with ``--contract on`` ({} otherwise)."""
+    if getattr(cfg, "contract", "off") != "on":
+        return {}
+    return {"contract": float(cfg.aabb), "cone": float(cfg.march_cone)}
+
+
 def _on_grid(cfg, f, box) -> RadianceModel:
     """The model of a hash field ``f``: with the occupancy grid when ``cfg.grid_res`` > 0 (then
     no fine pass), else ``f`` serves the fine pass too when there is one."""
@@ -115,7 +122,7 @@ def _on_grid(cfg, f, box) -> RadianceModel:
     if cfg.grid_res:
         grid = OccupancyGrid(
             box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
-            warmup=-(-cfg.grid_warmup // cfg.grid_every),
+            warmup=-(-cfg.grid_warmup // cfg.grid_every), **_contraction(cfg),
         )  # fmt: skip
     return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
 
@@ -135,7 +142,8 @@ def _hash(cfg) -> RadianceModel:
         if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
             raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
         app = (cfg.appearance_images, cfg.appearance_dim)
-    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence, app)
+    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence, app,
+                      contract=_contraction(cfg).get("contract", 0.0))  # fmt: skip
     return _on_grid(cfg, f, box)
 
 

@@ -15,6 +15,9 @@ from .sampling import Samples
 
 __all__ = [
     "march_rays",
+    "march_rays_contracted",
+    "contract_points",
+    "uncontract_points",
     "grid_cell_points",
     "grid_ema_update",
     "grid_pack_bits",
@@ -263,6 +266,135 @@ def march_rays(
             head + [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)],
             dev,
         )
+    packed_info = torch.stack([offsets, counts], -1)
+    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def contract_points(points: torch.Tensor, a: float) -> torch.Tensor:
+    """mip-NeRF 360's contraction with the max norm (nerfstudio's for grids), pure torch
+    (shared by the field, the grid and the kernels' twin): ``p`` inside the cube [-a, a]^3 stays,
+    beyond it ``a (2 - 1/m) u / m`` with ``u = p / a``, ``m = |u|_inf``; all of space lands in
+    [-2a, 2a]^3. points [..., 3] -> [..., 3]."""
+    m = points.abs().amax(-1, keepdim=True) / a
+    scale = torch.where(m <= 1, torch.ones_like(m), (2 - 1 / m.clamp_min(1)) / m.clamp_min(1))
+    return points * scale
+
+
+def is_contracted_box(box: torch.Tensor, a: float) -> bool:
+    """Whether a float32 box [6] is the contracted cube [-2a, 2a]^3."""
+    return torch.equal(box.cpu(), torch.tensor([-2.0 * a] * 3 + [2.0 * a] * 3))
+
+
+# the inverse's largest contracted max-norm, in units of a: points that close to the cube's
+# surface map to 1e4 a (the outermost cells stand for everything beyond)
+UNCONTRACT_LIMIT = 2.0 - 1e-4
+
+
+def uncontract_points(c: torch.Tensor, a: float) -> torch.Tensor:
+    """The inverse of :func:`contract_points` on [-2a, 2a]^3: ``c / (m (2 - m))`` for
+    ``m = |c / a|_inf`` > 1 (clamped at ``UNCONTRACT_LIMIT``), so points stay finite."""
+    m = (c.abs().amax(-1, keepdim=True) / a).clamp(max=UNCONTRACT_LIMIT)
+    mc = m.clamp_min(1)
+    return c * torch.where(m <= 1, torch.ones_like(m), 1 / (mc * (2 - mc)))
+
+
+def lattice_s(t: torch.Tensor, dt: float, cone: float) -> torch.Tensor:
+    """The lattice coordinate of distance ``t`` >= 0 (inverse of the kernels' ``lattice_t``):
+    ``t / dt`` up to ``dt / cone``, then ``1 / cone + log(t cone / dt) / cone``."""
+    if cone <= 0:
+        return t / dt
+    return torch.where(
+        t * cone <= dt, t / dt, 1 / cone + torch.log((t * cone / dt).clamp_min(1)) / cone
+    )
+
+
+def march_rays_contracted(
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] float32
+    near,  # float or [n_rays]
+    far,  # float or [n_rays]
+    bits: torch.Tensor,  # [res^3 / 8] uint8, cells of the contracted cube [-2a, 2a]^3
+    res: int,
+    a: float,
+    dt: float,
+    cone: float,
+    *,
+    jitter: torch.Tensor | None = None,  # [n_rays] in [0, 1)
+    k_begin: torch.Tensor | None = None,  # [n_rays] int32
+    max_samples: int = 1024,
+):
+    """Packed samples of an unbounded scene (see kernels/occupancy.py, "the contracted grid"):
+    lattice intervals from ``near`` to ``far`` whose steps are ``dt`` up to distance
+    ``dt / cone`` and grow as ``cone * t`` beyond, kept where the cell of the contracted
+    midpoint (:func:`contract_points` with inner half-size ``a``) is occupied. Returns and
+    errors as :func:`march_rays` (the span test counts lattice steps, so a far plane of
+    thousands of ``a`` costs only a few thousand steps with a cone)."""
+    from warpnerf.kernels import occupancy as K
+
+    wp = _bridge._wp()
+    _bridge.check_float("origins", origins, (None, 3), torch.float32)
+    n_rays, dev = origins.shape[0], origins.device
+    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
+    _check_res(res)
+    if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
+        raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
+    for name, v, ok in (("a", a, a > 0), ("dt", dt, dt > 0), ("cone", cone, cone >= 0)):
+        if isinstance(v, torch.Tensor) or not (ok and v < float("inf")):
+            raise ValueError(f"need a finite float {name} ({'>= 0' if name == 'cone' else '> 0'})"
+                             f", got {v}")  # fmt: skip
+    max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
+    if n_rays > _bridge.INT32_MAX:
+        raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
+    near = _bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = _bridge.constant(far, dev, torch.float32).expand(n_rays)
+    s_lo = lattice_s(near.clamp_min(0), float(dt), float(cone))
+    s_hi = lattice_s(far.clamp_min(0), float(dt), float(cone))
+    # as in march_rays: refused rays get no samples, the error comes at the one host sync
+    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
+    bad = ~(torch.isfinite(x) & (near >= 0) & ((s_hi - s_lo) < MAX_STEPS))
+    jit, kb = _empty_f(dev), _empty_i(dev)
+    if jitter is not None:
+        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
+        jitter = jit = jitter.to(torch.float32).contiguous()
+        bad |= ~((jit >= 0) & (jit < 1))
+    if k_begin is not None:
+        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
+        if k_begin.dtype == torch.int32:
+            bad |= k_begin < -1
+            kb = k_begin.contiguous()
+        else:
+            bad |= (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
+            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
+    s_lo = torch.where(bad, torch.zeros_like(s_lo), s_lo).contiguous()
+    a_ = _bridge.arr
+    counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    head = [
+        a_(origins, wp.vec3), a_(directions, wp.vec3), a_(s_lo), a_(t_hi), a_(jit), a_(kb),
+        a_(bits), res, float(a), float(dt), float(cone), int(max_samples),
+    ]  # fmt: skip
+    no_f, no_i = a_(_empty_f(dev)), a_(_empty_i(dev))
+    _bridge.launch(
+        K.march_contracted, n_rays, head + [0, no_i, a_(counts), a_(k_next), no_f, no_f, no_i],
+        dev,
+    )  # fmt: skip
+    csum = torch.cumsum(counts, 0, dtype=torch.int64)
+    total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
+    total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
+    if refused:
+        if not bool((near >= 0).all()):
+            raise ValueError("near must be >= 0 for contracted marching")
+        _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
+    if total >= 2**31:
+        raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
+    offsets = (csum - counts).to(torch.int32)
+    t_starts = torch.empty(total, device=dev, dtype=torch.float32)
+    t_ends = torch.empty(total, device=dev, dtype=torch.float32)
+    ray_indices = torch.empty(total, device=dev, dtype=torch.int32)
+    if total:
+        fill = [1, a_(offsets), a_(counts), a_(k_next), a_(t_starts), a_(t_ends), a_(ray_indices)]
+        _bridge.launch(K.march_contracted, n_rays, head + fill, dev)
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 

@@ -14,7 +14,8 @@ from warpnerf.ops.sampling import Samples
 
 from .rays import ray_aabb_intersect
 
-__all__ = list(_op.__all__)  # the twin of each public op, by the same name
+# the twin of each public op, by the same name (the contraction is pure torch: shared)
+__all__ = [n for n in _op.__all__ if n not in ("contract_points", "uncontract_points")]
 
 
 def _geometry(aabb, res, dtype, device):
@@ -73,6 +74,58 @@ def march_rays(
     counts = keep.sum(1)
     last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if n_lat else counts - 1
     # a ray stopped by the cap continues after its last sample (its next call may find none)
+    k_next = torch.where(counts == max_samples, last + 1, -1).to(torch.int32)
+    starts = torch.cumsum(counts, 0) - counts
+    ray_indices = torch.arange(n_rays, device=dev).repeat_interleave(counts).to(torch.int32)
+    info = torch.stack([starts, counts], -1).to(torch.int32)
+    return Samples(s[keep], e[keep], ray_indices, info), k_next
+
+
+def _lattice_t(s, dt, cone):
+    if cone <= 0:
+        return s * dt
+    return torch.where(s * cone <= 1, s * dt, dt / cone * torch.exp(cone * s - 1))
+
+
+def contracted_lattice(origins, directions, near, far, res, a, dt, cone, jitter=None, n_lat=None):
+    """Every lattice interval of every ray in the contracted scheme (kernels/occupancy.py), as
+    dense [n_rays, n_lat] tensors: starts, ends, valid (before far) and the contracted
+    midpoints' cell indices, plus the midpoints' distance to the nearest cell face in cells."""
+    n_rays, dev, dt_ = origins.shape[0], origins.device, origins.dtype
+    near = torch.as_tensor(near, device=dev, dtype=dt_).expand(n_rays)
+    far = torch.as_tensor(far, device=dev, dtype=dt_).expand(n_rays)
+    s0, s1 = _op.lattice_s(near, dt, cone), _op.lattice_s(far, dt, cone)
+    j = torch.zeros(n_rays, device=dev, dtype=dt_) if jitter is None else jitter.to(dt_)
+    if n_lat is None:
+        n_lat = int(torch.ceil((s1 - s0).clamp_min(0).max()).item()) + 2 if n_rays else 0
+    k = torch.arange(n_lat, device=dev, dtype=dt_).expand(n_rays, n_lat)
+    sk = s0[:, None] + k + j[:, None]
+    s = _lattice_t(sk, dt, cone)
+    e = torch.minimum(_lattice_t(sk + 1, dt, cone), far[:, None])
+    p = origins[:, None, :] + directions[:, None, :] * (0.5 * (s + e))[..., None]
+    u = (_op.contract_points(p, a) + 2 * a) * (res / (4 * a))
+    ijk = torch.floor(u).clamp(0, res - 1).long()
+    cell = (ijk[..., 0] * res + ijk[..., 1]) * res + ijk[..., 2]
+    face = (u - torch.round(u)).abs().amin(-1)
+    return s, e, s < far[:, None], cell, face
+
+
+def march_rays_contracted(
+    origins, directions, near, far, bits, res, a, dt, cone, *, jitter=None, k_begin=None,
+    max_samples=1024,
+):  # fmt: skip
+    """Reference for :func:`warpnerf.ops.occupancy.march_rays_contracted` (brute force over
+    the lattice, every interval tested)."""
+    n_rays, dev = origins.shape[0], origins.device
+    s, e, valid, cell, _ = contracted_lattice(
+        origins, directions, near, far, res, a, dt, cone, jitter
+    )
+    k = torch.arange(s.shape[1], device=dev).expand_as(s)
+    kb = torch.zeros(n_rays, device=dev, dtype=torch.long) if k_begin is None else k_begin.long()
+    keep = valid & (k >= kb[:, None]) & (kb[:, None] >= 0) & unpack_bits(bits)[cell]
+    keep = keep & (torch.cumsum(keep.long(), 1) <= max_samples)
+    counts = keep.sum(1)
+    last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if s.shape[1] else counts - 1
     k_next = torch.where(counts == max_samples, last + 1, -1).to(torch.int32)
     starts = torch.cumsum(counts, 0) - counts
     ray_indices = torch.arange(n_rays, device=dev).repeat_interleave(counts).to(torch.int32)

@@ -108,12 +108,13 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None, ray_offset=0,
+    jitter=None, ray_images=None, ray_offset=0, background=None,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
     are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples (their
-    jitter keyed by ``seed`` and the ray's index + ``ray_offset``)."""
+    jitter keyed by ``seed`` and the ray's index + ``ray_offset``). ``background``: None (the
+    run's colour) or per-ray colours [n_rays, 3] (grid runs)."""
     if model.grid is not None:
         return render_chunks(
             o.shape[0],
@@ -127,7 +128,7 @@ def render_rays_of(
                 cfg.far,
                 perturb=perturb,
                 generator=generator,
-                background=cfg.background,
+                background=cfg.background if background is None else background[sl],
                 t_threshold=cfg.t_threshold,
                 max_samples=cfg.max_samples,
                 round_samples=cfg.round_samples,
@@ -206,6 +207,8 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
         )
     if saved.get("field") and "grid_res" not in saved:
         saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
+    if saved.get("field") and "contract" not in saved:
+        saved["contract"] = "off"  # a run from before scene contraction: bounded
     try:
         cfg = NeRFConfig.from_dict(saved, where=str(cfg_path))
     except TypeError as e:
@@ -372,11 +375,15 @@ class NeRFTask(Task):
             host_index=self.host_images,
         )  # fmt: skip
         n = cam.shape[0]  # the global batch (every rank draws it whole)
-        sl, jitter, scale = slice(0, n), None, 1.0
-        if self.dist is not None:  # this rank's share; the lattice jitter drawn for all rays
+        sl, jitter, scale, bg = slice(0, n), None, 1.0, None
+        if grid is not None:  # the lattice jitter (and backgrounds), drawn for all the batch's rays
+            jitter = torch.rand(n, device=cfg.device, generator=self.grid_gen)
+            if cfg.contract == "on":  # unbounded: no fixed colour behind the scene
+                bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
+        if self.dist is not None:  # this rank's share
             sl = self.dist.share(n)
-            if grid is not None:
-                jitter = torch.rand(n, device=cfg.device, generator=self.grid_gen)[sl]
+            jitter = None if jitter is None else jitter[sl]
+            bg = None if bg is None else bg[sl]
             # the share's mean loss weighted so that the ranks' average is the batch's mean
             scale = (sl.stop - sl.start) * self.dist.world / max(n, 1)
             cam, px, py = cam[sl], px[sl], py[sl]
@@ -390,7 +397,8 @@ class NeRFTask(Task):
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
-                             jitter=jitter, ray_images=images, ray_offset=sl.start)  # fmt: skip
+                             jitter=jitter, ray_images=images, ray_offset=sl.start,
+                             background=bg)  # fmt: skip
         n_kept = out.get("n_kept")
         if self.dist is not None and n_kept is not None:  # the global batch's samples
             n_kept = int(self.dist.sum_(torch.tensor([n_kept], device=cfg.device)).item())

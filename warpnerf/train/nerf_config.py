@@ -24,6 +24,7 @@ GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train 
 HASH_FIELDS = ("hash", "hash_sdf")  # fields on the hash encoding (lr, grid, hash flags)
 SDF_FIELDS = ("volsdf", "hash_sdf")  # fields whose geometry is an SDF (beta, eikonal, mesh)
 BOX_FIELDS = ("hash", "volsdf", "hash_sdf")  # fields living in the scene box
+CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
 
 
 @dataclass
@@ -145,7 +146,19 @@ class NeRFConfig:
     )  # fmt: skip
     aabb: float = option(
         0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
-        "built-in scene's own for builtin)", check="nonnegative",
+        "built-in scene's own for builtin; with --contract on: of the inner cube, default the "
+        "camera centres' extent)", check="nonnegative",
+    )  # fmt: skip
+    contract: str = option(
+        "auto", "unbounded scene (hash field with a grid): space beyond the inner cube (--aabb) "
+        "is contracted into a shell around it (mip-NeRF 360), the grid lives in contracted "
+        "space, marching steps grow with distance and training composites onto random "
+        "backgrounds (auto: on for COLMAP/LLFF captures that are not forward-facing)",
+        choices=("auto", "on", "off"),
+    )  # fmt: skip
+    march_cone: float = option(
+        0.0, "with --contract on: marching steps grow as this x the distance, beyond "
+        "march-step / cone (0: 1/256)", check="nonnegative", groups=GRID,
     )  # fmt: skip
     near: float | None = option(None, "default 2 (the built-in scene's own for builtin)",
                                 check="finite")  # fmt: skip
@@ -208,6 +221,14 @@ class NeRFConfig:
             self.eikonal_weight = 0.01 if self.field == "hash_sdf" else 0.1
         if self.lr_final is None:
             self.lr_final = self.lr / (20.0 if self.field in HASH_FIELDS else 10.0)
+        if self.grid_res is None:
+            self.grid_res = 128 if self.field in HASH_FIELDS else 0
+        if self.contract == "auto":  # inward-facing captures (not NDC): unbounded
+            cap = self.scene is not None and self.scene["ndc"] is None
+            self.contract = "on" if cap and self.field == "hash" and self.grid_res else "off"
+        contracted = self.contract == "on"
+        if self.aabb <= 0 and contracted and self.scene is not None and "inner" in self.scene:
+            self.aabb = self.scene["inner"]
         if self.aabb <= 0 and self.scene is not None:
             self.aabb = self.scene["aabb"]
         if self.aabb <= 0 and self.field in BOX_FIELDS:
@@ -217,10 +238,10 @@ class NeRFConfig:
                 self.aabb = BOUND
             else:
                 self.aabb = 1.5
-        if self.grid_res is None:
-            self.grid_res = 128 if self.field in HASH_FIELDS else 0
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
+        if contracted and self.march_cone <= 0:
+            self.march_cone = 1.0 / 256  # instant-ngp's for large scenes
         if self.near is None or self.far is None:
             if self.scene is not None:
                 NEAR, FAR = self.scene["near"], self.scene["far"]
@@ -228,6 +249,8 @@ class NeRFConfig:
                 from ..data.synthetic import FAR, NEAR
             else:
                 NEAR, FAR = 2.0, 6.0
+            if contracted:  # steps grow with distance: a far plane far away costs little
+                FAR = max(FAR, CONTRACT_FAR * self.aabb)
             self.near = NEAR if self.near is None else self.near
             self.far = FAR if self.far is None else self.far
         return self
@@ -265,7 +288,8 @@ class NeRFConfig:
                    "density_activation": ("relu", "softplus"), "data_format": FORMATS,
                    "sdf_density": ("laplace", "logistic"),
                    "color_direction": ("view", "reflect"),
-                   "images_on": ("auto", "device", "host")}  # fmt: skip
+                   "images_on": ("auto", "device", "host"),
+                   "contract": ("auto", "on", "off")}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
@@ -327,6 +351,17 @@ class NeRFConfig:
             for name in ("grid_warmup", "target_samples", "round_samples"):
                 if getattr(self, name) < 0:
                     raise fail(name, f"must be >= 0, got {getattr(self, name)}")
+        if not (math.isfinite(self.march_cone) and 0 <= self.march_cone <= 1):
+            raise fail("march_cone", f"must be in [0, 1], got {self.march_cone}")
+        if self.contract == "on":
+            if self.field != "hash" or self.grid_res == 0:
+                raise fail("contract", "needs --field hash with an occupancy grid, not --field "
+                           f"{self.field} --grid-res {self.grid_res}")  # fmt: skip
+            if self.scene is not None and self.scene["ndc"] is not None:
+                raise fail("contract", "is for inward-facing captures: this one uses NDC rays "
+                           "(pass --ndc off)")  # fmt: skip
+        elif self.contract == "off" and self.march_cone > 0:
+            raise fail("march_cone", "needs --contract on")
         if not 0.0 <= self.t_threshold < 1.0:
             raise fail("t_threshold", f"must be in [0, 1), got {self.t_threshold}")
         for name in ("max_seconds", "val_images", "max_images"):
@@ -362,7 +397,7 @@ class NeRFConfig:
         self.check_values()
         self.resolve(scene)
         self.check_values()  # the resolved grid, near/far and scene too
-        if self.grid_res:
+        if self.grid_res and self.contract != "on":  # (contracted: steps grow, see march_cone)
             # lattice intervals across the diagonal (the default step gives exactly 1024)
             need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step * (1 - 1e-6))
             if self.max_samples < need:  # training would cut rays off where rendering does not
@@ -389,11 +424,14 @@ class NeRFConfig:
         )
 
     def aabb_box(self):
-        """The scene box [6]: with NDC rays [-a, a]^2 x [-1, 1] (z = 1 is infinity), for the
-        hash/VolSDF field [-a, a]^3, else None (the MLP field samples near..far)."""
+        """The scene box [6]: with NDC rays [-a, a]^2 x [-1, 1] (z = 1 is infinity), with
+        contraction the contracted cube [-2a, 2a]^3, for the hash/VolSDF field [-a, a]^3, else
+        None (the MLP field samples near..far)."""
         a = float(self.aabb)
         if self.ndc_camera() is not None:
             return [-a, -a, -1.0, a, a, 1.0]
+        if self.contract == "on":  # the contracted cube
+            return [-2 * a] * 3 + [2 * a] * 3
         if self.field not in BOX_FIELDS:
             return None
         return [-a, -a, -a, a, a, a]
@@ -426,6 +464,7 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
             f"{cfg.data}: --ndc on needs a forward-facing capture (every viewing axis within "
             "45 degrees of their mean); this one is not"
         )
+    lo, hi = info["camera_centres_box"]
     return {
         "format": fmt,
         "transform": info["transform"],
@@ -433,6 +472,8 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
         "near": 0.0 if ndc else info["near"],
         "far": 4.0 if ndc else info["far"],
         "aabb": 1.5 if ndc else info["aabb"],
+        # the inner cube of a contracted scene: it holds every camera centre
+        "inner": round(max(max(map(abs, lo + hi)), 1e-3) * 1.05, 3),
     }
 
 
@@ -455,8 +496,12 @@ def _check_scene(scene, fail) -> None:
     """A saved ``scene`` (see :meth:`NeRFConfig._resolve_scene`): the capture's format, its
     world -> normalised similarity transform [4][4], the NDC camera or null, near, far, aabb."""
     keys = ("format", "transform", "ndc", "near", "far", "aabb")
-    if not isinstance(scene, dict) or set(scene) != set(keys):
-        raise fail(f"must be null or an object with exactly the keys {', '.join(keys)}")
+    # "inner" (the contracted scene's inner cube) came later: older runs' scenes lack it
+    if not isinstance(scene, dict) or set(scene) - {"inner"} != set(keys):
+        raise fail(f"must be null or an object with exactly the keys {', '.join(keys)} "
+                   "(and optionally inner)")  # fmt: skip
+    if "inner" in scene and not (_number(scene["inner"]) and 0 < scene["inner"] <= 1e6):
+        raise fail("inner must be a finite number in (0, 1e6]")
     if scene["format"] not in ("colmap", "llff"):
         raise fail(f"format must be colmap or llff, got {scene['format']!r}"[:200])
     t = scene["transform"]
