@@ -199,17 +199,23 @@ def main(argv=None) -> int:
     return exit_status(f"warpnerf {args.command}", run)
 
 
-def nerf_task_from_argv(argv: list):
+def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     """(cfg, task, optimiser) of a `warpnerf train nerf|volsdf ...` command line, built as the
-    command builds them but without a run folder (for the profiling and measuring tools)."""
+    command builds them but without a run folder (for the profiling and measuring tools).
+    ``dist``/``device``: one rank of a data-parallel run and its device (``from_env``)."""
     import torch
 
     from ..train.nerf import NeRFTask, build_model, load_data, resolve_data
     from .train import nerf_config_from_args
 
     cfg = nerf_config_from_args(build_parser().parse_args([*argv, "--out", "unused"])).validate()
+    if device is not None:
+        cfg.device = device
     resolve_data(cfg)
-    task = NeRFTask(cfg, build_model(cfg), load_data(cfg, "train"), None, log=lambda *x: None)
+    train = load_data(cfg, "train")
+    if cfg.appearance_dim:  # one code per training image, as train_nerf sets it
+        cfg.appearance_images = len(train)
+    task = NeRFTask(cfg, build_model(cfg), train, None, log=lambda *x: None, dist=dist)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     return cfg, task, task.optimizer(task.parameters(), cfg.lr)
