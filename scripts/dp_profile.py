@@ -142,9 +142,7 @@ def main():
             with open(a.json, "w") as f:
                 json.dump(res, f, indent=1)
     if dist is not None:
-        import torch.distributed as td
-
-        td.destroy_process_group()
+        dist.close()
 
 
 if __name__ == "__main__":

@@ -190,23 +190,26 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def plot(summary: dict, png: Path) -> None:
+def plot(summaries, png: Path) -> None:
+    """Val PSNR against training seconds, one panel per summary (a dict or a list of them)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for r in summary["rows"]:
-        t = r.get("ttq")
-        if t:
-            ax.plot([x["budget_s"] for x in t], [x["psnr"] for x in t], "o-",
-                    label=f"{r['gpus']} GPU, {r['target_samples']} samples/step")  # fmt: skip
-    ax.set_xlabel("training seconds (wall clock)")
-    ax.set_ylabel("val PSNR (dB)")
-    ax.set_title(f"{summary['name']}: data-parallel training, {summary['device']}")
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    summaries = [summaries] if isinstance(summaries, dict) else list(summaries)
+    fig, axes = plt.subplots(1, len(summaries), figsize=(6.0 * len(summaries), 4.2), squeeze=False)
+    for ax, summary in zip(axes[0], summaries):
+        for r in summary["rows"]:
+            t = r.get("ttq")
+            if t:
+                ax.plot([x["budget_s"] for x in t], [x["psnr"] for x in t], "o-",
+                        label=f"{r['gpus']} GPU, {r['target_samples']} samples/step")  # fmt: skip
+        ax.set_xlabel("training seconds (wall clock)")
+        ax.set_ylabel("val PSNR (dB)")
+        ax.set_title(f"{summary['name']}: data-parallel training, {summary['device']}", fontsize=9)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
     fig.savefig(png, dpi=110)
 
@@ -223,6 +226,10 @@ def device_name() -> str:
 
 
 def commit() -> str:
+    """The tree's commit: WARPNERF_COMMIT where set (a copy whose git metadata is not the
+    tree's own, as on the device machines), else git's HEAD."""
+    if os.environ.get("WARPNERF_COMMIT"):
+        return os.environ["WARPNERF_COMMIT"]
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
                               cwd=HERE).stdout.strip()  # fmt: skip
@@ -245,16 +252,25 @@ def main():
     r.add_argument("--chunk", type=int, default=None, help="rays per render chunk when scoring")
     r.add_argument("--eval-parallel", type=int, default=1, help="scorers at a time (one GPU each)")
     q = sub.add_parser("report")
-    q.add_argument("json")
+    q.add_argument("json", nargs="+", help="scaling_NAME.json files (several: rows merged "
+                   "into one table per name, one plot panel per name)")
     q.add_argument("--png", default=None)
     a = p.parse_args(argv)
     if a.cmd == "run":
         run_all(a, flags)
     else:
-        summary = json.loads(Path(a.json).read_text())
-        print(markdown(summary))
+        merged: dict = {}
+        for path in a.json:
+            summary = json.loads(Path(path).read_text())
+            have = merged.setdefault(summary["name"], summary)
+            if have is not summary:  # (another part of the same scene's runs)
+                have["rows"] += summary["rows"]
+                have["efficiency"] = efficiencies(have["rows"])
+        for summary in merged.values():
+            print(f"\n{summary['name']} ({summary['device']}, commit {summary['commit'][:7]}):")
+            print(markdown(summary))
         if a.png:
-            plot(summary, Path(a.png))
+            plot(list(merged.values()), Path(a.png))
 
 
 if __name__ == "__main__":

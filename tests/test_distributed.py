@@ -33,6 +33,7 @@ def _train(out, extra, ranks: int, resume=False, iters=6):
                 *cmd]  # fmt: skip
     res = subprocess.run(argv, capture_output=True, text=True, timeout=600, env=env)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    _train.output = res.stdout + res.stderr  # (the last run's, for the tests that read it)
     return json.loads((out / "history.json").read_text())
 
 
@@ -75,6 +76,8 @@ def test_two_ranks_follow_one_process(tmp_path, extra):
         assert abs(a - b) <= 1e-5 * abs(a), (one["loss"], two["loss"])
     if "batch" in one:  # the adaptive batch follows the global sample count
         assert one["batch"] == two["batch"]
+        for a, b in zip(one["samples_per_ray"], two["samples_per_ray"]):
+            assert abs(a - b) <= 1e-12 * abs(a), (one["samples_per_ray"], two["samples_per_ray"])
     assert len(two["val_psnr"]) == len(one["val_psnr"]) == 2
     # rank 0 wrote the run; nothing else did (one manifest of outputs, no stray files)
     names = sorted(p.name for p in (tmp_path / "two").iterdir())
@@ -105,3 +108,28 @@ def test_other_commands_refuse_torchrun(tmp_path, command):
     res = subprocess.run(argv, capture_output=True, text=True, env=env)
     assert res.returncode == 2 and "runs in one process" in res.stderr, res.stderr
     assert "Traceback" not in res.stderr and not (tmp_path / "r").exists()
+
+
+def test_only_rank_zero_logs(tmp_path):
+    """A two-rank run prints its log lines once (rank 0's), and leaves its process group
+    (no NCCL/gloo warning of a group left open at exit)."""
+    _train(tmp_path / "r", ["--max-seconds", "0.001"], 2, iters=6)
+    out = _train.output
+    assert out.count("stopping at step 1: --max-seconds") == 1, out[-3000:]
+    assert "destroy_process_group() was not called" not in out, out[-3000:]
+
+
+def test_ray_cap_is_per_rank():
+    """The adaptive batch's ray cap is per rank: N ranks may draw N times the rays of one."""
+    from types import SimpleNamespace
+
+    from warpnerf.train.distributed import Dist
+    from warpnerf.train.nerf import MAX_RAYS_PER_RANK, NeRFTask
+
+    for world in (None, 2, 3):
+        t = SimpleNamespace(cfg=SimpleNamespace(target_samples=1 << 30), batch=1 << 15,
+                            dist=None if world is None else Dist(0, world))  # fmt: skip
+        NeRFTask._next_batch(t, 1 << 15)  # one sample a ray: wants 2^30 rays
+        assert t.batch == MAX_RAYS_PER_RANK * (world or 1)
+        NeRFTask._next_batch(t, 1 << 52)  # far too many samples: the floor
+        assert t.batch == 64

@@ -117,6 +117,10 @@ def nerf_config_from_args(args):
     return cls(**kw)
 
 
+def _silent(*args, **kw) -> None:
+    """The log of a data-parallel run's ranks other than 0."""
+
+
 def cmd_train_nerf(args) -> int:
     from ..train.nerf import train_nerf
 
@@ -145,9 +149,14 @@ def cmd_train_nerf(args) -> int:
         device = rank_device if args.resume else device
         cfg.device = rank_device if not args.resume else cfg.device
     main = dist is None or dist.main
-    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
-                      device=device, hooks=live_hooks(args) if main else [],
-                      tensorboard=tensorboard_every(args), dist=dist)  # fmt: skip
+    try:  # (only rank 0 prints: the other ranks' lines would repeat its own)
+        hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
+                          device=device, hooks=live_hooks(args) if main else [],
+                          tensorboard=tensorboard_every(args), dist=dist,
+                          log=print if main else _silent)  # fmt: skip
+    finally:
+        if dist is not None:
+            dist.close()
     if not main:
         return 0
     last = {

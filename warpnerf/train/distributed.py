@@ -76,6 +76,14 @@ class Dist:
 
         td.barrier()
 
+    def close(self) -> None:
+        """Leaves the process group (at the end of the run, however it ends: NCCL warns of,
+        and may leak, a group still open at exit)."""
+        import torch.distributed as td
+
+        if td.is_initialized():
+            td.destroy_process_group()
+
 
 def from_env(device: str) -> tuple[Dist | None, str]:
     """(Dist, this rank's device) when started by ``torchrun`` with WORLD_SIZE > 1 (the process

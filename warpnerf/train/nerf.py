@@ -31,6 +31,8 @@ __all__ = [
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
+# the adaptive batch's rays per step and rank (a data-parallel run of N ranks: N times as many)
+MAX_RAYS_PER_RANK = 1 << 16
 OUTPUTS = ("config.json", CHECKPOINT, "history.json")  # what a NeRF run writes in its folder
 
 
@@ -341,6 +343,7 @@ class NeRFTask(Task):
         if self.grid is not None:
             self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
         self.batch = cfg.batch
+        self._kept = None  # data-parallel: the last step's global sample count (on the device)
 
     def resume(self, ckpt, run, log):
         self.gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
@@ -358,7 +361,24 @@ class NeRFTask(Task):
     def optimizer(self, params, lr):
         return _optimizer(self.cfg, params)
 
+    def _next_batch(self, n_kept: int) -> None:
+        """The next step's rays, aiming at ``target_samples`` samples from this step's
+        ``n_kept`` (the global batch's), at most MAX_RAYS_PER_RANK rays per rank."""
+        if self.cfg.target_samples > 0:
+            batch = int(self.batch * self.cfg.target_samples / max(n_kept, 1))
+            ranks = 1 if self.dist is None else self.dist.world
+            self.batch = min(max(batch, 64), MAX_RAYS_PER_RANK * ranks)
+
+    def _settle_batch(self) -> None:
+        """Data-parallel: sizes the batch from the previous step's global sample count, summed
+        on the device during that step (read here, after the step's end-of-step sync, so the
+        read waits for nothing)."""
+        if self._kept is not None:
+            kept, self._kept = self._kept, None
+            self._next_batch(int(kept.item()))
+
     def loss(self, step):
+        self._settle_batch()
         cfg, model, grid = self.cfg, self.model, self.grid
         field = model.coarse
         if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
@@ -400,15 +420,17 @@ class NeRFTask(Task):
                              jitter=jitter, ray_images=images, ray_offset=sl.start,
                              background=bg)  # fmt: skip
         n_kept = out.get("n_kept")
-        if self.dist is not None and n_kept is not None:  # the global batch's samples
-            n_kept = int(self.dist.sum_(torch.tensor([n_kept], device=cfg.device)).item())
         terms = {}
         if grid is not None:
-            terms["samples_per_ray"] = n_kept / self.batch
             terms["batch"] = self.batch
-            if cfg.target_samples > 0:  # next step's rays: aim at target_samples samples
-                batch = int(self.batch * cfg.target_samples / max(n_kept, 1))
-                self.batch = min(max(batch, 64), 1 << 16)
+            if self.dist is not None:  # the global batch's samples: summed on the device, no
+                # host wait mid-step; the next step's batch is sized from it (_settle_batch)
+                kept = torch.tensor([float(n_kept)], dtype=torch.float64, device=cfg.device)
+                self._kept = self.dist.sum_(kept)
+                terms["samples_per_ray"] = (self._kept / self.batch).reshape(())
+            else:
+                terms["samples_per_ray"] = n_kept / self.batch
+                self._next_batch(n_kept)
         if not self.host_images:
             target = self.flat[idx]
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
@@ -450,6 +472,7 @@ class NeRFTask(Task):
         return {"loss": f"{history['loss'][-1]:.4f}", "psnr": f"{history['psnr'][-1]:.2f}"}
 
     def state(self):
+        self._settle_batch()  # (the checkpoint holds the next step's batch, as on one process)
         state = {
             "fields": {  # (the layout of runs from before the model object)
                 k: (v.state_dict() if v is not None else None)
