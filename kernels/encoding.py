@@ -15,7 +15,13 @@ Forward, for a point x in [0, 1]^3 (clamped) and level l: ``p = x * res``, corne
 Backward (hand-written; the table is the only input with a gradient): the forward is linear in
 the table, so ``v_table[row(v), q] += w_v * v_out[n, l*F + q]`` for every point and corner,
 scattered with atomic adds (on CUDA the summation order, hence the last bits, vary run to run).
-Positions get no gradient here (NeRF samples' positions carry none).
+Positions, when asked for (pose refinement: the samples' positions depend on the cameras), get
+theirs from ``hash_encode_bwd_x``: ``v_x[n, a] = sum_l sum_v sum_q v_out[n, l*F + q]
+table[row(v), q] * dw_v/dx_a`` with ``dw_v/dx_a = res_l * (+-1 for the corner's side on axis
+a) * (the other two axes' weight factors)``, the derivative inside the cell the forward used
+(one-sided on cell faces, as the twin's autograd gives), zero along an axis where x was clamped
+(outside [0, 1]) and zero for non-finite points. One thread per point walks the levels, so
+there are no atomics and the sum's order is fixed.
 
 One thread per (point, level); threads of one point are adjacent, so its output row is written
 by neighbouring threads.
@@ -130,11 +136,82 @@ def hash_encode_bwd(
                 wp.atomic_add(v_table, int(offsets[lvl]) + row, q, w * g)
 
 
+@wp.func
+def axis_factor(b: int, f: Any):
+    """(weight factor, its derivative in f) of one axis for corner bit b."""
+    one = f.dtype(1.0)
+    return wp.where(b == 1, f, one - f), wp.where(b == 1, one, -one)
+
+
+@wp.func
+def inside01(x: Any):
+    """1 where x is in [0, 1] (the clamp passes the gradient), else 0."""
+    return wp.where(x >= x.dtype(0.0) and x <= x.dtype(1.0), x.dtype(1.0), x.dtype(0.0))
+
+
+@wp.kernel(enable_backward=False)
+def hash_encode_bwd_x(
+    x: wp.array2d(dtype=Any),  # [n, 3]
+    table: wp.array2d(dtype=Any),  # [total_rows, F]
+    v_out: wp.array2d(dtype=Any),  # [n, L * F]
+    res: wp.array(dtype=wp.int32),
+    offsets: wp.array(dtype=wp.int32),
+    sizes: wp.array(dtype=wp.int32),
+    dense_levels: wp.array(dtype=wp.int32),
+    n_levels: int,
+    v_x: wp.array2d(dtype=Any),  # [n, 3] written
+):
+    i = wp.tid()
+    zero = x.dtype(0.0)
+    if not finite3(x, i):
+        v_x[i, 0] = zero
+        v_x[i, 1] = zero
+        v_x[i, 2] = zero
+        return
+    n_feat = table.shape[1]
+    gx = zero
+    gy = zero
+    gz = zero
+    for lvl in range(n_levels):
+        r = int(res[lvl])
+        size = int(sizes[lvl])
+        off = int(offsets[lvl])
+        dense = int(dense_levels[lvl])
+        cx, fx = cell_coord(x[i, 0], r)
+        cy, fy = cell_coord(x[i, 1], r)
+        cz, fz = cell_coord(x[i, 2], r)
+        lx = zero
+        ly = zero
+        lz = zero
+        for v in range(8):
+            bx = v & 1
+            by = (v >> 1) & 1
+            bz = (v >> 2) & 1
+            wx, dx = axis_factor(bx, fx)
+            wy, dy = axis_factor(by, fy)
+            wz, dz = axis_factor(bz, fz)
+            row = vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
+            s = zero  # d loss / d (this corner's weight)
+            for q in range(n_feat):
+                s = s + v_out[i, lvl * n_feat + q] * table[off + row, q]
+            lx = lx + s * dx * wy * wz
+            ly = ly + s * wx * dy * wz
+            lz = lz + s * wx * wy * dz
+        rr = x.dtype(r)
+        gx = gx + lx * rr
+        gy = gy + ly * rr
+        gz = gz + lz * rr
+    v_x[i, 0] = gx * inside01(x[i, 0])
+    v_x[i, 1] = gy * inside01(x[i, 1])
+    v_x[i, 2] = gz * inside01(x[i, 2])
+
+
 def _overloads(dtype):
     a2 = wp.array2d(dtype=dtype)
     ai = wp.array(dtype=wp.int32)
     wp.overload(hash_encode_fwd, [a2, a2, ai, ai, ai, ai, int, a2])
     wp.overload(hash_encode_bwd, [a2, a2, ai, ai, ai, ai, int, a2])
+    wp.overload(hash_encode_bwd_x, [a2, a2, a2, ai, ai, ai, ai, int, a2])
 
 
 for _dt in (wp.float32, wp.float64):

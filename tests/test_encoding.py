@@ -70,6 +70,66 @@ def test_gradcheck_float64(device):
     )
 
 
+@pytest.mark.parametrize("name", list(GRIDS))
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_position_gradient_matches_twin(device, name, dtype):
+    """d features / d x (pose refinement) against the twin's autograd, with the table's gradient
+    in the same backward: cell faces and corners (one-sided, the forward's cell), points outside
+    the cube (zero along the clamped axes)."""
+    grid = GRIDS[name]
+    tol = {F64: {"rtol": 1e-12, "atol": 1e-12}, F32: {"rtol": 2e-5, "atol": 2e-5}}
+    # d/dx scales by res (<= 40) and sums levels x corners x features: float32 rounds more
+    grad_tol = {F64: {"rtol": 1e-10, "atol": 1e-10}, F32: {"rtol": 1e-3, "atol": 1e-3}}
+    assert_matches_twin(
+        lambda x, table: hash_encode(x, table, grid),
+        lambda x, table: ref_hash_encode(x, table, grid),
+        {"x": _points(600, dtype, device), "table": _table(grid, dtype, device)},
+        grad=["x", "table"],
+        tol=tol,
+        grad_tol=grad_tol,
+        twin_dtype=F64,
+    )
+
+
+def test_position_gradient_gradcheck_float64(device):
+    grid = GRIDS["dense+hashed"]
+    x = torch.rand(10, 3, dtype=F64, device=device) * 0.9 + 0.05
+    gradcheck_op(
+        lambda x: hash_encode(x, _TABLE64.to(device), grid), {"x": x}, ["x"], eps=1e-7, atol=1e-5
+    )
+
+
+_TABLE64 = torch.randn(GRIDS["dense+hashed"].n_rows, 2, dtype=F64)
+
+
+def test_position_gradient_hard_cases(device):
+    """Outside the cube: zero along the clamped axes, finite elsewhere; non-finite points: zero
+    (their NaN features already make the loss NaN); many points on a tiny table: float32 against
+    the float64 twin."""
+    grid = GRIDS["collisions"]
+    x = _points(40, F32, device)
+    x[12] = torch.tensor([2.0, 0.3, -1.0])
+    x[13, 1] = float("nan")
+    x[14, 2] = float("inf")
+    x = x.requires_grad_(True)
+    table = _table(grid, F32, device)
+    out = hash_encode(x, table, grid)
+    v = torch.randn_like(out).nan_to_num(0.0)
+    (g,) = torch.autograd.grad(out, x, v)
+    assert torch.isfinite(g).all()
+    assert g[12, 0] == 0 and g[12, 2] == 0 and g[12, 1] != 0
+    assert (g[13] == 0).all() and (g[14] == 0).all()
+    assert (g[9, :2] == 0).all() and (g[10, :2] == 0).all()  # (1.5, -0.25, .5), (1e9, -1e9, 0)
+    big = HashGrid(n_levels=2, n_features=2, log2_size=6, base_res=2, max_res=16)
+    xs = torch.rand(20_000, 3, dtype=F64, device=device)
+    t64 = _table(big, F64, device)
+    x32 = xs.float().requires_grad_(True)
+    (g32,) = torch.autograd.grad(hash_encode(x32, t64.float(), big).sum(), x32)
+    x64 = xs.clone().requires_grad_(True)
+    (g64,) = torch.autograd.grad(ref_hash_encode(x64, t64, big).sum(), x64)
+    assert ((g32.double() - g64).abs() / g64.abs().clamp_min(1.0)).max() < 1e-3
+
+
 def test_partition_of_unity_and_exact_vertices(device):
     """A table of ones gives 1 per level (weights sum to one); at a vertex of a dense level the
     feature is that vertex's row exactly."""
@@ -133,12 +193,15 @@ def test_validation(device):
         hash_encode(x, _table(grid, F64, device), grid)
     with pytest.raises(ValueError, match="x must have shape"):
         hash_encode(x[:, :2], _table(grid, F32, device), grid)
-    with pytest.raises(ValueError, match="requires_grad"):
-        hash_encode(x.requires_grad_(True), _table(grid, F32, device), grid)
     with pytest.raises(TypeError):
         hash_encode(x, _table(grid, F32, device), (1, 2))
     with pytest.raises(ValueError):
         HashGrid(base_res=64, max_res=32)
+    x.requires_grad_(True)  # positions may require a gradient (pose refinement), once only
+    out = hash_encode(x, _table(grid, F32, device).requires_grad_(True), grid)
+    (gx,) = torch.autograd.grad(out.sum(), x, create_graph=True)
+    with pytest.raises(RuntimeError):
+        torch.autograd.grad(gx.sum(), x)
 
 
 def test_spherical_harmonics_orthonormal_and_known_values():

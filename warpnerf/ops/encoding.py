@@ -1,7 +1,8 @@
 """Torch bridge for the multiresolution hash-grid encoding (kernels/encoding.py).
 
 ``hash_encode(x, table, grid)`` maps points x [n, 3] in [0, 1]^3 to features [n, L * F],
-differentiable with respect to ``table`` (the learnable parameters); positions get no gradient.
+differentiable with respect to ``table`` (the learnable parameters) and, when they require it,
+the positions ``x`` (pose refinement; a second kernel, launched only then).
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ class _HashEncode(torch.autograd.Function):
             [a(x), a(table), *lv, grid.n_levels, a(out)],
             x.device,
         )
-        ctx.save_for_backward(x)
+        ctx.save_for_backward(x, table if ctx.needs_input_grad[0] else None)
         ctx.grid, ctx.table_shape = grid, table.shape
         return out
 
@@ -110,18 +111,29 @@ class _HashEncode(torch.autograd.Function):
     def backward(ctx, v_out):
         from warpnerf.kernels import encoding as K
 
-        (x,) = ctx.saved_tensors
+        x, table = ctx.saved_tensors
         grid = ctx.grid
         lv = [_bridge.arr(t) for t in grid.level_tensors(x.device)]
-        v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
         a = _bridge.arr
-        _bridge.launch(
-            K.hash_encode_bwd,
-            x.shape[0] * grid.n_levels,
-            [a(x), a(v_out.contiguous()), *lv, grid.n_levels, a(v_table)],
-            x.device,
-        )
-        return None, v_table, None
+        v_out = v_out.contiguous()
+        v_table = v_x = None
+        if ctx.needs_input_grad[1]:
+            v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
+            _bridge.launch(
+                K.hash_encode_bwd,
+                x.shape[0] * grid.n_levels,
+                [a(x), a(v_out), *lv, grid.n_levels, a(v_table)],
+                x.device,
+            )
+        if ctx.needs_input_grad[0]:
+            v_x = torch.empty_like(x)
+            _bridge.launch(
+                K.hash_encode_bwd_x,
+                x.shape[0],
+                [a(x), a(table), a(v_out), *lv, grid.n_levels, a(v_x)],
+                x.device,
+            )
+        return v_x, v_table, None
 
 
 def hash_encode(
@@ -131,8 +143,9 @@ def hash_encode(
 ) -> torch.Tensor:  # [n, grid.n_levels * grid.n_features]
     """Multiresolution hash-grid features of points (trilinear per level, levels concatenated).
 
-    Differentiable in ``table`` (hand-written scatter backward); ``x`` gets no gradient, and a
-    positions tensor that requires one is refused rather than silently cut.
+    Differentiable in ``table`` (hand-written scatter backward) and in ``x`` when it requires a
+    gradient (hand-written, per point: the trilinear weights' derivatives; zero along an axis
+    where x is outside [0, 1] and for non-finite points). Not twice differentiable.
     """
     if not isinstance(grid, HashGrid):
         raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
@@ -140,8 +153,6 @@ def hash_encode(
     _bridge.check_float(
         "table", table, (grid.n_rows, grid.n_features), dtype=x.dtype, device=x.device
     )
-    if x.requires_grad:
-        raise ValueError("hash_encode: positions with requires_grad are not supported (no dx)")
     if x.shape[0] * grid.n_levels > _bridge.INT32_MAX:  # one thread per (point, level)
         raise ValueError(
             f"{x.shape[0]} points x {grid.n_levels} levels exceed int32 thread indices: "
