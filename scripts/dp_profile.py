@@ -68,7 +68,7 @@ def main():
                 marks.append(time.perf_counter())
 
         for g in opt.param_groups:
-            g["lr"] = lr_at(s, i)
+            g["lr"] = lr_at(s, i) * g.get("lr_scale", 1.0)
         loss, terms = task.loss(i)
         mark()
         opt.zero_grad(set_to_none=True)

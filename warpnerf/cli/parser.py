@@ -215,6 +215,8 @@ def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     train = load_data(cfg, "train")
     if cfg.appearance_dim:  # one code per training image, as train_nerf sets it
         cfg.appearance_images = len(train)
+    if cfg.pose_refine:  # one correction per training camera
+        cfg.pose_images = len(train)
     task = NeRFTask(cfg, build_model(cfg), train, None, log=lambda *x: None, dist=dist)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32

@@ -88,7 +88,7 @@ class HashNeRFField(nn.Module):
     def density(self, positions: torch.Tensor):
         """sigmas [n] and the density MLP's outputs [n, 16]."""
         lo, hi = self.aabb[:3].to(positions.dtype), self.aabb[3:].to(positions.dtype)
-        x = positions.detach()
+        x = positions  # (a gradient reaches the positions only when they need one: poses)
         if self.contract:
             x = contract_points(x, self.contract)
         x = (x - lo) / (hi - lo)

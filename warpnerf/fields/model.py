@@ -38,6 +38,7 @@ class RadianceModel(nn.Module):
         self._fine_is_coarse = fine is coarse
         self.fine_field = None if fine is coarse else fine
         self.grid = grid
+        self.poses = None  # pose refinement: a CameraCorrection of the training cameras
 
     @property
     def fine(self) -> nn.Module | None:
@@ -53,9 +54,13 @@ class RadianceModel(nn.Module):
         return self.fine if self.fine is not None else self.coarse
 
     def parts(self) -> dict:
-        """{"coarse", "fine", "grid"}: each module once (None for a fine pass that shares the
-        coarse network, or that is absent): the layout of a checkpoint's ``fields``."""
-        return {"coarse": self.coarse, "fine": self.fine_field, "grid": self.grid}
+        """{"coarse", "fine", "grid"[, "poses"]}: each module once (None for a fine pass that
+        shares the coarse network, or that is absent; "poses" only with pose refinement): the
+        layout of a checkpoint's ``fields``."""
+        parts = {"coarse": self.coarse, "fine": self.fine_field, "grid": self.grid}
+        if self.poses is not None:
+            parts["poses"] = self.poses
+        return parts
 
     def aux_losses(self) -> dict:
         """The regularisers of the fields' last forward passes (e.g. VolSDF's eikonal term)."""
@@ -88,7 +93,15 @@ def build_model(cfg) -> RadianceModel:
     if cfg.field not in FIELDS:
         raise ValueError(f"unknown field {cfg.field!r}; registered: {', '.join(FIELDS)}")
     torch.manual_seed(cfg.seed)
-    return FIELDS[cfg.field](cfg).to(cfg.device)
+    model = FIELDS[cfg.field](cfg)
+    if getattr(cfg, "pose_refine", False):
+        from ..errors import UserError
+        from .poses import CameraCorrection
+
+        if cfg.pose_images < 1:  # (a run's config without the count)
+            raise UserError("pose_refine needs pose_images >= 1 (the training images)")
+        model.poses = CameraCorrection(cfg.pose_images)
+    return model.to(cfg.device)
 
 
 @register_field("mlp")

@@ -282,8 +282,8 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
         halt = None
         for step in range(start, s.iters):
             lr = lr_at(s, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
+            for group in opt.param_groups:  # (a group's lr_scale: its own rate, e.g. poses)
+                group["lr"] = lr * group.get("lr_scale", 1.0)
             loss, terms = task.loss(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -402,7 +402,7 @@ def bare_step(task: Task, opt, step: int, lr: float | None = None) -> torch.Tens
     files or syncs): what the profiling and measuring tools time. Returns the loss tensor."""
     if lr is not None:
         for group in opt.param_groups:
-            group["lr"] = lr
+            group["lr"] = lr * group.get("lr_scale", 1.0)
     loss, _ = task.loss(step)
     opt.zero_grad(set_to_none=True)
     loss.backward()

@@ -88,13 +88,24 @@ def _load_split(cfg: NeRFConfig, split: str):
 
 
 def dataset_rays(
-    cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None, check=True
-):
+    cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None, check=True,
+    poses=None,
+):  # fmt: skip
     """Rays of a batch of pixels (cam_idx, px, py) or of every pixel of ``image``: undistorted
     when the dataset has distortion, in NDC when the run uses it (``check=False``: cam_idx drawn
-    by :func:`random_pixels`, no range check and no host sync)."""
-    from ..data.cameras import camera_rays
+    by :func:`random_pixels`, no range check and no host sync). ``poses``: a
+    :class:`~warpnerf.fields.poses.CameraCorrection` of ``ds``'s cameras, applied to a batch's
+    rays before the NDC map (differentiable in the corrections)."""
+    from ..data.cameras import camera_rays, ndc_rays
 
+    if poses is not None and image is None:
+        o, d = camera_rays(
+            ds.c2w, ds.intrinsics, cam_idx=cam_idx, px=px, py=py, distortion=ds.distortion,
+            check=check,
+        )  # fmt: skip
+        o, d = poses(cam_idx, o, d)
+        ndc = cfg.ndc_camera()
+        return (o, d) if ndc is None else ndc_rays(o, d, ndc)
     dist = ds.distortion
     if image is not None:
         sl = slice(image, image + 1)
@@ -171,10 +182,18 @@ def _psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def _optimizer(cfg, params):
+def _optimizer(cfg, params, poses=None):
+    """Adam over ``params``; with pose corrections (``poses``, whose parameters are among
+    ``params``) a second group for them at ``pose_lr`` (``lr_scale``: the loop's schedule
+    scales it with the main learning rate)."""
+    groups = params
+    if poses is not None:
+        own = {id(p) for p in poses.parameters()}
+        groups = [{"params": [p for p in params if id(p) not in own]},
+                  {"params": list(poses.parameters()), "lr_scale": cfg.pose_lr / cfg.lr}]  # fmt: skip
     if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
-        return adam(params, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
-    return adam(params, lr=cfg.lr)
+        return adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    return adam(groups, lr=cfg.lr)
 
 
 def load_run(run, device: str | None = None, snapshot: float | None = None):
@@ -291,12 +310,17 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     if model is None:
         if cfg.appearance_dim:  # one code per training image
             cfg.appearance_images = len(train)
+        if cfg.pose_refine:  # one correction per training camera
+            cfg.pose_images = len(train)
         model = build_model(cfg)
-    elif cfg.appearance_dim and cfg.appearance_images != len(train):
-        raise UserError(
-            f"{run}: the run has appearance codes for {cfg.appearance_images} training images, "
-            f"but the training split now has {len(train)}; resume with the data it was trained on"
-        )
+    else:
+        for on, count, what in ((cfg.appearance_dim, cfg.appearance_images, "appearance codes"),
+                                (cfg.pose_refine, cfg.pose_images, "pose corrections")):
+            if on and count != len(train):
+                raise UserError(
+                    f"{run}: the run has {what} for {count} training images, but the training "
+                    f"split now has {len(train)}; resume with the data it was trained on"
+                )  # fmt: skip
     tb = [TensorBoardLog(run, tensorboard)] if tensorboard and main else []  # (writes nothing)
     if main:
         if not resume:
@@ -359,7 +383,7 @@ class NeRFTask(Task):
         return list(self.model.parameters())
 
     def optimizer(self, params, lr):
-        return _optimizer(self.cfg, params)
+        return _optimizer(self.cfg, params, self.model.poses)
 
     def _next_batch(self, n_kept: int) -> None:
         """The next step's rays, aiming at ``target_samples`` samples from this step's
@@ -413,7 +437,8 @@ class NeRFTask(Task):
             target = torch.empty(idx_host.shape[0], 3, dtype=self.flat.dtype, pin_memory=True)
             torch.index_select(self.flat, 0, idx_host, out=target)
             target = target.to(cfg.device, non_blocking=True)
-        o, d = dataset_rays(cfg, self.train, cam, px, py, check=False)  # (our own indices)
+        o, d = dataset_rays(cfg, self.train, cam, px, py, check=False,  # (our own indices)
+                            poses=model.poses)  # fmt: skip
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,

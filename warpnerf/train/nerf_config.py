@@ -86,6 +86,13 @@ class NeRFConfig:
         "views use the codes' mean (0: none)", check="nonnegative",
     )  # fmt: skip
     appearance_images: int = option(0, flag=None)  # codes: the training split's size, when set
+    pose_refine: bool = option(
+        False, "learn a small rotation and translation correction per training camera (poses "
+        "that are slightly off, e.g. COLMAP's); held-out cameras keep their given poses",
+    )  # fmt: skip
+    pose_lr: float = option(1e-3, "with --pose-refine: the corrections' learning rate (it "
+                            "decays with --lr's schedule)", check="positive")  # fmt: skip
+    pose_images: int = option(0, flag=None)  # pose refinement: the training split's size
     # volsdf: the Laplace scale (world units), its floor, learned or fixed; the eikonal weight
     beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
     beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
@@ -304,6 +311,11 @@ class NeRFConfig:
                 raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
         if not 0 <= self.appearance_images <= 10**6:
             raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
+        if not 0 <= self.pose_images <= 10**6:
+            raise fail("pose_images", f"must be in [0, 10^6], got {self.pose_images}")
+        if self.pose_refine and self.field in SDF_FIELDS:  # (their positions carry no gradient)
+            raise fail("pose_refine", f"is for NeRF fields (--field hash or mlp), not --field "
+                       f"{self.field}")  # fmt: skip
         if self.field in SDF_FIELDS:
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
