@@ -283,19 +283,54 @@ def test_signal_checkpoints_the_step_and_resume_is_exact(tmp_path, sig):
 
 
 def test_images_on_host_gives_the_same_training(tmp_path, device):
-    """--images-on host (a CUDA run's images in host memory, each batch gathered there) trains
-    exactly as images on the device: the same batches, targets and losses."""
+    """--images-on host (a CUDA run's images in host memory as 8-bit, each batch gathered there
+    and turned into float32 on the GPU) trains as images on the device: the same batches, and
+    targets within 0.5/255 (the built-in scene's float images rounded to 8 bits)."""
     if device.type != "cuda":
         pytest.skip("host-resident images are a CUDA matter (a CPU run's images are on the host)")
+    from warpnerf.train.nerf import load_data
+
+    host = load_data(tiny(device="cuda", images_on="host", **GRID), "train", uint8=True)
+    dev = load_data(tiny(device="cuda", **GRID), "train")
+    assert host.images.dtype == torch.uint8 and host.images.device.type == "cpu"
+    assert (host.images.float() / 255 - dev.images.cpu()).abs().max() <= 0.5 / 255 + 1e-6
     runs = {}
     for where in ("device", "host"):
         cfg = tiny(device="cuda", images_on=where, **GRID)
         runs[where] = train_nerf(cfg, tmp_path / where, progress=False, log=lambda *a: 0)
-    # (the same batches and targets; the hash backward's atomics sum in any order on CUDA)
-    torch.testing.assert_close(runs["host"]["loss"], runs["device"]["loss"], rtol=1e-4, atol=0)
+    # (the same batches; targets rounded to 8 bits, so losses agree to about 1 %)
+    torch.testing.assert_close(runs["host"]["loss"], runs["device"]["loss"], rtol=2e-2, atol=0)
     torch.testing.assert_close(
-        runs["host"]["val_psnr"], runs["device"]["val_psnr"], rtol=1e-4, atol=0
+        runs["host"]["val_psnr"], runs["device"]["val_psnr"], rtol=2e-2, atol=0
     )
+
+
+def test_uint8_images_load_as_rounded_floats(tmp_path):
+    """uint8=True reads a split as 8-bit values (the float images x 255, rounded; a quarter of
+    the memory) from files (Blender RGBA composited, then rounded) and the built-in scene; a
+    CPU run's training split stays float32 (its images are on the host already)."""
+    import numpy as np
+
+    from warpnerf.data import load_dataset
+    from warpnerf.data._images import read_all, to_uint8
+    from warpnerf.train.nerf import load_data
+
+    from ._scene import write_box_folder
+
+    write_box_folder(tmp_path / "box", n_views=4, size=16, name="transforms_train.json")
+    f = load_dataset(tmp_path / "box", "train")
+    q = load_dataset(tmp_path / "box", "train", uint8=True)
+    assert q.images.dtype == torch.uint8 and f.images.dtype == torch.float32
+    assert torch.equal(q.images, torch.from_numpy(to_uint8(f.images.numpy())))
+    assert (q.images.float() / 255 - f.images).abs().max() <= 0.5 / 255 + 1e-7
+    b = load_dataset("builtin", "train", builtin_size=8, uint8=True)
+    assert b.images.dtype == torch.uint8 and b.images.max() > 200
+    out = read_all([0.0, 0.5, 1.0], lambda v: np.full((2, 2, 3), v, np.float32), dtype=np.uint8)
+    assert out.dtype == np.uint8 and out[:, 0, 0, 0].tolist() == [0, 128, 255]
+    cpu = load_data(tiny(images_on="host", **GRID), "train", uint8=True)
+    assert cpu.images.dtype == torch.float32
+    with pytest.raises(UserError, match="uint8"):
+        load_dataset("builtin", "train", uint8=1)
 
 
 def test_images_on_choice_and_host_index(tmp_path):

@@ -212,7 +212,7 @@ def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     if device is not None:
         cfg.device = device
     resolve_data(cfg)
-    train = load_data(cfg, "train")
+    train = load_data(cfg, "train", uint8=True)
     if cfg.appearance_dim:  # one code per training image, as train_nerf sets it
         cfg.appearance_images = len(train)
     if cfg.pose_refine:  # one correction per training camera

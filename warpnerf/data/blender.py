@@ -223,7 +223,8 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
                 f"{first[0][0]} (frames[{i}] in {path}); all images of a split must have one size"
             )
 
-    images = read_all(list(range(len(indices))), read_one, check)
+    images = read_all(list(range(len(indices))), read_one, check,
+                      dtype=np.uint8 if req.uint8 else np.float32)  # fmt: skip
     paths = [str(raws[j][1]) for j in range(len(indices))]
     return images, mats, paths, first[0]
 

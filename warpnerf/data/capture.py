@@ -455,7 +455,7 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
             raise UserError(f"downscale {extra} is larger than the image {p}")
         return _area_downscale(_composite(img, bg), extra).astype(np.float32)
 
-    images = read_all(paths, read_one)
+    images = read_all(paths, read_one, dtype=np.uint8 if req.uint8 else np.float32)
     return Dataset(
         images=torch.from_numpy(np.ascontiguousarray(images)),
         c2w=torch.from_numpy(sc["c2w_norm"][idx]).float(),

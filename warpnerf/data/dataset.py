@@ -50,7 +50,8 @@ class Dataset:
     """One split of a scene.
 
     Attributes:
-        images: [N, H, W, 3] float32 in [0, 1] (RGBA composited onto the requested background).
+        images: [N, H, W, 3] float32 in [0, 1] (RGBA composited onto the requested background),
+            or uint8 (the values x 255) when loaded with ``uint8=True``.
         c2w: [N, 4, 4] float32 camera-to-world, OpenGL convention (x right, y up, looking -z).
         intrinsics: [N, 4] float32 (fx, fy, cx, cy) in pixels of the returned images.
         paths: the image files (empty for the built-in scene).
@@ -138,6 +139,8 @@ class LoadRequest:
             split files.
         builtin_size: image size of the built-in scene.
         device: where the built-in scene is rendered (files are always read to the CPU).
+        uint8: images as 8-bit values (x / 255 is the image; a quarter of float32's memory;
+            RGBA composites rounded to 1/255), e.g. a large training split kept in host memory.
     """
 
     root: Path
@@ -148,6 +151,7 @@ class LoadRequest:
     holdout: int = HOLDOUT
     builtin_size: int = 48
     device: str = "cpu"
+    uint8: bool = False
 
     @classmethod
     def make(cls, root, split: str = "train", **options) -> LoadRequest:
@@ -166,6 +170,8 @@ class LoadRequest:
             )
         if not isinstance(req.holdout, numbers.Integral) or req.holdout < 0 or req.holdout == 1:
             raise UserError(f"holdout must be 0 (none) or >= 2, got {req.holdout!r}")
+        if not isinstance(req.uint8, bool):
+            raise UserError(f"uint8 must be True or False, got {req.uint8!r}")
         if not _positive_int(req.builtin_size):
             raise UserError(f"builtin_size must be a positive integer, got {req.builtin_size!r}")
         try:

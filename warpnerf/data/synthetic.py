@@ -94,9 +94,10 @@ def _load_builtin(req: LoadRequest) -> Dataset:
     train, val = make_synthetic_dataset(size=req.builtin_size, device=req.device)
     ds = train if req.split == "train" else val
     n = req.max_images or len(ds)
-    return dataclasses.replace(
-        ds, images=ds.images[:n], c2w=ds.c2w[:n], intrinsics=ds.intrinsics[:n]
-    )
+    images = ds.images[:n]
+    if req.uint8:
+        images = (images.clamp(0, 1) * 255).round().to(torch.uint8)
+    return dataclasses.replace(ds, images=images, c2w=ds.c2w[:n], intrinsics=ds.intrinsics[:n])
 
 
 register_format("builtin", _load_builtin, lambda root, _: str(root) == "builtin")

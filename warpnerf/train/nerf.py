@@ -44,18 +44,24 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     return cfg.validate(scene_settings(cfg))
 
 
-def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None):
+def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: bool = False):
     """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
     cfg.device (the built-in scene when cfg.data == "builtin"); ``images_on="host"`` keeps the
     images in host memory (a training batch's pixels are gathered there into pinned memory and
     copied, see :class:`NeRFTask`), "auto" does so when they would take more than
     a quarter of the GPU's free memory (see :func:`images_stay_on_host`); None: the run's
-    ``cfg.images_on``."""
+    ``cfg.images_on``. ``uint8`` (the training split): images kept in host memory are 8-bit (a
+    quarter of the memory; read so from the files with ``images_on="host"``, converted after
+    loading with "auto"), turned into float32 on the GPU per batch."""
 
-    ds = _load_split(cfg, split)
     images_on = cfg.images_on if images_on is None else images_on
-    if images_stay_on_host(cfg.device, ds.images, images_on):
-        return dataclasses.replace(ds, images=ds.images.cpu()).to(cfg.device, images=False)
+    direct = uint8 and images_on == "host" and cfg.device.startswith("cuda")
+    ds = _load_split(cfg, split, uint8=direct)
+    if direct or images_stay_on_host(cfg.device, ds.images, images_on):
+        images = ds.images.cpu()
+        if uint8 and images.dtype != torch.uint8:
+            images = (images.clamp_(0, 1) * 255).round_().to(torch.uint8)
+        return dataclasses.replace(ds, images=images).to(cfg.device, images=False)
     return ds.to(cfg.device)
 
 
@@ -71,7 +77,7 @@ def images_stay_on_host(device, images: torch.Tensor, images_on: str) -> bool:
     return images.numel() * images.element_size() > free // 4
 
 
-def _load_split(cfg: NeRFConfig, split: str):
+def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False):
     from ..data import load_dataset
 
     return load_dataset(
@@ -84,6 +90,7 @@ def _load_split(cfg: NeRFConfig, split: str):
         holdout=cfg.holdout,
         builtin_size=cfg.builtin_size,
         device=cfg.device,
+        uint8=uint8,
     )
 
 
@@ -305,7 +312,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad dataset stops the run before anything is written.
-    train = load_data(cfg, "train", cfg.images_on)
+    train = load_data(cfg, "train", cfg.images_on, uint8=True)  # (8-bit when kept on the host)
     val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
     if model is None:
         if cfg.appearance_dim:  # one code per training image
@@ -437,6 +444,8 @@ class NeRFTask(Task):
             target = torch.empty(idx_host.shape[0], 3, dtype=self.flat.dtype, pin_memory=True)
             torch.index_select(self.flat, 0, idx_host, out=target)
             target = target.to(cfg.device, non_blocking=True)
+            if target.dtype == torch.uint8:  # 8-bit host images: their float values on the GPU
+                target = target.to(torch.float32).div_(255.0)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False,  # (our own indices)
                             poses=model.poses)  # fmt: skip
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
