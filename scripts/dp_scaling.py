@@ -238,9 +238,9 @@ def commit() -> str:
 
 
 def main():
-    argv = sys.argv[1:]
-    flags = argv[argv.index("--") + 1 :] if "--" in argv else []
-    argv = argv[: argv.index("--")] if "--" in argv else argv
+    from warpnerf.cli.parser import split_command
+
+    argv, flags = split_command(sys.argv[1:])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")

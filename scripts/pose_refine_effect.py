@@ -90,9 +90,9 @@ def one_run(train_argv, refine, perturbed, iters, seed):
 
 
 def main():
-    argv = sys.argv[1:]
-    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
-    own = argv[: argv.index("--")] if "--" in argv else argv
+    from warpnerf.cli.parser import split_command
+
+    own, train_argv = split_command(sys.argv[1:])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--rot-deg", type=float, default=1.0)
     p.add_argument("--trans", type=float, default=0.02, help="in the scene's world units")

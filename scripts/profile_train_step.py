@@ -18,9 +18,9 @@ import time
 
 
 def main():
-    argv = sys.argv[1:]
-    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
-    own = argv[: argv.index("--")] if "--" in argv else argv
+    from warpnerf.cli.parser import split_command
+
+    own, train_argv = split_command(sys.argv[1:])
     import argparse
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

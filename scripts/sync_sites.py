@@ -17,9 +17,9 @@ import sys
 
 
 def main():
-    argv = sys.argv[1:]
-    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
-    own = argv[: argv.index("--")] if "--" in argv else argv
+    from warpnerf.cli.parser import split_command
+
+    own, train_argv = split_command(sys.argv[1:])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--warm", type=int, default=200)
     p.add_argument("--steps", type=int, default=20)

@@ -146,9 +146,9 @@ def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geome
 def main():
     import sys
 
-    argv = sys.argv[1:]
-    train_argv = argv[argv.index("--") + 1 :] if "--" in argv else []
-    argv = argv[: argv.index("--")] if "--" in argv else argv
+    from warpnerf.cli.parser import split_command
+
+    argv, train_argv = split_command(sys.argv[1:])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")

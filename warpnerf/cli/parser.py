@@ -199,6 +199,15 @@ def main(argv=None) -> int:
     return exit_status(f"warpnerf {args.command}", run)
 
 
+def split_command(argv: list) -> tuple:
+    """(a tool's own arguments, the command line after ``--``) of a measuring script's argv,
+    e.g. ``--steps 50 -- train nerf --data lego`` (no ``--``: all the tool's own)."""
+    if "--" not in argv:
+        return list(argv), []
+    i = argv.index("--")
+    return list(argv[:i]), list(argv[i + 1 :])
+
+
 def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     """(cfg, task, optimiser) of a `warpnerf train nerf|volsdf ...` command line, built as the
     command builds them but without a run folder (for the profiling and measuring tools).

@@ -213,19 +213,8 @@ def march_rays(
     # which check failed is worked out after the one host sync below, only when one did.
     x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
     bad = ~(torch.isfinite(x) & ((t_hi - t_lo) < MAX_STEPS * float(dt)))
-    jit, kb = _empty_f(dev), _empty_i(dev)
-    if jitter is not None:
-        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
-        jitter = jit = jitter.to(torch.float32).contiguous()  # checked as the kernel sees it
-        bad |= ~((jit >= 0) & (jit < 1))  # NaN included
-    if k_begin is not None:
-        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
-        if k_begin.dtype == torch.int32:
-            bad |= k_begin < -1
-            kb = k_begin.contiguous()
-        else:
-            bad |= (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
-            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    jit, kb, bad = _lattice_inputs(jitter, k_begin, n_rays, dev, bad)
+    jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
     lo, size = _cell_geometry(box, res)
     a = _bridge.arr
@@ -268,6 +257,26 @@ def march_rays(
         )
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def _lattice_inputs(jitter, k_begin, n_rays: int, dev, bad):
+    """The marchers' optional per-ray lattice inputs, checked and in the kernels' dtypes: (jitter
+    float32 or an empty array, k_begin int32 or an empty array, ``bad`` with the rays whose
+    values are out of range: jitter outside [0, 1) or NaN, k_begin below -1 or beyond int32)."""
+    jit, kb = _empty_f(dev), _empty_i(dev)
+    if jitter is not None:
+        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
+        jit = jitter.to(torch.float32).contiguous()  # checked as the kernel sees it
+        bad = bad | ~((jit >= 0) & (jit < 1))  # NaN included
+    if k_begin is not None:
+        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
+        if k_begin.dtype == torch.int32:
+            bad = bad | (k_begin < -1)
+            kb = k_begin.contiguous()
+        else:
+            bad = bad | (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
+            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    return jit, kb, bad
 
 
 def contract_points(points: torch.Tensor, a: float) -> torch.Tensor:
@@ -352,19 +361,8 @@ def march_rays_contracted(
     # as in march_rays: refused rays get no samples, the error comes at the one host sync
     x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
     bad = ~(torch.isfinite(x) & (near >= 0) & ((s_hi - s_lo) < MAX_STEPS))
-    jit, kb = _empty_f(dev), _empty_i(dev)
-    if jitter is not None:
-        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
-        jitter = jit = jitter.to(torch.float32).contiguous()
-        bad |= ~((jit >= 0) & (jit < 1))
-    if k_begin is not None:
-        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
-        if k_begin.dtype == torch.int32:
-            bad |= k_begin < -1
-            kb = k_begin.contiguous()
-        else:
-            bad |= (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
-            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+    jit, kb, bad = _lattice_inputs(jitter, k_begin, n_rays, dev, bad)
+    jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
     s_lo = torch.where(bad, torch.zeros_like(s_lo), s_lo).contiguous()
     a_ = _bridge.arr
