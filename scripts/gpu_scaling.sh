@@ -15,7 +15,9 @@ R=/tmp/scaling
 mkdir -p "$OUT" "$R"
 export PYTHONUNBUFFERED=1 NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 COMMON="--field hash --device cuda --tf32 --batch 4096"
-git log -1 --format='commit %H' 2>/dev/null | tee "$R/commit.txt"
+# (the device copy's git metadata may not be this tree's: pass WARPNERF_COMMIT=<the tree's commit>)
+echo "commit ${WARPNERF_COMMIT:-$(git log -1 --format=%H 2>/dev/null)}" | tee "$R/commit.txt"
+export WARPNERF_COMMIT=${WARPNERF_COMMIT:-}
 case "${STAGE:-one}" in
   one)
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$R/gpus.txt"

@@ -12,6 +12,7 @@ import json
 import math
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -90,10 +91,19 @@ def _plain_name(name: str) -> bool:
     return name not in ("", ".", "..") and "/" not in name and "\\" not in name and "\0" not in name
 
 
+_MANIFEST_LOCK = threading.Lock()  # (a checkpoint written by a thread, a viewer's path file)
+
+
 def _record(path: Path) -> None:
-    """Records ``path`` (size and modification time) in its folder's manifest, atomically."""
+    """Records ``path`` (size and modification time) in its folder's manifest, atomically (and
+    one thread at a time: the read-modify-write would lose another thread's entry)."""
     if path.name == MANIFEST:
         return
+    with _MANIFEST_LOCK:
+        _record_locked(path)
+
+
+def _record_locked(path: Path) -> None:
     entries = _read_manifest(path.parent)
     entries = {n: v for n, v in entries.items() if (path.parent / n).exists()}  # prune
     entries[path.name] = _stamp(path)
