@@ -16,8 +16,9 @@ The loop owns the duties every trainer shares, so no task re-implements them:
   validation, ``--max-seconds`` (counted per invocation);
 - periodic validation (every ``val_every`` steps, at the last step and when time runs out);
 - SIGINT/SIGTERM (finish the step, checkpoint it, raise :class:`~warpnerf.errors.Interrupted`);
-- atomic checkpoints and ``history.json`` every ``ckpt_every`` steps, at the end and when
-  stopping; a resumed run continues bit-exactly on CPU;
+- atomic checkpoints and ``history.json`` every ``ckpt_every`` steps (written by a background
+  thread from a host copy of the step's state), at the end and when stopping (written before the
+  loop returns); a resumed run continues bit-exactly on CPU;
 - snapshots for time-to-quality curves: at the first step whose training time reaches each of
   ``snapshot_seconds``, a copy of the checkpoint goes to ``snapshots/t<seconds>s.pt`` (writing it
   does not count as training time). With step-based schedules (learning rate, beta, grid) the
