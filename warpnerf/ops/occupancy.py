@@ -242,12 +242,7 @@ def march_rays(
     total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
     if refused:
         _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
-    if total >= 2**31:
-        raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
-    offsets = (csum - counts).to(torch.int32)
-    t_starts = torch.empty(total, device=dev, dtype=torch.float32)
-    t_ends = torch.empty(total, device=dev, dtype=torch.float32)
-    ray_indices = torch.empty(total, device=dev, dtype=torch.int32)
+    offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         _bridge.launch(
             K.march,
@@ -257,6 +252,17 @@ def march_rays(
         )
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def _packed_outputs(total: int, csum, counts, dev) -> tuple:
+    """The marchers' fill-pass outputs for ``total`` samples: (first slot per ray int32, t_starts,
+    t_ends, ray_indices); ValueError past int32 offsets."""
+    if total >= 2**31:
+        raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
+    offsets = (csum - counts).to(torch.int32)
+    t_starts = torch.empty(total, device=dev, dtype=torch.float32)
+    t_ends = torch.empty(total, device=dev, dtype=torch.float32)
+    return offsets, t_starts, t_ends, torch.empty(total, device=dev, dtype=torch.int32)
 
 
 def _lattice_inputs(jitter, k_begin, n_rays: int, dev, bad):
@@ -384,12 +390,7 @@ def march_rays_contracted(
         if not bool((near >= 0).all()):
             raise ValueError("near must be >= 0 for contracted marching")
         _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
-    if total >= 2**31:
-        raise ValueError(f"{total} samples exceed int32 offsets: march fewer rays at once")
-    offsets = (csum - counts).to(torch.int32)
-    t_starts = torch.empty(total, device=dev, dtype=torch.float32)
-    t_ends = torch.empty(total, device=dev, dtype=torch.float32)
-    ray_indices = torch.empty(total, device=dev, dtype=torch.int32)
+    offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         fill = [1, a_(offsets), a_(counts), a_(k_next), a_(t_starts), a_(t_ends), a_(ray_indices)]
         _bridge.launch(K.march_contracted, n_rays, head + fill, dev)
