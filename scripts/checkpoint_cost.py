@@ -31,7 +31,9 @@ def main():
     from warpnerf.train.loop import _BackgroundWriter, _to_host
 
     sync = torch.cuda.synchronize if a.device.startswith("cuda") else (lambda: None)
-    state = {k: torch.randn(a.params, device=a.device) for k in ("weights", "exp_avg", "exp_avg_sq")}
+    state = {
+        k: torch.randn(a.params, device=a.device) for k in ("weights", "exp_avg", "exp_avg_sq")
+    }
     state["history"] = {"loss": [0.1] * 5000, "seconds": [1.0] * 5000}
     with tempfile.TemporaryDirectory(dir=a.dir) as tmp:
         path = Path(tmp) / "checkpoint.pt"

@@ -40,7 +40,9 @@ def parse_configs(text: str) -> list:
     for part in text.split(","):
         g, _, t = part.strip().partition("x")
         if not g.isdigit() or not t.isdigit() or int(g) < 1 or int(t) < 1:
-            raise SystemExit(f"--configs: expected GPUSxSAMPLES items such as 2x262144, got {part!r}")
+            raise SystemExit(
+                f"--configs: expected GPUSxSAMPLES items such as 2x262144, got {part!r}"
+            )
         out.append((int(g), int(t)))
     return out
 
@@ -117,7 +119,8 @@ def run_all(a, flags: list) -> None:
             procs.pop(0).wait()
         env = env_for(1)
         env["CUDA_VISIBLE_DEVICES"] = str(i % a.eval_parallel)
-        label = f"{a.name}, {d['gpus']} GPU{'s' if d['gpus'] > 1 else ''}, {d['target_samples']} samples/step"
+        gpus = f"{d['gpus']} GPU{'s' if d['gpus'] > 1 else ''}"
+        label = f"{a.name}, {gpus}, {d['target_samples']} samples/step"
         cmd = [sys.executable, str(HERE / "time_to_quality.py"), "eval", str(out / d["tag"]),
                str(out / f"{d['tag']}_ttq.json"), "--label", label]  # fmt: skip
         if a.chunk:
@@ -165,15 +168,19 @@ def efficiencies(rows: list) -> list:
         per_gpu = one.get(r["target_samples"] // r["gpus"])
         if per_gpu:
             e["efficiency_same_per_gpu_batch"] = r["samples_per_s"] / (
-                r["gpus"] * per_gpu["samples_per_s"])
+                r["gpus"] * per_gpu["samples_per_s"]
+            )
         out.append(e)
     return out
 
 
 def markdown(summary: dict) -> str:
     budgets = [float(b) for b in summary["budgets"].split(",")]
-    head = "| GPUs | samples/step (target) | steps/s | rays/s | samples/s | " + " | ".join(
-        f"PSNR @{b:g} s" for b in budgets) + " |"
+    head = (
+        "| GPUs | samples/step (target) | steps/s | rays/s | samples/s | "
+        + " | ".join(f"PSNR @{b:g} s" for b in budgets)
+        + " |"
+    )
     lines = [head, "|---" * (5 + len(budgets)) + "|"]
     for r in summary["rows"]:
         ps = {round(x["budget_s"], 3): x["psnr"] for x in r.get("ttq", [])}
@@ -252,8 +259,12 @@ def main():
     r.add_argument("--chunk", type=int, default=None, help="rays per render chunk when scoring")
     r.add_argument("--eval-parallel", type=int, default=1, help="scorers at a time (one GPU each)")
     q = sub.add_parser("report")
-    q.add_argument("json", nargs="+", help="scaling_NAME.json files (several: rows merged "
-                   "into one table per name, one plot panel per name)")
+    q.add_argument(
+        "json",
+        nargs="+",
+        help="scaling_NAME.json files (several: rows merged "
+        "into one table per name, one plot panel per name)",
+    )
     q.add_argument("--png", default=None)
     a = p.parse_args(argv)
     if a.cmd == "run":

@@ -48,7 +48,9 @@ def perturb(c2w, rot_deg, trans, seed):
     n = c2w.shape[0]
 
     def vecs(scale):
-        v = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1)
+        v = torch.nn.functional.normalize(
+            torch.randn(n, 3, generator=g, dtype=torch.float64), dim=-1
+        )
         v = v * scale * (0.5 + torch.rand(n, 1, generator=g, dtype=torch.float64))
         return v - v.mean(0)
 

@@ -20,8 +20,7 @@ def _quiet(*a, **k):
     pass
 
 
-def test_a_failed_run_keeps_its_last_periodic_checkpoint_and_resumes_exactly(tmp_path,
-                                                                               monkeypatch):  # fmt: skip
+def test_a_failed_run_keeps_its_last_checkpoint_and_resumes_exactly(tmp_path, monkeypatch):
     straight = train_nerf(NeRFConfig(iters=7, **CFG), tmp_path / "a", progress=False, log=_quiet)
     real = NeRFTask.loss
 

@@ -114,3 +114,36 @@ def test_config_rules():
         build_model(NeRFConfig(data="builtin", pose_refine=True).validate())
     with pytest.raises(ValueError):
         CameraCorrection(0)
+
+
+def test_eval_export_and_viewer_use_the_refined_training_cameras(tmp_path):
+    """A pose-refined run's training split is shown with its refined cameras (eval of the train
+    split, exports, the viewer's frustums); held-out splits keep their given poses."""
+    import json
+
+    from warpnerf.export import export_cameras
+    from warpnerf.train import NeRFConfig, train_nerf
+    from warpnerf.train.nerf import load_data, load_run, with_refined_poses
+    from warpnerf.train.nerf_eval import evaluate_run
+
+    cfg = NeRFConfig(data="builtin", builtin_size=12, iters=4, batch=128, n_coarse=16,
+                     n_layers=2, width=16, pos_freqs=3, dir_freqs=1, near=1.0, far=4.0,
+                     val_images=0, pose_refine=True, pose_lr=5e-2)  # fmt: skip
+    train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: 0)
+    cfg, model, _ = load_run(tmp_path / "r")
+    assert model.poses.translation.abs().max() > 0  # (trained: non-zero corrections)
+    train, val = load_data(cfg, "train"), load_data(cfg, "val")
+    refined = with_refined_poses(model, train, "train")
+    torch.testing.assert_close(refined.c2w, model.poses.corrected_c2w(train.c2w).detach())
+    assert not torch.equal(refined.c2w, train.c2w)
+    assert with_refined_poses(model, val, "val") is val
+    short = load_data(cfg, "train")
+    short = type(short)(**{**short.__dict__, "c2w": short.c2w[:2]})
+    assert with_refined_poses(model, short, "train") is short  # not the cameras it learned
+    m = evaluate_run(tmp_path / "r", "train", max_images=1, out_dir=tmp_path / "ev")
+    assert m["n_images"] == 1
+    out = tmp_path / "cams.json"
+    export_cameras(tmp_path / "r", out)
+    frames = json.loads(out.read_text())["frames"]
+    got = torch.tensor(frames[0]["transform_matrix"], dtype=torch.float32)
+    torch.testing.assert_close(got[:3], refined.c2w[0, :3].cpu(), rtol=1e-5, atol=1e-5)

@@ -35,7 +35,7 @@ def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: fl
                       device=None) -> dict:  # fmt: skip
     """Writes the point cloud PLY ``out``; returns a summary dict."""
     from .mesh import write_ply
-    from .train.nerf import dataset_rays, load_data, load_run, render_rays_of
+    from .train.nerf import dataset_rays, load_data, load_run, render_rays_of, with_refined_poses
 
     if not 1 <= stride <= 64:
         raise UserError(f"--stride must be in [1, 64], got {stride}")
@@ -44,7 +44,7 @@ def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: fl
     if views < 0:
         raise UserError(f"--views must be >= 0, got {views}")
     cfg, model, _ = load_run(run, device)
-    ds = load_data(cfg, "train")
+    ds = with_refined_poses(model, load_data(cfg, "train"), "train")
     n = ds.images.shape[0] if not views else min(views, ds.images.shape[0])
     pick = torch.linspace(0, ds.images.shape[0] - 1, n).round().long().unique().tolist()
     h, w = ds.height, ds.width
@@ -114,16 +114,16 @@ def _normals(fn, x: torch.Tensor, h: float, chunk: int = 1 << 16) -> torch.Tenso
 def export_cameras(run, out, splits=("train", "val")) -> dict:
     """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras; returns a
     summary."""
-    from .train.nerf import load_data, load_run
+    from .train.nerf import load_data, load_run, with_refined_poses
 
     out = Path(out)
     if out.suffix != ".json":
         raise UserError(f"--out must be a .json file, got {out}")
-    cfg, _, _ = load_run(run, "cpu")
+    cfg, model, _ = load_run(run, "cpu")
     frames, written = [], 0
     for split in splits:
         try:
-            ds = load_data(cfg, split)
+            ds = with_refined_poses(model, load_data(cfg, split), split)
         except UserError:
             if split == "train":
                 raise

@@ -27,7 +27,7 @@ from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
-    "resolve_data", "dataset_rays", "render_dataset_image",
+    "resolve_data", "dataset_rays", "render_dataset_image", "with_refined_poses",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -63,6 +63,19 @@ def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: 
             images = (images.clamp_(0, 1) * 255).round_().to(torch.uint8)
         return dataclasses.replace(ds, images=images).to(cfg.device, images=False)
     return ds.to(cfg.device)
+
+
+def with_refined_poses(model: RadianceModel, ds, split: str):
+    """``ds`` with the run's refined training cameras (``--pose-refine``) when it is the training
+    split the corrections were learned for (the same cameras), else ``ds`` as it is: eval of
+    the train split, exports and the viewer's frustums show the cameras the model was fitted
+    to."""
+    poses = getattr(model, "poses", None)
+    if poses is None or split != "train" or ds.c2w.shape[0] != poses.n_cameras:
+        return ds
+    with torch.no_grad():
+        c2w = poses.corrected_c2w(ds.c2w.to(poses.rotation.device)).to(ds.c2w)
+    return dataclasses.replace(ds, c2w=c2w)
 
 
 def images_stay_on_host(device, images: torch.Tensor, images_on: str) -> bool:
@@ -196,8 +209,9 @@ def _optimizer(cfg, params, poses=None):
     groups = params
     if poses is not None:
         own = {id(p) for p in poses.parameters()}
-        groups = [{"params": [p for p in params if id(p) not in own]},
-                  {"params": list(poses.parameters()), "lr_scale": cfg.pose_lr / cfg.lr}]  # fmt: skip
+        rest = [p for p in params if id(p) not in own]
+        scale = cfg.pose_lr / cfg.lr
+        groups = [{"params": rest}, {"params": list(poses.parameters()), "lr_scale": scale}]
     if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
         return adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     return adam(groups, lr=cfg.lr)
@@ -321,8 +335,10 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
             cfg.pose_images = len(train)
         model = build_model(cfg)
     else:
-        for on, count, what in ((cfg.appearance_dim, cfg.appearance_images, "appearance codes"),
-                                (cfg.pose_refine, cfg.pose_images, "pose corrections")):
+        for on, count, what in (
+            (cfg.appearance_dim, cfg.appearance_images, "appearance codes"),
+            (cfg.pose_refine, cfg.pose_images, "pose corrections"),
+        ):
             if on and count != len(train):
                 raise UserError(
                     f"{run}: the run has {what} for {count} training images, but the training "

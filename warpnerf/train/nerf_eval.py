@@ -22,7 +22,7 @@ from ..io import (
     write_video,
 )
 from ..metrics import psnr, ssim
-from .nerf import load_data, load_run, render_dataset_image, render_rays_of
+from .nerf import load_data, load_run, render_dataset_image, render_rays_of, with_refined_poses
 
 __all__ = [
     "evaluate_run",
@@ -109,6 +109,7 @@ def evaluate_run(
     if grid is not None:
         grid.dt = cfg.march_step
     ds = load_data(cfg, split, cfg.images_on)  # (large splits stay in host memory)
+    ds = with_refined_poses(model, ds, split)
     sub = f"eval_{split}" + ("_sphere" if renderer == "sphere" else "")
     out_dir = Path(out_dir) if out_dir else Path(run) / sub
     n = ds.images.shape[0] if not max_images else min(max_images, ds.images.shape[0])

@@ -313,12 +313,12 @@ def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunSc
         model.eval()
         scene = RunScene.of_point_sdf(model, cfg, title=f"{run.name}: neural SDF ({cfg.field})")
     elif kind is None:
-        from ..train.nerf import load_data, load_run
+        from ..train.nerf import load_data, load_run, with_refined_poses
 
         cfg, model, _ = load_run(run, device)
         train = None
         with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
-            train = load_data(cfg, "train")
+            train = with_refined_poses(model, load_data(cfg, "train"), "train")
         scene = RunScene.of_radiance(model, cfg, train, title=f"{run.name}: {cfg.field}")
 
         def reload() -> int:
