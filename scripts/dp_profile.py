@@ -46,7 +46,7 @@ def main():
     from warpnerf.cli.train import nerf_config_from_args
     from warpnerf.train._signals import nonfinite_flags
     from warpnerf.train.distributed import from_env
-    from warpnerf.train.loop import LoopSettings, _read_terms, lr_at
+    from warpnerf.train.loop import LoopSettings, _read_terms, lr_at, set_lr
 
     want = nerf_config_from_args(build_parser().parse_args([*train_argv, "--out", "x"])).device
     dist, device = from_env(want)
@@ -67,8 +67,7 @@ def main():
                 sync()
                 marks.append(time.perf_counter())
 
-        for g in opt.param_groups:
-            g["lr"] = lr_at(s, i) * g.get("lr_scale", 1.0)
+        set_lr(opt, lr_at(s, i))
         loss, terms = task.loss(i)
         mark()
         opt.zero_grad(set_to_none=True)

@@ -44,7 +44,7 @@ from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, st
 
 __all__ = [
     "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
-    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook",
+    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr",
 ]  # fmt: skip
 
 # checkpoint keys the loop writes and reads (a task's state adds its own)
@@ -100,6 +100,13 @@ def parse_snapshots(text: str) -> tuple:
 def snapshot_name(seconds: float) -> str:
     """The file (relative to the run) of the snapshot at ``seconds``: snapshots/t60s.pt."""
     return f"{SNAPSHOTS}/t{seconds:g}s.pt"
+
+
+def set_lr(opt, lr: float) -> None:
+    """Sets the step's learning rate on every parameter group (a group's ``lr_scale``, e.g. the
+    pose corrections', scales it)."""
+    for group in opt.param_groups:
+        group["lr"] = lr * group.get("lr_scale", 1.0)
 
 
 def lr_at(s: LoopSettings, step: int) -> float:
@@ -298,8 +305,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
         halt = None
         for step in range(start, s.iters):
             lr = lr_at(s, step)
-            for group in opt.param_groups:  # (a group's lr_scale: its own rate, e.g. poses)
-                group["lr"] = lr * group.get("lr_scale", 1.0)
+            set_lr(opt, lr)
             loss, terms = task.loss(step)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -465,8 +471,7 @@ def bare_step(task: Task, opt, step: int, lr: float | None = None) -> torch.Tens
     """One optimisation step of ``task`` without the loop's bookkeeping (no history, checks,
     files or syncs): what the profiling and measuring tools time. Returns the loss tensor."""
     if lr is not None:
-        for group in opt.param_groups:
-            group["lr"] = lr * group.get("lr_scale", 1.0)
+        set_lr(opt, lr)
     loss, _ = task.loss(step)
     opt.zero_grad(set_to_none=True)
     loss.backward()
