@@ -149,14 +149,13 @@ def cmd_train_nerf(args) -> int:
         device = rank_device if args.resume else device
         cfg.device = rank_device if not args.resume else cfg.device
     main = dist is None or dist.main
-    try:  # (only rank 0 prints: the other ranks' lines would repeat its own)
-        hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
-                          device=device, hooks=live_hooks(args) if main else [],
-                          tensorboard=tensorboard_every(args), dist=dist,
-                          log=print if main else _silent)  # fmt: skip
-    finally:
-        if dist is not None:
-            dist.close()
+    # (only rank 0 prints: the other ranks' lines would repeat its own)
+    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
+                      device=device, hooks=live_hooks(args) if main else [],
+                      tensorboard=tensorboard_every(args), dist=dist,
+                      log=print if main else _silent)  # fmt: skip
+    if dist is not None:  # (every rank finished: they leave the group together)
+        dist.close()
     if not main:
         return 0
     last = {

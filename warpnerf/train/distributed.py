@@ -77,11 +77,15 @@ class Dist:
         td.barrier()
 
     def close(self) -> None:
-        """Leaves the process group (at the end of the run, however it ends: NCCL warns of,
-        and may leak, a group still open at exit)."""
+        """Leaves the process group at the end of a run that finished on every rank (NCCL warns
+        of, and may leak, a group still open at exit): all ranks meet first, so that none tears
+        its group down while another still uses it (seen once with gloo: a rank aborted in its
+        teardown). After an error the group is left to the process's exit: a peer may never
+        arrive."""
         import torch.distributed as td
 
         if td.is_initialized():
+            td.barrier()
             td.destroy_process_group()
 
 
