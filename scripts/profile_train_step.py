@@ -27,6 +27,8 @@ def main():
     p.add_argument("--warm", type=int, default=300)
     p.add_argument("--steps", type=int, default=50)
     p.add_argument("--json", default=None)
+    p.add_argument("--cprofile", type=int, default=50,
+                   help="steps run under cProfile for the host side (0: none)")  # fmt: skip
     a = p.parse_args(own)
 
     import torch
@@ -82,10 +84,48 @@ def main():
         "top_device_ops_ms_per_step": {k.key: getattr(k, dev_key) / 1e3 / n_prof for k in top},
         "device": torch.cuda.get_device_name() if cuda else "cpu",
     }
+    if a.cprofile:
+        res["host_python"] = host_profile(step, a.warm + a.steps + n_prof, a.cprofile, sync)
     print(json.dumps(res, indent=1))
     if a.json:
         with open(a.json, "w") as f:
             json.dump(res, f, indent=1)
+
+
+def host_profile(step, first, n, sync):
+    """Where the host's time goes: ``n`` steps under cProfile (Python functions; a CUDA launch is
+    counted in the function that enqueues it, a host sync in the function that waits). Returns
+    ms per step of the top functions by own time and by cumulative time."""
+    import cProfile
+    import pstats
+
+    sync()
+    prof = cProfile.Profile()
+    t = time.perf_counter()
+    prof.enable()
+    for i in range(first, first + n):
+        step(i)
+    sync()
+    prof.disable()
+    wall = 1e3 * (time.perf_counter() - t) / n
+    st = pstats.Stats(prof)
+
+    def name(k):
+        f, line, fn = k
+        parts = f.replace("\\", "/").split("/")
+        return f"{'/'.join(parts[-2:])}:{line}({fn})"
+
+    rows = [(name(k), v[2] * 1e3 / n, v[3] * 1e3 / n, v[1] // n) for k, v in st.stats.items()]
+    own = sorted(rows, key=lambda r: -r[1])[:30]
+    cum = sorted(rows, key=lambda r: -r[2])[:40]
+    print(f"host profile: {wall:.2f} ms a step under cProfile (n={n})")
+    for r in own[:20]:
+        print(f"  own {r[1]:7.3f} ms  cum {r[2]:7.3f} ms  x{r[3]:<4d} {r[0]}")
+    return {
+        "wall_ms_per_step_under_cprofile": wall,
+        "top_own_ms": [{"fn": r[0], "own_ms": r[1], "cum_ms": r[2], "calls": r[3]} for r in own],
+        "top_cum_ms": [{"fn": r[0], "own_ms": r[1], "cum_ms": r[2], "calls": r[3]} for r in cum],
+    }
 
 
 if __name__ == "__main__":
