@@ -41,10 +41,28 @@ RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
 
 
-def _depth_image(depth, opacity, far):
-    """Depth of the visible surface (depth / opacity), normalised by the far plane, as RGB."""
-    surf = torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
-    return torch.from_numpy(depth_to_uint8(surf, far)).unsqueeze(-1).expand(*surf.shape, 3)
+def _surface_depth(depth, opacity):
+    """Depth of the visible surface (depth / opacity; 0 where nothing is hit)."""
+    return torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
+
+
+def _depth_scale(cfg, depth, opacity) -> float:
+    """What depth maps are normalised by: the far plane, or for a contracted (unbounded) run,
+    whose far plane lies a thousand scene sizes away, the 99th percentile of the visible surface
+    depths of this frame (the first frame's for a video, so that frames compare)."""
+    if cfg.contract != "on":
+        return float(cfg.far)
+    surf = _surface_depth(depth, opacity)
+    seen = surf[(opacity > 0.5) & torch.isfinite(surf)]
+    if seen.numel() == 0:
+        return float(cfg.far)
+    return float(torch.quantile(seen.double()[:1_000_000], 0.99).clamp_min(1e-6))
+
+
+def _depth_image(depth, opacity, scale):
+    """The visible surface's depth normalised by ``scale`` (clipped to 1), as RGB uint8."""
+    surf = _surface_depth(depth, opacity)
+    return torch.from_numpy(depth_to_uint8(surf, scale)).unsqueeze(-1).expand(*surf.shape, 3)
 
 
 RENDERERS = ("volume", "sphere")  # eval / render --renderer: volume rendering, sphere tracing
@@ -156,7 +174,9 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
         side = [
             to_uint8(gt.cpu()),
             to_uint8(rgb.cpu()),
-            _depth_image(depth.cpu(), opacity.cpu(), cfg.far).numpy(),
+            _depth_image(
+                depth.cpu(), opacity.cpu(), _depth_scale(cfg, depth.cpu(), opacity.cpu())
+            ).numpy(),
         ]
         write_image(
             out_dir / f"{split}_{i:03d}.png",
@@ -267,9 +287,10 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
         else:
             out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
-        dep = _depth_image(
-            out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu(), cfg.far
-        ).numpy()
+        dep, opa = out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu()
+        if f == 0:
+            scale = _depth_scale(cfg, dep, opa)
+        dep = _depth_image(dep, opa, scale).numpy()
         write_image(out_dir / f"rgb_{f:03d}.png", rgb)
         write_image(out_dir / f"depth_{f:03d}.png", dep)
         rgbs.append(rgb)
