@@ -93,7 +93,7 @@ PEERS = {
             ("torch", "pip install torch (a CUDA build)"),
             ("taichi", "pip install taichi==1.7.4"),
             ("einops", "pip install -r PEER_DIR/requirements.txt"),
-            ("kornia", "pip install -r PEER_DIR/requirements.txt"),
+            ("kornia", "pip install kornia==0.6.12 (0.9 lacks kornia.utils.grid)"),
             ("cv2", "pip install -r PEER_DIR/requirements.txt"),
             ("imageio", "pip install -r PEER_DIR/requirements.txt"),
             ("scipy", "pip install -r PEER_DIR/requirements.txt"),
