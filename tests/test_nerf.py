@@ -88,14 +88,16 @@ HASH_SDF = dict(GRID, field="hash_sdf", c2f_every=2, target_samples=0)
 @pytest.mark.parametrize(
     "n_fine, field",
     [(0, "mlp"), (8, "mlp"), (8, "hash"), (0, "grid"), (8, "volsdf"), (0, "hash_sdf"),
-     (0, "appearance"), (0, "contract"), (0, "poses"), (8, "poses_mlp")],
+     (0, "appearance"), (0, "contract"), (0, "poses"), (8, "poses_mlp"), (0, "distortion")],
 )  # fmt: skip
 def test_resume_continues_exactly(tmp_path, n_fine, field):
     kw = {"hash": HASH, "grid": GRID, "volsdf": VOLSDF, "hash_sdf": HASH_SDF,
           "appearance": dict(GRID, appearance_dim=4),
           "contract": dict(GRID, contract="on", max_samples=256),
           "poses": dict(GRID, pose_refine=True, pose_lr=1e-2),
-          "poses_mlp": dict(pose_refine=True, pose_lr=1e-2)}.get(field, {})  # fmt: skip
+          "poses_mlp": dict(pose_refine=True, pose_lr=1e-2),
+          "distortion": dict(GRID, contract="on", max_samples=256, distortion_loss=0.05),
+          }.get(field, {})  # fmt: skip
     straight = train_nerf(
         tiny(n_fine=n_fine, **kw), tmp_path / "a", progress=False, log=lambda *a: 0
     )

@@ -225,6 +225,7 @@ def render_marched(
     sample_budget: int = SAMPLE_BUDGET,
     jitter: torch.Tensor | None = None,
     ray_images: torch.Tensor | None = None,
+    distortion_s=None,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -255,7 +256,9 @@ def render_marched(
     samples, is never reached by the default rendering chunk).
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
-    ``n_marched`` / ``n_kept`` (ints).
+    ``n_marched`` / ``n_kept`` (ints); with gradients and ``distortion_s`` (a map of ray
+    distances t to a normalised coordinate s, increasing) also ``distortion`` [n_rays], each
+    ray's distortion loss (:func:`warpnerf.ops.distortion_loss`) of its kept samples' weights.
 
     The packed samples are the grid's own: they are composited without re-checking their indices
     (``render_packed(check=False)``), so no host sync is added to the marching's own.
@@ -290,7 +293,7 @@ def render_marched(
         rgbs = field.color(feats, dirs)
     else:
         rgbs = field.color(feats, dirs, image_ids=ray_images[kept.ray_indices])
-    rgb, depth, opacity = render_packed(
+    rgb, depth, opacity, *weights = render_packed(
         kept.t_starts,
         kept.t_ends,
         kept.ray_indices,
@@ -301,14 +304,23 @@ def render_marched(
         packed_info=kept.packed_info,
         t_threshold=t_threshold,
         check=False,
+        return_weights=distortion_s is not None,
     )
-    return {
+    out = {
         "rgb": rgb,
         "depth": depth,
         "opacity": opacity,
         "n_marched": int(smp.t_starts.shape[0]),
         "n_kept": int(idx.shape[0]),
     }
+    if distortion_s is not None:
+        from .ops.distortion import distortion_loss
+
+        out["distortion"] = distortion_loss(
+            distortion_s(kept.t_starts), distortion_s(kept.t_ends), kept.ray_indices, weights[0],
+            n_rays, packed_info=kept.packed_info, check=False,
+        )  # fmt: skip
+    return out
 
 
 COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipped

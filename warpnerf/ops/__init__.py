@@ -2,6 +2,7 @@
 public function."""
 
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
+from .distortion import distortion_loss
 from .encoding import HashGrid, hash_encode
 from .rays import generate_rays, random_pixels, ray_aabb_intersect
 from .sampling import Samples, importance_samples, stratified_samples
@@ -16,6 +17,7 @@ __all__ = [
     "render_packed",
     "render_dense",
     "packed_info_from_ray_indices",
+    "distortion_loss",
     "HashGrid",
     "hash_encode",
 ]

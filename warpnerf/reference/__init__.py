@@ -1,6 +1,7 @@
 """Pure-PyTorch twins of every Warp op, same names and signatures (for tests and benchmarks)."""
 
 from .composite import render_dense, render_packed
+from .distortion import distortion_loss
 from .encoding import hash_encode
 from .rays import generate_rays, ray_aabb_intersect
 from .sampling import stratified_samples
@@ -11,5 +12,6 @@ __all__ = [
     "stratified_samples",
     "render_dense",
     "render_packed",
+    "distortion_loss",
     "hash_encode",
 ]

@@ -141,14 +141,17 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None, ray_offset=0, background=None,
+    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
     are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples (their
     jitter keyed by ``seed`` and the ray's index + ``ray_offset``). ``background``: None (the
-    run's colour) or per-ray colours [n_rays, 3] (grid runs)."""
+    run's colour) or per-ray colours [n_rays, 3] (grid runs). ``distortion`` (grid runs, with
+    gradients): add each ray's distortion loss as ``distortion`` [n_rays]
+    (:func:`distortion_coordinate` normalises the ray distances)."""
     if model.grid is not None:
+        s_of_t = distortion_coordinate(cfg) if distortion else None
         return render_chunks(
             o.shape[0],
             chunk,
@@ -168,6 +171,7 @@ def render_rays_of(
                 half=cfg.render_half,
                 jitter=None if jitter is None else jitter[sl],
                 ray_images=None if ray_images is None else ray_images[sl],
+                distortion_s=s_of_t,
             ),
         )
     return render_nerf(
@@ -187,6 +191,17 @@ def render_rays_of(
         aabb=cfg.aabb_box(),
         ray_offset=ray_offset,
     )
+
+
+def distortion_coordinate(cfg: NeRFConfig):
+    """The map t -> s in [0, 1) on which the distortion loss measures a ray: t / (t + a) in a
+    contracted scene (a: the inner cube's half-size; distant space is squeezed as the
+    contraction squeezes it), (t - near) / (far - near) otherwise."""
+    if cfg.contract == "on":
+        a = float(cfg.aabb)
+        return lambda t: t / (t + a)
+    near, span = float(cfg.near), max(float(cfg.far) - float(cfg.near), 1e-12)
+    return lambda t: (t - near) / span
 
 
 @torch.no_grad()
@@ -468,7 +483,7 @@ class NeRFTask(Task):
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
         out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
                              jitter=jitter, ray_images=images, ray_offset=sl.start,
-                             background=bg)  # fmt: skip
+                             background=bg, distortion=cfg.distortion_loss > 0)  # fmt: skip
         n_kept = out.get("n_kept")
         terms = {}
         if grid is not None:
@@ -488,6 +503,10 @@ class NeRFTask(Task):
             loss_fine = loss_fine * scale
         terms["psnr"] = loss_fine
         loss = loss_fine
+        if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
+            dist_loss = out["distortion"].mean() * scale
+            terms["distortion"] = dist_loss.detach()
+            loss = loss + cfg.distortion_loss * dist_loss
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
             loss = loss + torch.mean((coarse - target) ** 2) * scale  # (scale 1: exact)

@@ -93,6 +93,13 @@ class NeRFConfig:
     pose_lr: float = option(1e-3, "with --pose-refine: the corrections' learning rate (it "
                             "decays with --lr's schedule)", check="positive")  # fmt: skip
     pose_images: int = option(0, flag=None)  # pose refinement: the training split's size
+    distortion_loss: float = option(
+        0.0, "hash field with a grid: weight of mip-NeRF 360's distortion loss on each training "
+        "ray's compositing weights, which pulls a ray's weight into one short stretch (fewer "
+        "floaters in real captures; ray positions are normalised to s = t / (t + a) in "
+        "contracted scenes, a the inner half-size, else to (t - near) / (far - near)); 0: off",
+        check="nonnegative",
+    )  # fmt: skip
     # volsdf: the Laplace scale (world units), its floor, learned or fixed; the eikonal weight
     beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
     beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
@@ -309,6 +316,11 @@ class NeRFConfig:
                            f"--grid-res {self.grid_res}")  # fmt: skip
             if self.appearance_dim > 256:
                 raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
+        if not (math.isfinite(self.distortion_loss) and self.distortion_loss >= 0):
+            raise fail("distortion_loss", f"must be finite and >= 0, got {self.distortion_loss}")
+        if self.distortion_loss and (self.field != "hash" or self.grid_res == 0):
+            raise fail("distortion_loss", "needs --field hash with an occupancy grid "
+                       f"(--grid-res > 0), not --field {self.field} --grid-res {self.grid_res}")  # fmt: skip
         if not 0 <= self.appearance_images <= 10**6:
             raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
         if not 0 <= self.pose_images <= 10**6:
