@@ -59,11 +59,13 @@ def test_known_values(device):
     """One sample: w^2 d / 3. Two zero-length samples: 2 w1 w2 |m1 - m2|. All weight in one
     place beats the same weight spread out."""
     kw = dict(dtype=torch.float64, device=device)
-    one = distortion_loss(torch.tensor([0.2], **kw), torch.tensor([0.5], **kw),
-                          torch.tensor([0], device=device), torch.tensor([0.6], **kw), 1)  # fmt: skip
+    ray0 = torch.tensor([0], device=device)
+    one = distortion_loss(torch.tensor([0.2], **kw), torch.tensor([0.5], **kw), ray0,
+                          torch.tensor([0.6], **kw), 1)  # fmt: skip
     assert float(one[0]) == pytest.approx(0.36 * 0.3 / 3, rel=1e-12)
-    two = distortion_loss(torch.tensor([0.1, 0.7], **kw), torch.tensor([0.1, 0.7], **kw),
-                          torch.tensor([0, 0], device=device), torch.tensor([0.3, 0.5], **kw), 1)  # fmt: skip
+    ends = torch.tensor([0.1, 0.7], **kw)  # (zero-length intervals)
+    two = distortion_loss(ends, ends, torch.tensor([0, 0], device=device),
+                          torch.tensor([0.3, 0.5], **kw), 1)  # fmt: skip
     assert float(two[0]) == pytest.approx(2 * 0.3 * 0.5 * 0.6, rel=1e-12)
     s = torch.linspace(0, 1, 11, **kw)
     ri = torch.zeros(10, dtype=torch.int64, device=device)
@@ -150,8 +152,13 @@ def test_training_adds_the_weighted_distortion_term(tmp_path):
         cfg = resolve_data(cfg)
         s = distortion_coordinate(cfg)(t.clamp(cfg.near, cfg.far))
         assert (s[1:] >= s[:-1]).all() and float(s.min()) >= 0 and float(s.max()) <= 1
-    for bad in (dict(distortion_loss=0.1), dict(GRID, distortion_loss=-1.0),
-                dict(GRID, distortion_loss=float("nan")), dict(HASH_ONLY, distortion_loss=0.1)):  # fmt: skip
+    bads = (
+        dict(distortion_loss=0.1),
+        dict(GRID, distortion_loss=-1.0),
+        dict(GRID, distortion_loss=float("nan")),
+        dict(HASH_ONLY, distortion_loss=0.1),
+    )
+    for bad in bads:
         with pytest.raises(UserError, match="distortion"):
             train_nerf(tiny(**bad), tmp_path / "bad", **quiet)
 

@@ -319,8 +319,8 @@ class NeRFConfig:
         if not (math.isfinite(self.distortion_loss) and self.distortion_loss >= 0):
             raise fail("distortion_loss", f"must be finite and >= 0, got {self.distortion_loss}")
         if self.distortion_loss and (self.field != "hash" or self.grid_res == 0):
-            raise fail("distortion_loss", "needs --field hash with an occupancy grid "
-                       f"(--grid-res > 0), not --field {self.field} --grid-res {self.grid_res}")  # fmt: skip
+            raise fail("distortion_loss", "needs --field hash with an occupancy grid (--grid-res "
+                       f"> 0), not --field {self.field} --grid-res {self.grid_res}")  # fmt: skip
         if not 0 <= self.appearance_images <= 10**6:
             raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
         if not 0 <= self.pose_images <= 10**6:
