@@ -6,7 +6,7 @@ each step) or ``device`` (all images on the GPU); a hash field + occupancy grid 
 and the peak of ``torch.cuda.max_memory_allocated`` over the training is reported, per N.
 
     python3 scripts/images_memory.py --images 100,2000 --width 1920 --height 1080 --steps 40 \
-        [--images-on host] [--json out.json]
+        [--images-on host] [--dtype uint8|float32] [--json out.json]
 """
 
 from __future__ import annotations
@@ -22,6 +22,9 @@ def main():
     p.add_argument("--height", type=int, default=1080)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--images-on", default="host", choices=("host", "device"))
+    p.add_argument("--dtype", default="uint8", choices=("uint8", "float32"),
+                   help="how the images are held: 8-bit, as `--images-on host` keeps a loaded "
+                   "capture (the default), or float32")  # fmt: skip
     p.add_argument("--json", default=None)
     a = p.parse_args()
     counts = [int(x) for x in a.images.split(",")]
@@ -41,10 +44,13 @@ def main():
     rows = []
     for n in counts:
         t0 = time.perf_counter()
-        images = torch.empty(n, a.height, a.width, 3)
+        u8 = a.dtype == "uint8"
+        images = torch.empty(n, a.height, a.width, 3, dtype=torch.uint8 if u8 else torch.float32)
         gen = torch.Generator().manual_seed(n)
         for i in range(0, n, 16):  # (in slices: a single torch.rand of tens of GB is slow)
-            images[i : i + 16] = torch.rand(images[i : i + 16].shape, generator=gen)
+            shape = images[i : i + 16].shape
+            images[i : i + 16] = (torch.randint(0, 256, shape, generator=gen, dtype=torch.uint8)
+                                  if u8 else torch.rand(shape, generator=gen))  # fmt: skip
         f = 0.6 * a.width
         ds = Dataset(
             images=images,
@@ -69,7 +75,8 @@ def main():
         step_ms = 1e3 * (time.perf_counter() - t1) / a.steps
         peak = torch.cuda.max_memory_allocated() - base
         rows.append({"images": n, "width": a.width, "height": a.height, "images_on": a.images_on,
-                     "host_gib": images.numel() * 4 / 2**30, "peak_gpu_mib": peak / 2**20,
+                     "dtype": a.dtype, "host_gib": images.numel() * images.element_size() / 2**30,
+                     "peak_gpu_mib": peak / 2**20,
                      "step_ms": step_ms, "make_s": made_s})  # fmt: skip
         print(rows[-1], flush=True)
         del task, model, opt, train, ds, images

@@ -355,3 +355,28 @@ def test_images_on_choice_and_host_index(tmp_path):
     cam2, px2, py2, (flat2, host) = random_pixels(3, 5, 4, 64, generator=g2, host_index=True)
     assert torch.equal(flat, flat2) and torch.equal(flat, host) and host.device.type == "cpu"
     assert torch.equal(cam, cam2) and torch.equal(px, px2) and torch.equal(py, py2)
+
+
+def test_eight_bit_images_train_as_their_float_values():
+    """A training split held as uint8 (as --images-on host loads it) gives the training of its
+    float values / 255 wherever it is held (here on the CPU, the path without the host gather)."""
+    from warpnerf.data.cameras import orbit_views
+    from warpnerf.data.dataset import Dataset
+    from warpnerf.train.loop import bare_step
+    from warpnerf.train.nerf import NeRFTask, build_model
+
+    n, h, w = 3, 10, 12
+    u8 = torch.randint(
+        0, 256, (n, h, w, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(1)
+    )
+    losses = []
+    for images in (u8, u8.float() / 255.0):
+        torch.manual_seed(0)
+        ds = Dataset(images=images, c2w=orbit_views(n, radius=4.0),
+                     intrinsics=torch.tensor([[8.0, 8.0, w / 2, h / 2]]).repeat(n, 1))  # fmt: skip
+        cfg = NeRFConfig(data="generated", field="hash", batch=32, aabb=1.5, near=2.0, far=6.0,
+                         **{k: v for k, v in GRID.items() if k != "field"})  # fmt: skip
+        task = NeRFTask(cfg, build_model(cfg), ds, None, log=lambda *a: None)
+        opt = task.optimizer(task.parameters(), cfg.lr)
+        losses.append([float(bare_step(task, opt, i).detach()) for i in range(3)])
+    assert losses[0] == pytest.approx(losses[1], rel=1e-6) and losses[0][0] < 1.0

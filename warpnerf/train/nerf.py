@@ -498,6 +498,8 @@ class NeRFTask(Task):
                 self._next_batch(n_kept)
         if not self.host_images:
             target = self.flat[idx]
+            if target.dtype == torch.uint8:  # an 8-bit split held on the training device
+                target = target.to(torch.float32).div_(255.0)
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         if scale != 1.0:
             loss_fine = loss_fine * scale
