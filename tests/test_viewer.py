@@ -441,3 +441,18 @@ def test_review_fixes(tmp_path, nerf_run, capsys):
     (tmp_path / "big.json").write_text(json.dumps(big))
     with pytest.raises(UserError, match="frames"):
         load_camera_path(tmp_path / "big.json")
+
+
+def test_thumbnails_of_eight_bit_and_float_images_agree():
+    """The frustums' thumbnails of a training split kept as 8-bit (--images-on host) are the
+    images themselves, as those of its float values are (they were all white)."""
+    import torch
+
+    from warpnerf.viewer.scene import _thumbnails
+
+    u8 = torch.randint(
+        0, 256, (2, 6, 8, 3), dtype=torch.uint8, generator=torch.Generator().manual_seed(0)
+    )
+    a, b = _thumbnails(u8), _thumbnails(u8.float() / 255.0)
+    assert a.dtype == b.dtype == np.uint8 and a.shape == b.shape == (2, 6, 8, 3)
+    assert np.array_equal(a, b) and np.array_equal(a, u8.numpy())

@@ -276,11 +276,14 @@ def _window(c2w, near: float, far: float):
 
 
 def _thumbnails(images: torch.Tensor) -> np.ndarray:
-    """uint8 [n, h, w, 3] copies of [n, H, W, 3] float images, longest side :data:`THUMBNAIL`."""
+    """uint8 [n, h, w, 3] copies of [n, H, W, 3] float (or already 8-bit: a training split kept
+    on the host) images, longest side :data:`THUMBNAIL`."""
     n, h, w = images.shape[:3]
     s = max(1, math.ceil(max(h, w) / THUMBNAIL))
-    small = images[:, ::s, ::s, :3].detach().float().cpu()
-    return to_uint8(small)
+    small = images[:, ::s, ::s, :3].detach().cpu()
+    if small.dtype == torch.uint8:
+        return small.contiguous().numpy()
+    return to_uint8(small.float())
 
 
 def _up_of(c2w) -> tuple:
