@@ -283,23 +283,28 @@ def test_contracted_training_on_a_capture(tmp_path, capsys):
 def test_depth_maps_of_contracted_runs_show_the_scene():
     """A contracted run's far plane lies a thousand scene sizes away: its depth maps are scaled by
     the visible surfaces' 99th percentile instead (a bounded run keeps the far plane), so they are
-    not black; pixels that see nothing stay 0, and frames without any surface fall back to far."""
+    not black; pixels that see nothing stay 0; a frame without any surface gives None (the
+    caller falls back to far); large frames are subsampled over all their rows."""
     from types import SimpleNamespace
 
-    from warpnerf.train.nerf_eval import _depth_image, _depth_scale
+    from warpnerf.train.nerf import depth_scale
+    from warpnerf.train.nerf_eval import _depth_image
 
     depth = torch.linspace(1.0, 4.0, 64).reshape(8, 8)
     opacity = torch.ones(8, 8)
     opacity[0, :] = 0.0  # a row that hits nothing
     unbounded = SimpleNamespace(contract="on", far=1500.0)
-    scale = _depth_scale(unbounded, depth, opacity)
+    scale = depth_scale(unbounded, depth, opacity)
     assert 3.5 < scale <= 4.0
     img = _depth_image(depth, opacity, scale).numpy()
     assert img.shape == (8, 8, 3) and img.dtype == np.uint8
     assert img[0].max() == 0 and img[1:].min() > 50 and img.max() == 255
     bounded = SimpleNamespace(contract="off", far=6.0)
-    assert _depth_scale(bounded, depth, opacity) == 6.0
-    assert _depth_scale(unbounded, depth, torch.zeros(8, 8)) == 1500.0
+    assert depth_scale(bounded, depth, opacity) == 6.0
+    assert depth_scale(unbounded, depth, torch.zeros(8, 8)) is None
     nan = depth.clone()
     nan[3, 3] = float("nan")
-    assert math.isfinite(_depth_scale(unbounded, nan, opacity))
+    assert math.isfinite(depth_scale(unbounded, nan, opacity))
+    big = torch.ones(1080, 1920)  # 2 million pixels: the top half near, the bottom half far
+    big[540:] = 10.0
+    assert depth_scale(unbounded, big, torch.ones_like(big)) == pytest.approx(10.0)

@@ -53,11 +53,12 @@ def distortion_loss(
     intervals' midpoints, computed in O(n) per ray (exclusive prefix sums) by a Warp kernel with
     a hand-written backward. Differentiable with respect to ``weights`` only.
 
-    A ray's samples must be in increasing order of s (as marched or sampled): the O(n) form
-    relies on it. ``check=True`` verifies the order and the index layout (``ray_indices`` sorted
-    in [0, n_rays), ``packed_info`` their exact layout), one host sync on CUDA; ``check=False`` is
-    for the library's own marched samples. Rays with no samples get 0; a NaN or Inf input makes
-    its ray's loss NaN/Inf.
+    A ray's samples must be in increasing order of s (as marched or sampled; their midpoints
+    non-decreasing: the O(n) form relies on it), each with s_end >= s_start (a backwards
+    interval would subtract). ``check=True`` verifies both and the index layout
+    (``ray_indices`` sorted in [0, n_rays), ``packed_info`` their exact layout), one host sync on
+    CUDA; ``check=False`` is for the library's own marched samples. Rays with no samples get 0;
+    a NaN or Inf input makes its ray's loss NaN/Inf.
     """
     n_rays = _bridge.check_int("n_rays", n_rays)
     n = weights.shape[0] if weights.dim() == 1 else -1
@@ -76,10 +77,14 @@ def distortion_loss(
         packed_info = packed_info.to(dev)
         if check:
             _check_packed_info(packed_info, ri, n, n_rays)
-    if check and n > 1:
+    if check and n:
         m = s_starts + s_ends
         same_ray = ri[1:] == ri[:-1]
-        (ordered,) = _bridge.host_flags((~same_ray | ~(m[1:] < m[:-1])).all())
+        ordered, forward = _bridge.host_flags(
+            (~same_ray | ~(m[1:] < m[:-1])).all(), ~(s_ends < s_starts).any()
+        )
+        if not forward:
+            raise ValueError("every interval needs s_end >= s_start")
         if not ordered:
             raise ValueError("each ray's samples must be in increasing order of s")
     return _Distortion.apply(

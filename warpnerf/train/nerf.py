@@ -204,6 +204,26 @@ def distortion_coordinate(cfg: NeRFConfig):
     return lambda t: (t - near) / span
 
 
+def surface_depth(depth, opacity):
+    """Depth of the visible surface (depth / opacity; 0 where nothing is hit)."""
+    return torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
+
+
+def depth_scale(cfg: NeRFConfig, depth, opacity) -> float | None:
+    """What a depth map is normalised by for display: the far plane, or for a contracted
+    (unbounded) run, whose far plane lies a thousand scene sizes away, the 99th percentile of
+    the visible surface depths (opacity > 0.5) of this frame; None there when no pixel shows a
+    surface (the caller falls back to far, or waits for a frame that does)."""
+    if cfg.contract != "on":
+        return float(cfg.far)
+    surf = surface_depth(depth, opacity)
+    seen = surf[(opacity > 0.5) & torch.isfinite(surf)]
+    if seen.numel() == 0:
+        return None
+    step = max(1, seen.numel() // 1_000_000)  # (quantile's input limit; strided: all rows)
+    return float(torch.quantile(seen[::step].double(), 0.99).clamp_min(1e-6))
+
+
 @torch.no_grad()
 def render_dataset_image(model, cfg, ds, i):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
@@ -532,7 +552,13 @@ class NeRFTask(Task):
             rgb, depth = keep["rgb"], keep["depth"]
             self.val_images = {
                 "rgb": torch.cat([rgb.cpu(), self.val.images[0].cpu()], 1).numpy(),
-                "depth": (depth / max(self.cfg.far, 1e-6)).clamp(0, 1).cpu().numpy(),
+                "depth": (
+                    surface_depth(depth, keep["opacity"])
+                    / max(depth_scale(self.cfg, depth, keep["opacity"]) or self.cfg.far, 1e-6)
+                )
+                .clamp(0, 1)
+                .cpu()
+                .numpy(),  # fmt: skip
             }
         return {"val_psnr": psnr}
 
@@ -565,8 +591,8 @@ def validate(model, cfg, val, keep: dict | None = None) -> float:
     n = min(cfg.val_images, val.images.shape[0])
     mses = []
     for i in range(n):
-        rgb, depth, _ = render_dataset_image(model, cfg, val, i)
+        rgb, depth, opacity = render_dataset_image(model, cfg, val, i)
         if keep is not None and i == 0:
-            keep.update(rgb=rgb, depth=depth)
+            keep.update(rgb=rgb, depth=depth, opacity=opacity)
         mses.append(float(((rgb - val.images[i].to(rgb.device)) ** 2).mean()))
     return sum(_psnr(m) for m in mses) / max(n, 1)

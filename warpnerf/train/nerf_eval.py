@@ -22,7 +22,15 @@ from ..io import (
     write_video,
 )
 from ..metrics import psnr, ssim
-from .nerf import load_data, load_run, render_dataset_image, render_rays_of, with_refined_poses
+from .nerf import (
+    depth_scale,
+    load_data,
+    load_run,
+    render_dataset_image,
+    render_rays_of,
+    surface_depth,
+    with_refined_poses,
+)
 
 __all__ = [
     "evaluate_run",
@@ -41,27 +49,9 @@ RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
 
 
-def _surface_depth(depth, opacity):
-    """Depth of the visible surface (depth / opacity; 0 where nothing is hit)."""
-    return torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
-
-
-def _depth_scale(cfg, depth, opacity) -> float:
-    """What depth maps are normalised by: the far plane, or for a contracted (unbounded) run,
-    whose far plane lies a thousand scene sizes away, the 99th percentile of the visible surface
-    depths of this frame (the first frame's for a video, so that frames compare)."""
-    if cfg.contract != "on":
-        return float(cfg.far)
-    surf = _surface_depth(depth, opacity)
-    seen = surf[(opacity > 0.5) & torch.isfinite(surf)]
-    if seen.numel() == 0:
-        return float(cfg.far)
-    return float(torch.quantile(seen.double()[:1_000_000], 0.99).clamp_min(1e-6))
-
-
 def _depth_image(depth, opacity, scale):
     """The visible surface's depth normalised by ``scale`` (clipped to 1), as RGB uint8."""
-    surf = _surface_depth(depth, opacity)
+    surf = surface_depth(depth, opacity)
     return torch.from_numpy(depth_to_uint8(surf, scale)).unsqueeze(-1).expand(*surf.shape, 3)
 
 
@@ -175,7 +165,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
             to_uint8(gt.cpu()),
             to_uint8(rgb.cpu()),
             _depth_image(
-                depth.cpu(), opacity.cpu(), _depth_scale(cfg, depth.cpu(), opacity.cpu())
+                depth.cpu(), opacity.cpu(), depth_scale(cfg, depth.cpu(), opacity.cpu()) or cfg.far
             ).numpy(),
         ]
         write_image(
@@ -279,7 +269,7 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
 
 
 def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume"):
-    rgbs, depths, geo, t0 = [], [], [], time.perf_counter()
+    rgbs, depths, geo, t0, scale = [], [], [], time.perf_counter(), None
     for f in range(frames):
         o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
         if renderer == "sphere":
@@ -288,9 +278,9 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
             out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep, opa = out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu()
-        if f == 0:
-            scale = _depth_scale(cfg, dep, opa)
-        dep = _depth_image(dep, opa, scale).numpy()
+        if scale is None:  # the first frame that shows a surface sets it for the video
+            scale = depth_scale(cfg, dep, opa)
+        dep = _depth_image(dep, opa, scale or cfg.far).numpy()
         write_image(out_dir / f"rgb_{f:03d}.png", rgb)
         write_image(out_dir / f"depth_{f:03d}.png", dep)
         rgbs.append(rgb)

@@ -151,6 +151,7 @@ class RunScene:
         from ..train.nerf import render_rays_of
 
         dev, ndc = cfg.device, cfg.ndc_camera()
+        contracted = getattr(cfg, "contract", "off") == "on"
         sdf = model.kind == "sdf"
         far = float(cfg.far)
         cams = train.c2w if train is not None else None
@@ -169,8 +170,8 @@ class RunScene:
             if ndc is not None:
                 o, d = ndc_rays(o, d, ndc)
             res = render_rays_of(model, c, o, d, chunk=cfg.chunk)
-            if mode != "normals":
-                return _image_values(res, mode, c.far)
+            if mode != "normals":  # (contracted: far lies 1000 scene sizes away)
+                return _image_values(res, mode, c.far if not contracted else 4.0 * cfg.aabb)
             x = o + d * res["depth"].reshape(-1, 1)  # normals of an SDF field at the depth
             n = model.coarse.normals(x)
             return torch.where(res["opacity"].reshape(-1, 1) > 0.5, (n + 1) / 2, torch.ones_like(n))
