@@ -37,36 +37,20 @@ def _train(out, extra, ranks: int, resume=False, iters=6):
     return json.loads((out / "history.json").read_text())
 
 
+HASH_GRID = ["--field", "hash", "--hash-levels", "4", "--hash-log2-size", "10",
+             "--hash-max-res", "32", "--hidden", "16", "--grid-res", "8", "--grid-every", "2",
+             "--grid-warmup", "2", "--march-step", "0.05", "--target-samples", "2000",
+             "--aabb", "1.2"]  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "extra",
     [
         ["--fine-samples", "8", "--coarse-fine"],  # the NeRF MLP, stratified + importance
-        [
-            "--field",
-            "hash",
-            "--hash-levels",
-            "4",
-            "--hash-log2-size",
-            "10",
-            "--hash-max-res",
-            "32",
-            "--hidden",
-            "16",
-            "--grid-res",
-            "8",
-            "--grid-every",
-            "2",
-            "--grid-warmup",
-            "2",
-            "--march-step",
-            "0.05",
-            "--target-samples",
-            "2000",
-            "--aabb",
-            "1.2",
-        ],  # grid + hash
+        HASH_GRID + ["--distortion-loss", "0.1"],  # its term: each rank's share, averaged
+        HASH_GRID,  # grid + hash
     ],
-    ids=["mlp", "hash_grid"],
+    ids=["mlp", "hash_grid_distortion", "hash_grid"],
 )
 def test_two_ranks_follow_one_process(tmp_path, extra):
     one = _train(tmp_path / "one", extra, 1)
@@ -78,6 +62,9 @@ def test_two_ranks_follow_one_process(tmp_path, extra):
         assert one["batch"] == two["batch"]
         for a, b in zip(one["samples_per_ray"], two["samples_per_ray"]):
             assert abs(a - b) <= 1e-12 * abs(a), (one["samples_per_ray"], two["samples_per_ray"])
+    for a, b in zip(one.get("distortion", []), two.get("distortion", [])):
+        assert abs(a - b) <= 1e-5 * abs(a), (one["distortion"], two["distortion"])
+    assert len(two.get("distortion", [])) == len(one.get("distortion", []))
     assert len(two["val_psnr"]) == len(one["val_psnr"]) == 2
     # rank 0 wrote the run; nothing else did (one manifest of outputs, no stray files)
     names = sorted(p.name for p in (tmp_path / "two").iterdir())
