@@ -21,9 +21,9 @@ def _port() -> int:
         return s.getsockname()[1]
 
 
-def _train(out, extra, ranks: int, resume=False, iters=6):
-    cmd = ["train", "nerf", "--out", str(out), "--iters", str(iters), *extra]
-    cmd = cmd + (["--resume"] if resume else ARGS)
+def _train(out, extra, ranks: int, resume=False, iters=6, model="nerf"):
+    cmd = ["train", model, "--out", str(out), "--iters", str(iters)]
+    cmd = cmd + (["--resume"] if resume else ARGS) + list(extra)  # (extra overrides ARGS)
     env = dict(os.environ, WARPNERF_DIST_TIMEOUT="120", OMP_NUM_THREADS="1")
     if ranks == 1:
         argv = [sys.executable, "-m", "warpnerf.cli", *cmd]
@@ -69,6 +69,23 @@ def test_two_ranks_follow_one_process(tmp_path, extra):
     # rank 0 wrote the run; nothing else did (one manifest of outputs, no stray files)
     names = sorted(p.name for p in (tmp_path / "two").iterdir())
     assert names == sorted(p.name for p in (tmp_path / "one").iterdir()), names
+
+
+@pytest.mark.parametrize("field", ["hash_sdf", "volsdf"])
+def test_two_ranks_follow_one_process_with_sdf_fields(tmp_path, field):
+    """VolSDF's eikonal term on the rendered samples is the mean over every rank's samples (each
+    rank's count differs with the grid's marching), so two ranks still follow one process."""
+    if field == "hash_sdf":
+        extra = [a for a in HASH_GRID if a not in ("hash", "--target-samples", "2000")]
+        extra = ["--field", "hash_sdf"] + extra[1:] + ["--c2f-every", "2"]
+    else:
+        extra = ["--field", "volsdf", "--fine-samples", "8", "--width", "32"]
+    extra += ["--eikonal-weight", "1.0"]  # (a term large enough to tell the two means apart)
+    one = _train(tmp_path / "one", extra, 1, model="volsdf")
+    two = _train(tmp_path / "two", extra, 2, model="volsdf")
+    assert two["step"] == one["step"] == list(range(1, 7))
+    for a, b in zip(one["loss"], two["loss"]):
+        assert abs(a - b) <= 1e-5 * abs(a), (one["loss"], two["loss"])
 
 
 def test_two_rank_run_resumes_on_one(tmp_path):

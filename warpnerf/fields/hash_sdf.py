@@ -250,6 +250,7 @@ class HashSDFField(nn.Module):
         g = self.gradient(h[:, :3])
         if torch.is_grad_enabled():  # (no samples: no term, not the NaN of an empty mean)
             self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()} if len(g) else {}
+            self._aux_n = {"eikonal": int(g.shape[0])}  # (its sample count: data parallelism)
         n = torch.nn.functional.normalize(g, dim=-1).to(h.dtype)
         parts = [n, h[:, 3:]]
         if self.view_dependence:

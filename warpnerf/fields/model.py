@@ -62,6 +62,20 @@ class RadianceModel(nn.Module):
             parts["poses"] = self.poses
         return parts
 
+    def eikonal_parts(self) -> list:
+        """(mean, sample count) of each SDF field's eikonal term at its last rendered samples,
+        coarse then fine ((None, 0) for a field without one), taken once like
+        :meth:`aux_losses`: the parts a data-parallel rank needs for the mean over every rank's
+        samples."""
+        out = []
+        for f in (self.coarse, self.fine_field):
+            if f is None:
+                continue
+            mean = f.aux_losses().get("eikonal")
+            n = getattr(f, "_aux_n", {}).get("eikonal", 0) if mean is not None else 0
+            out.append((mean, n))
+        return out
+
     def aux_losses(self) -> dict:
         """The regularisers of the fields' last forward passes (e.g. VolSDF's eikonal term)."""
         out = dict(self.coarse.aux_losses())

@@ -87,6 +87,7 @@ class VolSDFField(nn.Module):
             d, g, feat = d.detach(), g.detach(), feat.detach()
         else:
             self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()}
+            self._aux_n = {"eikonal": int(g.shape[0])}  # (its sample count: data parallelism)
         beta = self.beta.to(d.dtype)
         sigma = laplace_cdf(-d, beta) / beta
         n = torch.nn.functional.normalize(g, dim=-1)

@@ -535,11 +535,31 @@ class NeRFTask(Task):
         if model.kind == "sdf":  # eikonal on the rendered samples and on random box points
             f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)
-            eik = f.eikonal(box) if aux is None else 0.5 * (aux + f.eikonal(box))
+            if self.dist is None:
+                aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)
+                eik = f.eikonal(box) if aux is None else 0.5 * (aux + f.eikonal(box))
+            else:  # (every rank draws the same box points: their term needs no exchange)
+                eik = self._dp_eikonal(model.eikonal_parts(), f.eikonal(box))
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
+
+    def _dp_eikonal(self, parts, box_term):
+        """A data-parallel rank's eikonal term, such that the ranks' average is the one
+        process's: each field's mean at the rendered samples becomes this rank's sum over the
+        samples of every rank (their counts summed on the device, no host wait), times the
+        number of ranks; without any rendered sample anywhere, the box points' term alone."""
+        dev = box_term.device
+        counts = torch.tensor([float(n) for _, n in parts], dtype=torch.float64)
+        if dev.type == "cuda":  # (a pinned copy does not wait for the GPU)
+            counts = counts.pin_memory().to(dev, non_blocking=True)
+        total = self.dist.sum_(counts.to(dev))
+        aux = box_term.new_zeros(())
+        for k, (mean, n) in enumerate(parts):
+            if mean is not None:
+                share = (n * self.dist.world / total[k].clamp_min(1.0)).to(mean.dtype)
+                aux = aux + mean * share
+        return torch.where(total.sum() > 0, 0.5 * (aux + box_term), box_term)
 
     def record(self, history, terms):
         terms = dict(terms, psnr=_psnr(terms["psnr"]))  # the fine pass's MSE, as PSNR
