@@ -26,6 +26,12 @@ from typing import Any
 import warp as wp
 
 
+@wp.func
+def interval(s_starts: wp.array(dtype=Any), s_ends: wp.array(dtype=Any), i: int):
+    """(midpoint m_i, length d_i) of sample i's interval."""
+    return s_starts.dtype(0.5) * (s_starts[i] + s_ends[i]), s_ends[i] - s_starts[i]
+
+
 @wp.kernel(enable_backward=False)
 def distortion_fwd(
     packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2] (start, count)
@@ -38,7 +44,6 @@ def distortion_fwd(
     start = int(packed_info[r, 0])
     count = int(packed_info[r, 1])
     zero = s_starts.dtype(0.0)
-    half = s_starts.dtype(0.5)
     two = s_starts.dtype(2.0)
     third = s_starts.dtype(1.0) / s_starts.dtype(3.0)  # (a literal 1/3 would be float32's)
     w_sum = zero  # W_i: weights before sample i
@@ -47,8 +52,7 @@ def distortion_fwd(
     for k in range(count):
         i = start + k
         w = weights[i]
-        m = half * (s_starts[i] + s_ends[i])
-        d = s_ends[i] - s_starts[i]
+        m, d = interval(s_starts, s_ends, i)
         loss += two * w * (m * w_sum - wm_sum) + third * w * w * d
         w_sum += w
         wm_sum += w * m
@@ -68,24 +72,22 @@ def distortion_bwd(
     start = int(packed_info[r, 0])
     count = int(packed_info[r, 1])
     zero = s_starts.dtype(0.0)
-    half = s_starts.dtype(0.5)
     two = s_starts.dtype(2.0)
     two_thirds = two / s_starts.dtype(3.0)
-    w_tot = zero
+    w_tot = zero  # the ray's totals W and S first
     wm_tot = zero
     for k in range(count):
         i = start + k
-        w = weights[i]
-        w_tot += w
-        wm_tot += w * half * (s_starts[i] + s_ends[i])
+        m, d = interval(s_starts, s_ends, i)
+        w_tot += weights[i]
+        wm_tot += weights[i] * m
     g = v_loss[r]
     w_sum = zero
     wm_sum = zero
     for k in range(count):
         i = start + k
         w = weights[i]
-        m = half * (s_starts[i] + s_ends[i])
-        d = s_ends[i] - s_starts[i]
+        m, d = interval(s_starts, s_ends, i)
         dw = two * (m * (two * w_sum - w_tot) + wm_tot - two * wm_sum) + two_thirds * w * d
         v_weights[i] = g * dw
         w_sum += w
