@@ -9,6 +9,7 @@
 #                   costs there (scripts/watch_overhead.py, TensorBoard + idle viewer)
 #   STAGE=ttq       issue 18's time to quality on lego (DATA=.gpu/lego; BUDGETS, LABEL, EXTRA)
 #   STAGE=variants  short time-to-quality runs of several flag sets (VARIANTS="a;b", BUDGETS)
+#   STAGE=tests     the CUDA variants of TESTS (default: test_distortion, test_contraction)
 #   STAGE=syncs     where the training step synchronises (scripts/sync_sites.py)
 #   STAGE=capture   issue 20: a real capture (DATA=.gpu/beer, NAME, LABEL, BUDGETS, EXTRA) trained
 #                   once with snapshots, every val image scored at each budget, spiral frames of
@@ -63,8 +64,14 @@ case "${STAGE:-cuda}" in
     cp /tmp/cap_$N/ttq.json "$OUT/cap_$N.json"; cp /tmp/cap_$N/run/config.json "$OUT/cap_${N}_config.json"
     python3 -m warpnerf.cli render /tmp/cap_$N/run --frames ${FRAMES:-6} --size ${SIZE:-640x360} \
       2>&1 | tail -2
-    mkdir -p "$OUT/spiral_$N"; cp /tmp/cap_$N/run/render_spiral/*.png "$OUT/spiral_$N/" 2>/dev/null
-    ls /tmp/cap_$N/run/render_spiral | head -20
+    # one sheet of the spiral's colour and depth frames (a call returns few files)
+    python3 scripts/contact_sheet.py "$OUT/spiral_$N.png" --cols ${FRAMES:-6} --every 1 \
+      /tmp/cap_$N/run/render_spiral/rgb_*.png /tmp/cap_$N/run/render_spiral/depth_*.png
+    if [ -n "${ROUND:-}" ]; then  # eval frame time with render rounds of ROUND samples a ray
+      python3 -m warpnerf.cli eval /tmp/cap_$N/run --split val --round-samples "$ROUND" \
+        --out /tmp/cap_${N}_round > "$OUT/cap_${N}_round$ROUND.json" 2>&1
+      tail -c 400 "$OUT/cap_${N}_round$ROUND.json"
+    fi
     ;;
   variants)
     # short time-to-quality runs of several flag sets (VARIANTS: sets separated by ';'), in order
@@ -73,17 +80,21 @@ case "${STAGE:-cuda}" in
     IFS=';' read -ra sets <<< "${VARIANTS:-}"
     for v in "${sets[@]}"; do
       i=$((i+1))
-      python3 scripts/time_to_quality.py run /tmp/ttq_v$i --budgets ${BUDGETS:-5,15,30,60} \
-        --label "v$i:$v" --chunk 400000 -- train nerf --data "$L" --field hash --device cuda \
+      rm -rf /tmp/ttq_v$i; python3 scripts/time_to_quality.py run /tmp/ttq_v$i --budgets ${BUDGETS:-5,15,30,60} \
+        --label "v$i:$v" --chunk ${CHUNK:-400000} -- train nerf --data "$L" --field hash --device cuda \
         --tf32 --batch 4096 --val-images 0 --quiet --no-tensorboard $v 2>&1 | tail -7 \
-        | tee "$OUT/ttq_v$i.txt"
-      cp /tmp/ttq_v$i/ttq.json "$OUT/ttq_v$i.json"
+        | tee "$OUT/ttq_v${i}${TAG:-}.txt"
+      cp /tmp/ttq_v$i/ttq.json "$OUT/ttq_v${i}${TAG:-}.json"
     done
+    ;;
+  tests)  # the CUDA variants of a few test files (TESTS, default: issue 20's new code)
+    python3 -m pytest ${TESTS:-tests/test_distortion.py tests/test_contraction.py} -q -k cuda \
+      -p no:cacheprovider 2>&1 | tail -8 | tee "$OUT/pytest_cuda_subset.txt"
     ;;
   syncs)
     python3 scripts/sync_sites.py --json "$OUT/sync_sites.json" -- train nerf --data \
       ${DATA:-builtin} --field hash --device cuda --tf32 --batch 4096 \
       --target-samples 262144 ${EXTRA:-} 2>&1 | tail -25
     ;;
-  *) echo "STAGE must be cuda, step, reflect, capture, ttq, variants or syncs"; exit 2 ;;
+  *) echo "STAGE must be cuda, tests, step, reflect, capture, ttq, variants or syncs"; exit 2 ;;
 esac
