@@ -15,7 +15,7 @@ import torch
 from warpnerf.cli import main
 from warpnerf.data import load_dataset
 from warpnerf.data.cameras import camera_rays, look_at, ndc_rays
-from warpnerf.data.capture import capture_info, normalised_to_world
+from warpnerf.data.capture import capture_info, normalised_to_world, reprojection_errors
 from warpnerf.data.colmap import Camera, Image, read_model, rotmat_to_qvec, write_model
 from warpnerf.errors import UserError
 from warpnerf.train.nerf import resolve_data
@@ -70,15 +70,21 @@ def _write_images(folder, names, size=(W, H)):
         iio.imwrite(folder / name, rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8))
 
 
-def _colmap_capture(root, c2w, model="PINHOLE", params=None, text=False, points=None):
+def _colmap_capture(root, c2w, model="PINHOLE", params=None, text=False, points=None,
+                    posed=None):  # fmt: skip
+    """A COLMAP capture of cameras ``c2w`` (OpenGL); its images' observations of ``points`` are
+    their true projections through the cameras ``posed`` (default: ``c2w``)."""
     names = [f"img_{i:03d}.png" for i in range(len(c2w))]
     params = params if params is not None else [20.0, 21.0, W / 2 + 0.3, H / 2 - 0.2]
     cams = {1: Camera(1, model, W, H, np.asarray(params, dtype=np.float64))}
+    k, dist = cams[1].pinhole()
     images = {}
     for i, m in enumerate(c2w):
         w2c = np.linalg.inv(m @ _GL_TO_CV)
         ids = np.arange(1, len(points) + 1) if points is not None else np.zeros(0, np.int64)
-        images[i + 1] = Image(i + 1, rotmat_to_qvec(w2c[:3, :3]), w2c[:3, 3], 1, names[i], ids)
+        src = m if posed is None else posed[i]
+        xys = np.array([_project(src, k, dist, x) for x in points]) if points is not None else None
+        images[i + 1] = Image(i + 1, rotmat_to_qvec(w2c[:3, :3]), w2c[:3, 3], 1, names[i], ids, xys)
     write_model(root / "sparse" / "0", cams, images, points, text=text)
     _write_images(root / "images", names)
     return names
@@ -132,6 +138,53 @@ def test_colmap_known_point_projects_to_its_pixel(tmp_path, model, params, dist,
             # float32 poses: the same pixel within a thousandth of a pixel-ray
     back = normalised_to_world((t[:3, :3] @ np.eye(3).T).T + t[:3, 3], t)
     assert np.allclose(back, np.eye(3), atol=1e-9)  # the transform is reversible
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
+@pytest.mark.parametrize("model,params,dist", MODELS[2:], ids=[m[0] for m in MODELS[2:]])
+def test_reprojection_of_the_models_observations(tmp_path, model, params, dist, text, capsys):
+    """`warpnerf data` on a COLMAP capture: observations that are the points' true projections
+    (distorted) reproject within float64 rounding; a camera turned by 0.5 degrees shows up as
+    about f * 0.5 degrees in the statistics; observations of ids the model lacks are left out."""
+    c2w = _object_cameras(5)
+    pts = np.array([1.0, -2.0, 0.5]) + np.random.default_rng(3).uniform(-0.8, 0.8, (40, 3))
+    _colmap_capture(tmp_path / "ok", c2w, model, params, text=text, points=pts)
+    rep = reprojection_errors(tmp_path / "ok")
+    assert rep["observations"] == rep["used"] == 5 * 40 and rep["behind_camera"] == 0
+    assert rep["max_px"] < 1e-6 and rep["colmap_mean_error_px"] == pytest.approx(0.5)
+    # the observations of camera 2 come from that camera turned by 0.5 degrees about its y axis
+    a = math.radians(0.5)
+    turn = np.eye(4)
+    turn[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    posed = c2w.copy()
+    posed[2] = posed[2] @ turn
+    _colmap_capture(tmp_path / "off", c2w, model, params, text=text, points=pts, posed=posed)
+    rep = reprojection_errors(tmp_path / "off")
+    f = params[0]
+    assert rep["median_px"] < 1e-6  # four of five cameras exact
+    assert rep["max_px"] == pytest.approx(f * a, rel=0.25)  # (distortion scales it a little)
+    # through the CLI: the same statistics in the summary; a model without points: null
+    assert main(["data", str(tmp_path / "off"), "--holdout", "0"]) == 0
+    info = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert info["reprojection"]["max_px"] == pytest.approx(rep["max_px"])
+    _colmap_capture(tmp_path / "none", c2w, model, params, text=text)
+    assert reprojection_errors(tmp_path / "none") is None
+
+
+def test_reprojection_skips_unknown_point_ids_and_counts_points_behind(tmp_path):
+    c2w = _object_cameras(3)
+    pts = np.array([1.0, -2.0, 0.5]) + np.random.default_rng(4).uniform(-0.5, 0.5, (10, 3))
+    _colmap_capture(tmp_path, c2w, points=pts)
+    sp = tmp_path / "sparse" / "0"
+    cams, ims, _ = read_model(sp)
+    ims[1].point3d_ids = ims[1].point3d_ids.copy()
+    ims[1].point3d_ids[:3] = [-1, 999, 12345]  # no point, and ids the model does not hold
+    ims[2].xys[4] = [np.nan, np.inf]  # a non-finite pixel: left out and counted
+    behind = 2 * c2w[0, :3, 3] - np.array([1.0, -2.0, 0.5])  # behind camera 0, not 1, 2
+    write_model(sp, cams, ims, np.concatenate([pts[:-1], behind[None]]))
+    rep = reprojection_errors(tmp_path)
+    assert rep["observations"] == 3 * 10 - 4 and rep["behind_camera"] >= 1
+    assert rep["non_finite"] == 1 and np.isfinite(rep["median_px"])
 
 
 def test_colmap_text_and_binary_agree_and_bounds_from_points(tmp_path):

@@ -44,7 +44,7 @@ from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
 from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, holdout_indices, register_format
 
-__all__ = ["detect_capture", "capture_info", "load_capture", "NDC_NEAR"]
+__all__ = ["detect_capture", "capture_info", "load_capture", "reprojection_errors", "NDC_NEAR"]
 
 NDC_NEAR = 1.0
 FORWARD_FACING_DEGREES = 45.0
@@ -118,23 +118,17 @@ def _colmap(root: Path, downscale: int) -> dict:
     registered = {im.name for im in ims}
     unregistered = [p.name for p in _image_files(folder) if p.name not in registered]
     c2w, k, dist, bounds = [], [], [], []
-    if points is not None:
-        order = np.argsort(points["ids"])
-        order_ids = points["ids"][order]
+    index = _point_index(points)
     for im in ims:
         cam = cams[im.camera_id]
-        r, t = qvec_to_rotmat(im.qvec), im.tvec
-        m = np.eye(4)
-        m[:3, :3], m[:3, 3] = r.T, -r.T @ t
+        m = _c2w_opencv(im)
         c2w.append(m @ _OPENCV_TO_GL)
         ki, di = cam.pinhole()
         k.append(ki)
         dist.append(di)
-        ids = im.point3d_ids[im.point3d_ids >= 0]
-        if points is not None and len(ids) and len(order_ids):
-            rows = np.searchsorted(order_ids, ids).clip(0, len(order_ids) - 1)
-            rows = order[rows[order_ids[rows] == ids]]
-            z = (points["xyz"][rows] - m[:3, 3]) @ r[2]  # depth along the viewing axis (OpenCV +z)
+        rows = _point_rows(index, im.point3d_ids)[1]
+        if len(rows):
+            z = (points["xyz"][rows] - m[:3, 3]) @ m[:3, 2]  # depth along the viewing axis (+z)
             z = z[z > 0]
             bounds.append(np.percentile(z, [0.1, 99.9]) if len(z) else [np.nan, np.nan])
         else:
@@ -377,6 +371,96 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
     sc["aabb"] = round(aabb, 3)
     _check_scene(sc)
     return sc
+
+
+def _c2w_opencv(im) -> np.ndarray:
+    """[4, 4] camera-to-world of a COLMAP image, OpenCV axes (x right, y down, z forward)."""
+    r = qvec_to_rotmat(im.qvec)
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = r.T, -r.T @ im.tvec
+    return m
+
+
+def _point_index(points) -> tuple[np.ndarray, np.ndarray] | None:
+    """(order, sorted ids) of a model's sparse points, for :func:`_point_rows`; None if none."""
+    if points is None or not len(points["ids"]):
+        return None
+    order = np.argsort(points["ids"], kind="stable")
+    return order, points["ids"][order]
+
+
+def _point_rows(index, ids) -> tuple[np.ndarray, np.ndarray]:
+    """(positions in ``ids`` [k], rows of the points [k]) of the ids that name a sparse point
+    (ids of -1 and ids missing from the model are left out); ``index``: :func:`_point_index`."""
+    if index is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order, sorted_ids = index
+    rows = np.searchsorted(sorted_ids, ids).clip(0, len(sorted_ids) - 1)
+    found = (sorted_ids[rows] == ids) & (ids >= 0)
+    return np.nonzero(found)[0], order[rows[found]]
+
+
+def reprojection_errors(root, max_observations: int = 200_000, seed: int = 0) -> dict | None:
+    """How well the loader's camera model (poses, intrinsics, undistortion) explains a COLMAP
+    model's own 2D observations of its sparse points: for each observation, the angle between
+    the ray through its pixel and the direction to its 3D point, times the focal length
+    (pixels). Statistics over at most ``max_observations`` observations (drawn at random,
+    ``seed``), next to COLMAP's own mean reprojection error. A median far above COLMAP's means
+    that the loader (or the images) disagree with the model; one close to it means the poses
+    are as good as the model says, and pose refinement has little to correct. None without
+    sparse points or observations."""
+    from .cameras import camera_rays
+
+    model = find_model(Path(root))
+    cams, images, points = read_model(model)
+    ims = sorted(images.values(), key=lambda im: im.name)
+    cam_idx, xys, xyz = [], [], []
+    index = _point_index(points)
+    for i, im in enumerate(ims):
+        pos, rows = _point_rows(index, im.point3d_ids)
+        if len(pos) and im.xys is not None:
+            cam_idx.append(np.full(len(pos), i))
+            xys.append(im.xys[pos])
+            xyz.append(points["xyz"][rows])
+    if not cam_idx:
+        return None
+    cam_idx, xys, xyz = np.concatenate(cam_idx), np.concatenate(xys), np.concatenate(xyz)
+    finite = np.isfinite(xys).all(axis=1)  # (an untrusted file's NaN pixel: left out, counted)
+    n_bad = int((~finite).sum())
+    cam_idx, xys, xyz = cam_idx[finite], xys[finite], xyz[finite]
+    n_all = len(cam_idx)
+    if not n_all:
+        return None
+    if n_all > max_observations:
+        keep = np.sort(np.random.default_rng(seed).choice(n_all, max_observations, replace=False))
+        cam_idx, xys, xyz = cam_idx[keep], xys[keep], xyz[keep]
+    k, dist = zip(*(cams[im.camera_id].pinhole() for im in ims))
+    c2w = torch.from_numpy(np.stack([_c2w_opencv(im) @ _OPENCV_TO_GL for im in ims]))
+    k, dist = torch.from_numpy(np.stack(k)), torch.from_numpy(np.stack(dist))
+    idx = torch.from_numpy(cam_idx)
+    try:
+        o, d = camera_rays(c2w, k, cam_idx=idx, px=torch.from_numpy(xys[:, 0]),
+                           py=torch.from_numpy(xys[:, 1]), distortion=dist)  # fmt: skip
+    except ValueError as e:  # an observation past the distortion model's invertible range
+        raise UserError(f"{model}: {e}") from None
+    v = torch.from_numpy(xyz) - o
+    depth = (v * d).sum(-1)
+    angle = torch.atan2(torch.linalg.cross(v, d).norm(dim=-1), depth)
+    err = (angle * 0.5 * (k[idx, 0] + k[idx, 1])).numpy()
+    front = depth.numpy() > 0
+    e = err[front]
+    out = {
+        "observations": int(n_all),
+        "used": int(len(err)),
+        "behind_camera": int((~front).sum()),
+        "non_finite": n_bad,
+        "median_px": round(float(np.median(e)), 4) if len(e) else None,
+        "p90_px": round(float(np.percentile(e, 90)), 4) if len(e) else None,
+        "max_px": round(float(e.max()), 4) if len(e) else None,
+    }
+    if "error" in points and len(points["error"]):
+        out["colmap_mean_error_px"] = round(float(np.mean(points["error"])), 4)
+    return out
 
 
 def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT) -> dict:

@@ -88,6 +88,7 @@ class Image:
     camera_id: int
     name: str
     point3d_ids: np.ndarray  # [n] int64, -1 where a 2D observation has no 3D point
+    xys: np.ndarray | None = None  # [n, 2] float64 pixel positions of the 2D observations
 
 
 def qvec_to_rotmat(q) -> np.ndarray:
@@ -247,7 +248,13 @@ def _read_images_bin(path: Path) -> dict[int, Image]:
         pts = r.array(np.dtype([("x", "<f8"), ("y", "<f8"), ("id", "<i8")]), n_pts)
         _unique(images, image_id, "image id", path)
         images[image_id] = Image(
-            image_id, np.array(pose[:4]), np.array(pose[4:]), cam_id, name, pts["id"].copy()
+            image_id,
+            np.array(pose[:4]),
+            np.array(pose[4:]),
+            cam_id,
+            name,
+            pts["id"].copy(),
+            np.stack([pts["x"], pts["y"]], axis=-1),
         )
     r.done()
     return images
@@ -256,16 +263,16 @@ def _read_images_bin(path: Path) -> dict[int, Image]:
 def _read_points_bin(path: Path) -> dict:
     r = _Reader(path)
     n = r.count(struct.calcsize("<Q3d3BdQ"), "3D points")
-    xyz, ids = np.empty((n, 3)), np.empty(n, dtype=np.int64)
+    xyz, ids, err = np.empty((n, 3)), np.empty(n, dtype=np.int64), np.empty(n)
     for i in range(n):
-        pid, x, y, z, _, _, _, _, track = r.read("Q3d3BdQ")
+        pid, x, y, z, _, _, _, err[i], track = r.read("Q3d3BdQ")
         if pid >= 2**63:  # images refer to points by int64 ids
             raise UserError(f"{path}: 3D point id {pid} out of the 64-bit range")
         ids[i] = pid
         r.array("<i4", 2 * track)
         xyz[i] = (x, y, z)
     r.done()
-    return {"ids": ids, "xyz": xyz}
+    return {"ids": ids, "xyz": xyz, "error": err}
 
 
 def _text_lines(path: Path) -> list[tuple[int, list[str]]]:
@@ -285,12 +292,10 @@ def _parse(path, lineno, fields, types):
         raise UserError(f"{path}:{lineno}: expected {len(types)} values ({names})") from None
 
 
-def _point_ids(path, lineno, fields) -> np.ndarray:
-    """POINT3D_ID of each X Y POINT3D_ID triple of a POINTS2D line (int64; -1: none)."""
+def _points2d(path, lineno, fields) -> tuple[np.ndarray, np.ndarray]:
+    """(POINT3D_ID [n] int64 (-1: none), X Y [n, 2]) of the triples of a POINTS2D line."""
     try:
-        for i, v in enumerate(fields):
-            if i % 3 < 2:
-                float(v)
+        xys = [float(v) for i, v in enumerate(fields) if i % 3 < 2]
         ids = [int(v) for v in fields[2::3]]
     except ValueError:
         raise UserError(
@@ -298,7 +303,7 @@ def _point_ids(path, lineno, fields) -> np.ndarray:
         ) from None
     if any(not -(2**63) <= v < 2**63 for v in ids):
         raise UserError(f"{path}:{lineno}: POINT3D_ID out of the 64-bit range")
-    return np.array(ids, dtype=np.int64)
+    return np.array(ids, dtype=np.int64), np.array(xys, dtype=np.float64).reshape(-1, 2)
 
 
 def _read_cameras_txt(path: Path) -> dict[int, Camera]:
@@ -335,32 +340,37 @@ def _read_images_txt(path: Path) -> dict[int, Image]:
         pts = lines[i + 1][1] if i + 1 < len(lines) else []
         if len(pts) % 3:
             raise UserError(f"{path}:{lines[i + 1][0]}: POINTS2D must be triples X Y POINT3D_ID")
-        ids = _point_ids(path, lines[i + 1][0], pts) if pts else np.zeros(0, np.int64)
+        ids, xys = _points2d(path, lines[i + 1][0], pts)
         _unique(images, vals[0], "image id", path, f":{lineno}")
         images[vals[0]] = Image(
-            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, ids
+            vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, ids, xys
         )
         i += 2
     return images
 
 
 def _read_points_txt(path: Path) -> dict:
-    xyz, ids = [], []
+    xyz, ids, err = [], [], []
     for lineno, f in _text_lines(path):
         if f:
             if len(f) < 8:
                 raise UserError(f"{path}:{lineno}: expected POINT3D_ID X Y Z R G B ERROR TRACK[]")
             ids.append(_parse(path, lineno, f[:1], [int])[0])
             xyz.append(_parse(path, lineno, f[1:4], [float] * 3))
+            err.append(_parse(path, lineno, f[7:8], [float])[0])
             if not -(2**63) <= ids[-1] < 2**63:
                 raise UserError(f"{path}:{lineno}: POINT3D_ID out of the 64-bit range")
-    return {"ids": np.asarray(ids, dtype=np.int64), "xyz": np.asarray(xyz).reshape(-1, 3)}
+    return {
+        "ids": np.asarray(ids, dtype=np.int64),
+        "xyz": np.asarray(xyz).reshape(-1, 3),
+        "error": np.asarray(err, dtype=np.float64),
+    }
 
 
 def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None]:
-    """(cameras by id, images by id, points3D {"ids": [n], "xyz": [n, 3]} or None) of a
-    sparse-model folder, binary
-    preferred when both exist. Every image's camera must exist; qvec/tvec must be finite."""
+    """(cameras by id, images by id, points3D {"ids": [n], "xyz": [n, 3], "error": [n] (mean
+    reprojection error in pixels)} or None) of a sparse-model folder, binary preferred when
+    both exist. Every image's camera must exist; qvec/tvec must be finite."""
     folder = Path(folder)
     ext = ".bin" if (folder / "cameras.bin").is_file() else ".txt"
     read = {
@@ -430,6 +440,13 @@ def _write(path: Path, data: bytes) -> None:
         Path(tmp).write_bytes(data)
 
 
+def _xys(im: Image) -> list:
+    """An image's observation positions to write ((0, 0) each when it has none)."""
+    if im.xys is None:
+        return [(0.0, 0.0)] * len(im.point3d_ids)
+    return np.asarray(im.xys, dtype=np.float64).reshape(-1, 2).tolist()
+
+
 def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], points=None, text=False):
     """Writes a sparse model (binary or text) as COLMAP does; used by tests and tools."""
     folder = Path(folder)
@@ -444,7 +461,10 @@ def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], point
         for im in images.values():
             pose = " ".join(map(repr, [*im.qvec.tolist(), *im.tvec.tolist()]))
             lines.append(f"{im.id} {pose} {im.camera_id} {im.name}")
-            lines.append(" ".join(f"0 0 {int(p)}" for p in im.point3d_ids))
+            xys = _xys(im)
+            lines.append(
+                " ".join(f"{x!r} {y!r} {int(p)}" for (x, y), p in zip(xys, im.point3d_ids))
+            )
         _write(folder / "images.txt", ("# Image list\n" + "\n".join(lines) + "\n").encode())
         pts = enumerate(points.tolist())
         lines = [f"{i + 1} {x!r} {y!r} {z!r} 128 128 128 0.5" for i, (x, y, z) in pts]
@@ -459,8 +479,8 @@ def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], point
     for im in images.values():
         out.append(struct.pack("<i7di", im.id, *im.qvec, *im.tvec, im.camera_id))
         out.append(im.name.encode() + b"\0" + struct.pack("<Q", len(im.point3d_ids)))
-        for p in im.point3d_ids:
-            out.append(struct.pack("<ddq", 0.0, 0.0, int(p)))
+        for (x, y), p in zip(_xys(im), im.point3d_ids):
+            out.append(struct.pack("<ddq", x, y, int(p)))
     _write(folder / "images.bin", b"".join(out))
     out = [struct.pack("<Q", len(points))]
     for i, p in enumerate(points):

@@ -97,7 +97,8 @@ def load_dataset(root, split: str = "train", fmt: str = "auto", **options) -> Da
 
 def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOLDOUT) -> dict:
     """What ``warpnerf data`` prints: format, images per split, image size, intrinsics, near/far,
-    camera centres' box (and for COLMAP/LLFF the scene transform, NDC use and points' box).
+    camera centres' box (and for COLMAP/LLFF the scene transform, NDC use and points' box; for
+    COLMAP the reprojection error of the model's observations through the loader's cameras).
     Loading each split validates the files (missing images, sizes, poses)."""
     if fmt not in FORMATS:
         raise UserError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
@@ -105,6 +106,8 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
     fmt = detect_format(root) if fmt == "auto" else fmt
     if fmt in ("colmap", "llff"):
         info = _capture.capture_info(root, fmt, downscale, holdout)
+        if fmt == "colmap":  # the camera model against COLMAP's own observations
+            info["reprojection"] = _capture.reprojection_errors(root)
     else:
         info = {"format": fmt, "splits": {}}
     for split in ("train", "val"):
