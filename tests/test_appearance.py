@@ -100,3 +100,26 @@ def test_resume_refuses_a_changed_training_split(tmp_path):
     with pytest.raises(UserError, match="appearance codes for 10 training images"):
         train_nerf(NeRFConfig(iters=4), tmp_path / "run", resume=True, progress=False,
                    log=lambda *a: 0)  # fmt: skip
+
+
+def test_capture_defaults_codes_and_a_coarser_finest_level():
+    """On a COLMAP/LLFF capture (a scene dict from the data) --field hash defaults to appearance
+    codes of 16 and a finest hash level of 1024 (measured on beer and fern); renders and the
+    built-in scene keep none and 2048; flags given explicitly win."""
+    scene = {"format": "colmap", "transform": np.eye(4).tolist(), "ndc": None, "near": 2.0,
+             "far": 30.0, "aabb": 9.9, "inner": 4.8}  # fmt: skip
+    cfg = NeRFConfig(field="hash", data="x").validate(scene)
+    assert (cfg.appearance_dim, cfg.hash_max_res, cfg.contract) == (16, 1024, "on")
+    ndc = dict(scene, ndc=[400.0, 400.0, 504.0, 378.0], near=0.0, far=4.0, aabb=1.5)
+    cfg = NeRFConfig(field="hash", data="x").validate(ndc)
+    assert (cfg.appearance_dim, cfg.hash_max_res, cfg.contract) == (16, 1024, "off")
+    cfg = NeRFConfig(field="hash", data="builtin").validate()
+    assert (cfg.appearance_dim, cfg.hash_max_res) == (0, 2048)
+    cfg = NeRFConfig(field="hash", data="x", appearance_dim=0, hash_max_res=2048).validate(scene)
+    assert (cfg.appearance_dim, cfg.hash_max_res) == (0, 2048)
+    cfg = NeRFConfig(field="hash", data="x", grid_res=0).validate(ndc)  # no grid: no codes
+    assert cfg.appearance_dim == 0
+    cfg = NeRFConfig(field="hash_sdf", data="x").validate(scene)  # SDFs: as before
+    assert (cfg.appearance_dim, cfg.hash_max_res) == (0, 2048)
+    with pytest.raises(UserError, match="max_res"):  # a bad explicit value: still an error
+        NeRFConfig(field="hash", data="x", hash_max_res=1).validate(scene)

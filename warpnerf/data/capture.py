@@ -49,6 +49,7 @@ __all__ = ["detect_capture", "capture_info", "load_capture", "reprojection_error
 NDC_NEAR = 1.0
 FORWARD_FACING_DEGREES = 45.0
 CAMERA_RADIUS = 4.0
+MAX_KEYPOINTS = 1_000_000  # sparse-point observations kept per split (a random subset beyond)
 _EXTS = (".png", ".jpg", ".jpeg")
 _OPENCV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -117,7 +118,7 @@ def _colmap(root: Path, downscale: int) -> dict:
         )
     registered = {im.name for im in ims}
     unregistered = [p.name for p in _image_files(folder) if p.name not in registered]
-    c2w, k, dist, bounds = [], [], [], []
+    c2w, k, dist, bounds, observations = [], [], [], [], []
     index = _point_index(points)
     for im in ims:
         cam = cams[im.camera_id]
@@ -126,7 +127,9 @@ def _colmap(root: Path, downscale: int) -> dict:
         ki, di = cam.pinhole()
         k.append(ki)
         dist.append(di)
-        rows = _point_rows(index, im.point3d_ids)[1]
+        pos, rows = _point_rows(index, im.point3d_ids)
+        xys = im.xys[pos] if im.xys is not None else np.zeros((0, 2))
+        observations.append((xys, rows[: len(xys)]))  # pixels of the COLMAP camera, point rows
         if len(rows):
             z = (points["xyz"][rows] - m[:3, 3]) @ m[:3, 2]  # depth along the viewing axis (+z)
             z = z[z > 0]
@@ -147,6 +150,7 @@ def _colmap(root: Path, downscale: int) -> dict:
                 f"{first}: image is {w_img}x{h_img} but its COLMAP camera is {w_cam}x{h_cam}"
             )
         k = k * np.array([sx, sy, sx, sy])  # images_N: a downscaled copy
+        observations = [(xy * np.array([sx, sy]), rows) for xy, rows in observations]
     bounds = np.asarray(bounds, dtype=np.float64)
     return {
         "names": [im.name for im in ims],
@@ -156,6 +160,7 @@ def _colmap(root: Path, downscale: int) -> dict:
         "distortion": np.asarray(dist),
         "bounds": None if np.isnan(bounds).all() else bounds,
         "points": points["xyz"] if points is not None and len(points["xyz"]) else None,
+        "observations": observations,  # per image: (pixel positions [m, 2], point rows [m])
         "size": (w_img, h_img),
         "unregistered": unregistered,
         "model": str(model),
@@ -553,7 +558,43 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
         far=sc["far"],
         ndc=_ndc_camera_info(sc, extra) if sc["forward_facing"] else None,
         indices=idx,
+        keypoints=_keypoints(sc, idx),
     )
+
+
+def _keypoints(sc: dict, idx: list) -> dict | None:
+    """The split's sparse-point observations (COLMAP): ``cam`` [K] int64 (the image's position
+    in the split), ``px``/``py`` [K] float32 (pixels of the loaded images), ``xyz`` [K, 3]
+    float32 (the point, normalised frame). Observations with a non-finite pixel or one outside
+    the image are left out; at most MAX_KEYPOINTS, drawn at random (fixed seed). None without
+    points or observations, or for NDC captures (their rays are not in the points' space)."""
+    obs = sc.get("observations")
+    if sc.get("points") is None or not obs or sc["forward_facing"]:
+        return None
+    extra = sc["extra"]
+    w, h = sc["size"][0] // extra, sc["size"][1] // extra
+    cams, xys, rows = [], [], []
+    for j, i in enumerate(idx):
+        xy, r = obs[i]
+        xy = xy / extra
+        ok = np.isfinite(xy).all(axis=1) & (xy >= 0).all(axis=1) & (xy[:, 0] <= w) & (xy[:, 1] <= h)
+        cams.append(np.full(int(ok.sum()), j, dtype=np.int64))
+        xys.append(xy[ok])
+        rows.append(r[ok])
+    cam, xy, row = np.concatenate(cams), np.concatenate(xys), np.concatenate(rows)
+    if not len(cam):
+        return None
+    if len(cam) > MAX_KEYPOINTS:
+        keep = np.sort(np.random.default_rng(0).choice(len(cam), MAX_KEYPOINTS, replace=False))
+        cam, xy, row = cam[keep], xy[keep], row[keep]
+    t = sc["transform"]
+    xyz = sc["points"][row] @ t[:3, :3].T + t[:3, 3]
+    return {
+        "cam": torch.from_numpy(cam),
+        "px": torch.from_numpy(xy[:, 0].astype(np.float32)),
+        "py": torch.from_numpy(xy[:, 1].astype(np.float32)),
+        "xyz": torch.from_numpy(xyz.astype(np.float32)),
+    }
 
 
 register_format(

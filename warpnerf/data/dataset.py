@@ -62,6 +62,9 @@ class Dataset:
         near, far: the scene's depth range when the format knows it, else None.
         ndc: None, or [fx, fy, W, H] of the NDC camera of a forward-facing capture.
         indices: the images' positions in the whole capture (COLMAP/LLFF), else None.
+        keypoints: COLMAP captures with sparse points (not NDC): the split's observations of
+            them, {"cam" [K] int64, "px", "py" [K] float32 pixels, "xyz" [K, 3] float32
+            normalised}, on the CPU; else None.
 
     Code written against the dict the loaders used to return keeps working: ``ds["images"]``,
     ``ds.get("distortion")``, ``"ndc" in ds`` (true when the value is not None).
@@ -79,6 +82,7 @@ class Dataset:
     far: float | None = None
     ndc: list | None = None
     indices: list | None = None
+    keypoints: dict | None = None
 
     @property
     def height(self) -> int:

@@ -426,6 +426,16 @@ class NeRFTask(Task):
             self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
         self.batch = cfg.batch
         self._kept = None  # data-parallel: the last step's global sample count (on the device)
+        self.keypoints = None  # --depth-loss: the training split's sparse-point observations
+        if cfg.depth_loss > 0:
+            kp = train.keypoints
+            if kp is None or cfg.ndc_camera() is not None:
+                raise UserError(
+                    f"--depth-loss needs a COLMAP capture with sparse points (points3D) and "
+                    f"world-space rays; {cfg.data} has "
+                    + ("NDC rays (forward-facing)" if kp is not None else "no point observations")
+                )  # fmt: skip
+            self.keypoints = {k: v.to(cfg.device) for k, v in kp.items()}
 
     def resume(self, ckpt, run, log):
         self.gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
@@ -529,6 +539,11 @@ class NeRFTask(Task):
             dist_loss = out["distortion"].mean() * scale
             terms["distortion"] = dist_loss.detach()
             loss = loss + cfg.distortion_loss * dist_loss
+        if self.keypoints is not None:  # the depth prior at sparse points (the same on every
+            # rank: every rank draws and renders the whole set, the ranks' mean is the term)
+            depth_term = self._depth_term(seed)
+            terms["depth"] = depth_term.detach()
+            loss = loss + cfg.depth_loss * depth_term
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
             loss = loss + torch.mean((coarse - target) ** 2) * scale  # (scale 1: exact)
@@ -543,6 +558,24 @@ class NeRFTask(Task):
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
+
+    def _depth_term(self, seed: int):
+        """--depth-loss: ``depth_rays`` observations of sparse points drawn from the training
+        images, rendered like the step's rays; the mean Huber loss (delta 0.1) of each ray's
+        depth over the point's distance along it, against 1 (missing opacity and weight in
+        front of or behind the point both raise it)."""
+        cfg, kp = self.cfg, self.keypoints
+        j = torch.randint(kp["cam"].shape[0], (cfg.depth_rays,), generator=self.gen)
+        j = j.to(kp["cam"].device)
+        cam = kp["cam"][j]
+        o, d = dataset_rays(cfg, self.train, cam, kp["px"][j], kp["py"][j], check=False,
+                            poses=self.model.poses)  # fmt: skip
+        z = ((kp["xyz"][j] - o) * d).sum(-1).clamp_min(1e-6)  # the point's distance on the ray
+        images = cam if cfg.appearance_dim else None
+        out = render_rays_of(self.model, cfg, o, d, perturb=True, seed=seed + (1 << 20),
+                             generator=self.grid_gen, ray_images=images)  # fmt: skip
+        ratio = out["depth"] / z
+        return torch.nn.functional.huber_loss(ratio, torch.ones_like(ratio), delta=0.1)
 
     def _dp_eikonal(self, parts, box_term):
         """A data-parallel rank's eikonal term, such that the ranks' average is the one
