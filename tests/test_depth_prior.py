@@ -61,6 +61,13 @@ def test_keypoints_drop_bad_observations_and_need_points(tmp_path):
     write_model(sp, cams, ims, pts["xyz"])
     kp = load_dataset(tmp_path / "a", "train", holdout=0).keypoints
     assert len(kp["cam"]) == n_before - 3 and torch.isfinite(kp["px"]).all()
+    # a point moved behind camera 0 (its observation pixel stays inside the image): left out
+    before = int((kp["cam"] == 0).sum())
+    xyz = pts["xyz"].copy()
+    xyz[5] = 2 * _object_cameras(10)[0, :3, 3] - CENTRE  # camera 0 looks at the centre
+    write_model(sp, cams, ims, xyz)
+    kp = load_dataset(tmp_path / "a", "train", holdout=0).keypoints
+    assert int((kp["cam"] == 0).sum()) == before - 1
     _colmap_capture(tmp_path / "b", _object_cameras(4))  # no points
     assert load_dataset(tmp_path / "b", "train", holdout=0).keypoints is None
     pts = np.array([0.0, 0.0, -20.0]) + np.random.default_rng(1).uniform(-3, 3, (20, 3))

@@ -565,19 +565,24 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
 def _keypoints(sc: dict, idx: list) -> dict | None:
     """The split's sparse-point observations (COLMAP): ``cam`` [K] int64 (the image's position
     in the split), ``px``/``py`` [K] float32 (pixels of the loaded images), ``xyz`` [K, 3]
-    float32 (the point, normalised frame). Observations with a non-finite pixel or one outside
-    the image are left out; at most MAX_KEYPOINTS, drawn at random (fixed seed). None without
-    points or observations, or for NDC captures (their rays are not in the points' space)."""
+    float32 (the point, normalised frame). Observations with a non-finite pixel, one outside
+    the image, or of a point not in front of the camera are left out; at most MAX_KEYPOINTS,
+    drawn at random (fixed seed). None without points or observations, or for NDC captures
+    (their rays are not in the points' space)."""
     obs = sc.get("observations")
-    if sc.get("points") is None or not obs or sc["forward_facing"]:
+    if sc.get("points") is None or not obs or sc["forward_facing"] or not len(idx):
         return None
     extra = sc["extra"]
     w, h = sc["size"][0] // extra, sc["size"][1] // extra
+    t = sc["transform"]
+    world = sc["points"] @ t[:3, :3].T + t[:3, 3]  # the points in the normalised frame
     cams, xys, rows = [], [], []
     for j, i in enumerate(idx):
         xy, r = obs[i]
         xy = xy / extra
         ok = np.isfinite(xy).all(axis=1) & (xy >= 0).all(axis=1) & (xy[:, 0] <= w) & (xy[:, 1] <= h)
+        c2w = sc["c2w_norm"][i]  # in front of the camera only (OpenGL: it looks down -z)
+        ok &= (world[r] - c2w[:3, 3]) @ -c2w[:3, 2] > 1e-6 * sc["near"]
         cams.append(np.full(int(ok.sum()), j, dtype=np.int64))
         xys.append(xy[ok])
         rows.append(r[ok])
@@ -587,8 +592,7 @@ def _keypoints(sc: dict, idx: list) -> dict | None:
     if len(cam) > MAX_KEYPOINTS:
         keep = np.sort(np.random.default_rng(0).choice(len(cam), MAX_KEYPOINTS, replace=False))
         cam, xy, row = cam[keep], xy[keep], row[keep]
-    t = sc["transform"]
-    xyz = sc["points"][row] @ t[:3, :3].T + t[:3, 3]
+    xyz = world[row]
     return {
         "cam": torch.from_numpy(cam),
         "px": torch.from_numpy(xy[:, 0].astype(np.float32)),
