@@ -123,3 +123,23 @@ def test_capture_defaults_codes_and_a_coarser_finest_level():
     assert (cfg.appearance_dim, cfg.hash_max_res) == (0, 2048)
     with pytest.raises(UserError, match="max_res"):  # a bad explicit value: still an error
         NeRFConfig(field="hash", data="x", hash_max_res=1).validate(scene)
+
+
+def test_runs_from_before_the_data_dependent_defaults_load(tmp_path):
+    """A capture run whose config.json predates --appearance-dim (or today's data-dependent
+    --hash-max-res) loads with the fixed defaults it was trained with (0 and 2048), not
+    today's capture defaults (which would not match its checkpoint)."""
+    from warpnerf.train import train_nerf
+    from warpnerf.train.nerf import load_run
+
+    from .test_depth_prior import _capture, _cfg
+
+    _capture(tmp_path / "data")
+    run = tmp_path / "run"
+    train_nerf(_cfg(tmp_path / "data", iters=1, appearance_dim=0, hash_max_res=2048), run,
+               progress=False, log=lambda *a: 0)  # fmt: skip
+    saved = json.loads((run / "config.json").read_text())
+    del saved["appearance_dim"], saved["hash_max_res"], saved["depth_loss"], saved["depth_rays"]
+    (run / "config.json").write_text(json.dumps(saved))
+    cfg, model, _ = load_run(run)
+    assert (cfg.appearance_dim, cfg.hash_max_res, cfg.depth_loss) == (0, 2048, 0.0)

@@ -180,11 +180,31 @@ def test_reprojection_skips_unknown_point_ids_and_counts_points_behind(tmp_path)
     ims[1].point3d_ids = ims[1].point3d_ids.copy()
     ims[1].point3d_ids[:3] = [-1, 999, 12345]  # no point, and ids the model does not hold
     ims[2].xys[4] = [np.nan, np.inf]  # a non-finite pixel: left out and counted
+    ims[2].xys[5] = [-3.0, 1e12]  # outside the image: left out and counted
     behind = 2 * c2w[0, :3, 3] - np.array([1.0, -2.0, 0.5])  # behind camera 0, not 1, 2
     write_model(sp, cams, ims, np.concatenate([pts[:-1], behind[None]]))
     rep = reprojection_errors(tmp_path)
-    assert rep["observations"] == 3 * 10 - 4 and rep["behind_camera"] >= 1
-    assert rep["non_finite"] == 1 and np.isfinite(rep["median_px"])
+    assert rep["non_finite"] == 1 and rep["outside_image"] >= 1 and rep["behind_camera"] >= 1
+    assert rep["observations"] + rep["outside_image"] == 3 * 10 - 4  # (3 ids, 1 NaN left out)
+    assert np.isfinite(rep["median_px"])
+    # a distorted camera: an observation far outside its image stays out of the undistortion
+    cams[1].model, cams[1].params = "SIMPLE_RADIAL", np.array([20.0, 12.1, 7.9, 0.08])
+    ims[3].xys[0] = [5000.0, 5000.0]
+    write_model(sp, cams, ims, np.concatenate([pts[:-1], behind[None]]))
+    assert reprojection_errors(tmp_path)["outside_image"] >= 2
+
+
+def test_colmap_text_image_line_without_points_line_and_write_checks(tmp_path):
+    """An images.txt whose last image line has no POINTS2D line after it loads (no points);
+    write_model refuses observation pixels that do not match the point ids."""
+    _colmap_capture(tmp_path, _object_cameras(3), text=True)
+    p = tmp_path / "sparse" / "0" / "images.txt"
+    p.write_text(p.read_text().rstrip("\n") + "\n")  # the last (empty) POINTS2D line dropped
+    cams, ims, _ = read_model(tmp_path / "sparse" / "0")
+    assert len(ims) == 3 and all(len(im.point3d_ids) == 0 for im in ims.values())
+    ims[1].point3d_ids, ims[1].xys = np.array([1, 2]), np.zeros((3, 2))
+    with pytest.raises(ValueError, match="xys"):
+        write_model(tmp_path / "w", cams, ims)
 
 
 def test_colmap_text_and_binary_agree_and_bounds_from_points(tmp_path):

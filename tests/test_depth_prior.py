@@ -71,12 +71,14 @@ def test_keypoints_drop_bad_observations_and_need_points(tmp_path):
     _colmap_capture(tmp_path / "b", _object_cameras(4))  # no points
     assert load_dataset(tmp_path / "b", "train", holdout=0).keypoints is None
     pts = np.array([0.0, 0.0, -20.0]) + np.random.default_rng(1).uniform(-3, 3, (20, 3))
-    _colmap_capture(tmp_path / "c", _forward_cameras(), points=pts)  # NDC: not in point space
-    assert load_dataset(tmp_path / "c", "train", holdout=0).keypoints is None
+    _colmap_capture(tmp_path / "c", _forward_cameras(), points=pts)  # forward-facing: kept
+    assert load_dataset(tmp_path / "c", "train", holdout=0).keypoints is not None
+    with pytest.raises(UserError, match="NDC"):  # but NDC rays are not in the points' space
+        train_nerf(_cfg(tmp_path / "c", depth_loss=0.1), tmp_path / "ndc", **QUIET)
 
 
 def _cfg(root, **kw):
-    return tiny(**dict(GRID, data=str(root), near=None, far=None, val_images=0, **kw))
+    return tiny(**{**dict(GRID, data=str(root), near=None, far=None, val_images=0), **kw})
 
 
 def test_depth_term_is_logged_weighted_and_refused_without_points(tmp_path):
@@ -94,6 +96,10 @@ def test_depth_term_is_logged_weighted_and_refused_without_points(tmp_path):
         (_cfg(tmp_path / "data", depth_loss=0.1, depth_rays=0), "--depth-rays"),
         (_cfg(tmp_path / "data", depth_loss=0.1, field="hash_sdf"), "--depth-loss"),
     ]
+    # points nearer than the near plane cannot be reached: their rays carry no weight
+    far = train_nerf(_cfg(tmp_path / "data", iters=1, depth_loss=0.5, near=50.0, far=5000.0),
+                     tmp_path / "near", **QUIET)  # fmt: skip
+    assert far["depth"] == [0.0]
     for cfg, needle in bads:
         with pytest.raises(UserError, match=needle):
             train_nerf(cfg, tmp_path / "bad", **QUIET)

@@ -217,7 +217,8 @@ def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     from ..train.nerf import NeRFTask, build_model, load_data, resolve_data
     from .train import nerf_config_from_args
 
-    cfg = nerf_config_from_args(build_parser().parse_args([*argv, "--out", "unused"])).validate()
+    # (resolve_data validates, with the capture's scene: data-dependent defaults as in training)
+    cfg = nerf_config_from_args(build_parser().parse_args([*argv, "--out", "unused"]))
     if device is not None:
         cfg.device = device
     resolve_data(cfg)

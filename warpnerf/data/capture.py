@@ -432,7 +432,11 @@ def reprojection_errors(root, max_observations: int = 200_000, seed: int = 0) ->
     cam_idx, xys, xyz = np.concatenate(cam_idx), np.concatenate(xys), np.concatenate(xyz)
     finite = np.isfinite(xys).all(axis=1)  # (an untrusted file's NaN pixel: left out, counted)
     n_bad = int((~finite).sum())
-    cam_idx, xys, xyz = cam_idx[finite], xys[finite], xyz[finite]
+    size = np.array([[cams[im.camera_id].width, cams[im.camera_id].height] for im in ims])
+    inside = finite & (np.nan_to_num(xys) >= 0).all(axis=1)
+    inside &= (np.nan_to_num(xys) <= size[cam_idx]).all(axis=1)
+    n_out = int((finite & ~inside).sum())
+    cam_idx, xys, xyz = cam_idx[inside], xys[inside], xyz[inside]
     n_all = len(cam_idx)
     if not n_all:
         return None
@@ -459,6 +463,7 @@ def reprojection_errors(root, max_observations: int = 200_000, seed: int = 0) ->
         "used": int(len(err)),
         "behind_camera": int((~front).sum()),
         "non_finite": n_bad,
+        "outside_image": n_out,
         "median_px": round(float(np.median(e)), 4) if len(e) else None,
         "p90_px": round(float(np.percentile(e, 90)), 4) if len(e) else None,
         "max_px": round(float(e.max()), 4) if len(e) else None,
@@ -567,10 +572,10 @@ def _keypoints(sc: dict, idx: list) -> dict | None:
     in the split), ``px``/``py`` [K] float32 (pixels of the loaded images), ``xyz`` [K, 3]
     float32 (the point, normalised frame). Observations with a non-finite pixel, one outside
     the image, or of a point not in front of the camera are left out; at most MAX_KEYPOINTS,
-    drawn at random (fixed seed). None without points or observations, or for NDC captures
-    (their rays are not in the points' space)."""
+    drawn at random (fixed seed). None without points or observations. (A run with NDC rays
+    cannot use them: its rays are not in the points' space.)"""
     obs = sc.get("observations")
-    if sc.get("points") is None or not obs or sc["forward_facing"] or not len(idx):
+    if sc.get("points") is None or not obs or not len(idx):
         return None
     extra = sc["extra"]
     w, h = sc["size"][0] // extra, sc["size"][1] // extra

@@ -340,7 +340,7 @@ def _read_images_txt(path: Path) -> dict[int, Image]:
         pts = lines[i + 1][1] if i + 1 < len(lines) else []
         if len(pts) % 3:
             raise UserError(f"{path}:{lines[i + 1][0]}: POINTS2D must be triples X Y POINT3D_ID")
-        ids, xys = _points2d(path, lines[i + 1][0], pts)
+        ids, xys = _points2d(path, lines[i + 1][0] if i + 1 < len(lines) else lineno, pts)
         _unique(images, vals[0], "image id", path, f":{lineno}")
         images[vals[0]] = Image(
             vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name, ids, xys
@@ -444,7 +444,10 @@ def _xys(im: Image) -> list:
     """An image's observation positions to write ((0, 0) each when it has none)."""
     if im.xys is None:
         return [(0.0, 0.0)] * len(im.point3d_ids)
-    return np.asarray(im.xys, dtype=np.float64).reshape(-1, 2).tolist()
+    xys = np.asarray(im.xys, dtype=np.float64).reshape(-1, 2)
+    if len(xys) != len(im.point3d_ids):
+        raise ValueError(f"image {im.name!r}: {len(xys)} xys for {len(im.point3d_ids)} point ids")
+    return xys.tolist()
 
 
 def write_model(folder, cams: dict[int, Camera], images: dict[int, Image], points=None, text=False):

@@ -286,6 +286,9 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
         saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
     if saved.get("field") and "contract" not in saved:
         saved["contract"] = "off"  # a run from before scene contraction: bounded
+    if saved.get("field"):  # runs from before these options had their old fixed defaults
+        saved.setdefault("appearance_dim", 0)  # (today's default is data-dependent)
+        saved.setdefault("hash_max_res", 2048)
     try:
         cfg = NeRFConfig.from_dict(saved, where=str(cfg_path))
     except TypeError as e:
@@ -563,19 +566,26 @@ class NeRFTask(Task):
         """--depth-loss: ``depth_rays`` observations of sparse points drawn from the training
         images, rendered like the step's rays; the mean Huber loss (delta 0.1) of each ray's
         depth over the point's distance along it, against 1 (missing opacity and weight in
-        front of or behind the point both raise it)."""
+        front of or behind the point both raise it), over the rays whose point lies between
+        the near and far planes."""
         cfg, kp = self.cfg, self.keypoints
         j = torch.randint(kp["cam"].shape[0], (cfg.depth_rays,), generator=self.gen)
         j = j.to(kp["cam"].device)
         cam = kp["cam"][j]
         o, d = dataset_rays(cfg, self.train, cam, kp["px"][j], kp["py"][j], check=False,
                             poses=self.model.poses)  # fmt: skip
-        z = ((kp["xyz"][j] - o) * d).sum(-1).clamp_min(1e-6)  # the point's distance on the ray
+        z = ((kp["xyz"][j] - o) * d).sum(-1)  # the point's distance along the ray
         images = cam if cfg.appearance_dim else None
         out = render_rays_of(self.model, cfg, o, d, perturb=True, seed=seed + (1 << 20),
                              generator=self.grid_gen, ray_images=images)  # fmt: skip
-        ratio = out["depth"] / z
-        return torch.nn.functional.huber_loss(ratio, torch.ones_like(ratio), delta=0.1)
+        # a point nearer than the near plane (or behind a refined camera) cannot be reached:
+        # its ray gets no weight (a tiny z would make the ratio's gradient explode)
+        valid = (z > cfg.near) & (z < cfg.far)
+        ratio = out["depth"] / torch.where(valid, z, torch.ones_like(z))
+        per_ray = torch.nn.functional.huber_loss(
+            ratio, torch.ones_like(ratio), delta=0.1, reduction="none"
+        )
+        return (per_ray * valid).sum() / valid.sum().clamp_min(1)
 
     def _dp_eikonal(self, parts, box_term):
         """A data-parallel rank's eikonal term, such that the ranks' average is the one
