@@ -390,7 +390,7 @@ def test_image_without_points_and_ndc_on_an_object_capture(tmp_path):
     _colmap_capture(tmp_path / "ff", _forward_cameras(5), points=pts)
     sp = tmp_path / "ff" / "sparse" / "0"
     cams, ims, _ = read_model(sp)
-    ims[3].point3d_ids = np.zeros(0, np.int64)
+    ims[3].point3d_ids, ims[3].xys = np.zeros(0, np.int64), np.zeros((0, 2))
     write_model(sp, cams, ims, pts)
     info = capture_info(tmp_path / "ff", holdout=0)
     assert info["forward_facing"] and np.isfinite(info["transform"]).all()
