@@ -570,7 +570,9 @@ class NeRFTask(Task):
         the near and far planes."""
         cfg, kp = self.cfg, self.keypoints
         j = torch.randint(kp["cam"].shape[0], (cfg.depth_rays,), generator=self.gen)
-        j = j.to(kp["cam"].device)
+        if kp["cam"].device.type == "cuda":  # (a pinned copy does not wait for the GPU)
+            j = j.pin_memory()
+        j = j.to(kp["cam"].device, non_blocking=True)
         cam = kp["cam"][j]
         o, d = dataset_rays(cfg, self.train, cam, kp["px"][j], kp["py"][j], check=False,
                             poses=self.model.poses)  # fmt: skip
