@@ -456,3 +456,354 @@ def test_thumbnails_of_eight_bit_and_float_images_agree():
     a, b = _thumbnails(u8), _thumbnails(u8.float() / 255.0)
     assert a.dtype == b.dtype == np.uint8 and a.shape == b.shape == (2, 6, 8, 3)
     assert np.array_equal(a, b) and np.array_equal(a, u8.numpy())
+
+
+# ------------------------------------------------- stopping, abandoned frames, still frames
+
+
+def _slow_scene(seconds_per_ray: float, log: list | None = None):
+    """A scene that takes ``seconds_per_ray`` a ray (sleeping, as a native kernel would,
+    without the GIL); ``log`` gets (start, end) of every block rendered."""
+    import time
+
+    import torch
+
+    from warpnerf.viewer.scene import RunScene
+
+    def render_rays(o, d, mode):
+        t0 = time.perf_counter()
+        time.sleep(seconds_per_ray * len(o))
+        if log is not None:
+            log.append((t0, time.perf_counter()))
+        return torch.full((len(o), 3), 0.5)
+
+    return RunScene(render_rays, ("rgb",), [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0])
+
+
+def _watching(viewer, canvas: int = 800, still: bool = True):
+    """A fake browser looking at the scene from (0, -4, 1); its camera still since long ago."""
+    from warpnerf.viewer.server import _ClientState
+
+    st = _ClientState(_FakeClient())
+    st.pose = (look_at((0.0, -4.0, 1.0), (0, 0, 0)).double().numpy(), 0.8, 1.0, canvas)
+    st.moved_at = 0.0 if still else 1e18
+    with viewer._lock:
+        viewer._clients[1] = st
+    return st
+
+
+def _wait_for(cond, seconds: float) -> bool:
+    import time
+
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+def test_close_stops_a_slow_frame_within_two_seconds_and_frees_the_port():
+    """A frame that would take minutes (2 ms a ray, the full 800x800 frame 20 min; its first
+    blocks one of 16k rays, i.e. 33 s, before) is in flight: close() returns within ~2 s, the
+    render thread is gone and the port is free."""
+    import time
+
+    from warpnerf.viewer import Viewer
+
+    blocks: list = []
+    port = _free_port()
+    v = Viewer(_slow_scene(2e-3, blocks), port=port, log=lambda *a: None, still_seconds=30.0)
+    try:
+        _watching(v)
+        assert _wait_for(lambda: len(blocks) >= 3, 20), "the frame did not start"
+        assert max(e - s for s, e in blocks) < 0.6  # blocks sized from the measured speed
+    finally:
+        t0 = time.perf_counter()
+        v.close()
+        took = time.perf_counter() - t0
+    assert took < 2.5, f"close() took {took:.2f} s"
+    assert not v.rendering()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", port))
+
+
+def test_abandoned_frames_stop_at_the_next_block():
+    """The browser disconnects, or its camera moves, while a long frame renders: the frame stops
+    at its next block (nothing more is rendered for the departed browser, nothing sent)."""
+    import time
+
+    from warpnerf.viewer import Viewer
+
+    blocks: list = []
+    v = Viewer(_slow_scene(2e-3, blocks), port=_free_port(), log=lambda *a: None,
+               still_seconds=60.0)  # fmt: skip
+    try:
+        st = _watching(v)
+        assert _wait_for(lambda: len(st.client.images) >= 1 and len(blocks) >= 2 + 1, 30)
+        sent = len(st.client.images)  # the 32-pixel first frame; now a 60 s still frame
+        t_move = time.perf_counter()
+        with v._lock:  # the camera moves: the 60 s frame is dropped, a coarse one follows
+            st.version += 1
+            st.moved_at = time.perf_counter()
+        assert _wait_for(lambda: len(st.client.images) > sent, 5), "no frame for the new view"
+        assert time.perf_counter() - t_move < 2.0
+        _wait_for(lambda: len(blocks) > 0 and blocks[-1][0] > t_move + 0.5, 5)  # refining
+        t_gone = time.perf_counter()
+        v._disconnect(st.client)
+        time.sleep(1.0)
+        n = len(blocks)
+        assert blocks[-1][1] < t_gone + 0.6, "the departed browser's frame went on rendering"
+        time.sleep(0.3)
+        assert len(blocks) == n and v.watched() is False
+    finally:
+        v.close()
+
+
+def test_a_still_frame_arrives_in_bounded_time_on_a_slow_scene():
+    """1 ms a ray: the full 800x800 frame would take 11 minutes. The still camera gets a first
+    frame that measures the speed, then still frames sized to take about still_seconds, each
+    next one 4 times longer up to refine_seconds, then no more."""
+    from warpnerf.viewer import Viewer
+
+    v = Viewer(_slow_scene(1e-3), port=_free_port(), log=lambda *a: None, still_seconds=0.4,
+               refine_seconds=1.6)  # fmt: skip
+    try:
+        st = _watching(v)
+        assert _wait_for(lambda: len(st.client.images) >= 2, 4.0), "no still frame in 4 s"
+        assert _wait_for(lambda: st.shown[3], 8.0), "the refinement did not finish"
+        n = len(st.client.images)
+        sizes = [im.shape[0] * im.shape[1] for im in st.client.images]
+        assert sizes == sorted(sizes) and sizes[0] < sizes[-1] < 800 * 800
+        assert 0.4 * 1.6 / 1e-3 <= sizes[-1] <= 1.6 * 1.6 / 1e-3  # ~1.6 s of rays, measured
+        assert not _wait_for(lambda: len(st.client.images) > n, 1.0)  # final: nothing more
+    finally:
+        v.close()
+
+
+_STOP_SCRIPT = """
+import sys, time, torch
+import warpnerf.viewer as wv
+from warpnerf.cli.parser import main
+from warpnerf.viewer.scene import RunScene
+from warpnerf.viewer.server import Viewer
+from tests.test_viewer import _slow_scene, _watching
+
+class Watched(Viewer):  # a browser watching a 2 ms-a-ray scene: a frame always in flight
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        _watching(self)
+
+wv.load_scene = lambda *a, **k: _slow_scene(2e-3)
+wv.Viewer = Watched
+sys.exit(main(["view", ".", "--port", sys.argv[1], "--exit-after", "120"]))
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_view_stops_within_two_seconds_of_a_signal(sig):
+    """`warpnerf view` with a frame rendering on the CPU: Ctrl-C (SIGINT) or SIGTERM ends it
+    within the bound (exit 0, "stopped after N frames", port free)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-c", _STOP_SCRIPT, str(port)], cwd=root,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)  # fmt: skip
+    try:
+        lines = []
+        for line in proc.stdout:
+            lines.append(line)
+            if "Ctrl-C stops" in line:
+                break
+        assert proc.poll() is None, "".join(lines)
+        time.sleep(1.5)  # the first frame done, a still frame of ~2 s in flight
+        t0 = time.perf_counter()
+        proc.send_signal(getattr(signal, sig))
+        out, _ = proc.communicate(timeout=30)
+        took = time.perf_counter() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    out = "".join(lines) + out
+    assert proc.returncode == 0, out
+    assert "stopped after" in out and "Traceback" not in out, out
+    assert took < 5.0, f"exited {took:.2f} s after {sig}"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", port))
+
+
+def test_a_frame_for_a_closed_connection_is_quiet_and_other_warnings_stay():
+    """viser warns when a message is queued on a closed connection; the viewer drops that
+    warning for its frames only (a browser gone mid-frame is not an error)."""
+    import asyncio
+    import warnings
+
+    from viser import _messages
+    from viser.infra._async_message_buffer import AsyncMessageBuffer
+
+    from warpnerf.viewer.server import _quiet_viser
+
+    _quiet_viser()
+    loop = asyncio.new_event_loop()
+    try:
+        for msg, warns in (
+            (_messages.BackgroundImageMessage(format="jpeg", rgb_data=b"", depth_data=None), 0),
+            (_messages.GuiUpdateMessage("x", {"value": 1}), 1),
+        ):
+            buf = AsyncMessageBuffer(loop, persistent_messages=False)
+            buf.set_done()  # the connection closed
+            with warnings.catch_warnings(record=True) as got:
+                warnings.simplefilter("default")
+                _quiet_viser()  # (catch_warnings reset the filters)
+                buf.push(msg)
+            assert len([w for w in got if "closed connection" in str(w.message)]) == warns
+    finally:
+        loop.close()
+
+
+# ------------------------------------------------------- camera paths keep the viewer's range
+
+
+def _ball_run(nerf_run, tmp_path):
+    """A copy of the built-in MLP run whose field is an opaque red octahedron of radius 0.45 at
+    the origin and empty elsewhere (a ReLU trunk computing |x|_1): from 4.5 units out, all of it
+    lies beyond the run's far (4)."""
+    import shutil
+
+    import torch
+
+    from warpnerf.io import load_checkpoint, save_checkpoint
+
+    run = tmp_path / "ball"
+    shutil.copytree(nerf_run, run)
+    ck = load_checkpoint(run / "checkpoint.pt")
+    f = ck["fields"]["coarse"]
+    for k in f:
+        f[k].zero_()
+    for i in range(3):  # trunk 0: relu(+x_i), relu(-x_i); trunk 1 passes them on
+        f["trunk.0.weight"][2 * i, i], f["trunk.0.weight"][2 * i + 1, i] = 1.0, -1.0
+    f["trunk.1.weight"][:6, :6] = torch.eye(6)
+    f["sigma_head.weight"][0, :6] = -50.0  # softplus(1 + 50 * 0.45 - 50 |x|_1 - 1)
+    f["sigma_head.bias"].fill_(1.0 + 50.0 * 0.45)
+    f["color_out.bias"].copy_(torch.tensor([10.0, -10.0, -10.0]))
+    save_checkpoint(run / "checkpoint.pt", ck)
+    return run
+
+
+class _Browser(_FakeClient):
+    """A fake client that also takes the viewer's starting camera (fov, position, look_at)."""
+
+    def on_update(self, cb):
+        pass
+
+    def pose(self):
+        c2w = look_at(tuple(self.position), tuple(self.look_at), tuple(self.up_direction))
+        return c2w.double().numpy()
+
+
+def _red(img) -> int:
+    return int(((img[..., 0] > 150) & (img[..., 1] < 100) & (img[..., 2] < 100)).sum())
+
+
+def test_a_path_saved_in_the_viewer_renders_what_the_viewer_showed(nerf_run, tmp_path, capsys):
+    """3 keyframes from `view`'s starting camera (4.5 units out: beyond the run's far of 4 for
+    most of the object) saved, then `render --path`: the frames show the object as the viewer
+    did (its near/far saved per keyframe), also for a file saved without near/far."""
+    import imageio.v3 as iio
+
+    from warpnerf.viewer import Viewer, load_scene
+
+    run = _ball_run(nerf_run, tmp_path)
+    scene = load_scene(run)
+    viewer = Viewer(scene, port=_free_port(), run=run, log=lambda *a: None)
+    try:
+        b = _Browser()
+        viewer._connect(b)
+        st = viewer._clients[b.client_id]
+        c2w = b.pose()
+        target = np.asarray(b.look_at)
+        assert abs(np.linalg.norm(c2w[:3, 3] - target) - 4.5) < 0.05
+        for a in (0.0, 0.3, 0.6):  # orbit the target at the starting distance
+            r = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0],
+                          [0, 0, 1.0]])  # fmt: skip
+            k = c2w.copy()
+            k[:3, :3], k[:3, 3] = r @ c2w[:3, :3], r @ (c2w[:3, 3] - target) + target
+            st.pose = (k, float(b.fov), 4 / 3, 64)
+            viewer._add_keyframe(b)
+        viewer.path_frames.value = 3
+        viewer.path_file.value = "camera_path.json"
+        viewer._save_path(b)
+    finally:
+        viewer.close()
+    path = load_camera_path(run / "camera_path.json")
+    assert path.windows is not None and np.allclose(path.windows[0], [3.0, 6.0], atol=0.05)
+    w, h = 64, 48
+    fy = 0.5 * h / math.tan(0.5 * path.fov_y)
+    shown = scene.render(path.keyframes[0], fy, fy, w, h)
+    assert _red(shown) >= 20  # the viewer shows the object
+    d = json.loads((run / "camera_path.json").read_text())
+    for k in d["keyframes"]:
+        k.pop("near"), k.pop("far")
+    (run / "old_path.json").write_text(json.dumps(d))  # a file from before near/far were saved
+    for name in ("camera_path", "old_path"):
+        assert main(["render", str(run), "--path", str(run / f"{name}.json"), "--size",
+                     f"{w}x{h}"]) == 0  # fmt: skip
+        capsys.readouterr()
+        frame = iio.imread(run / f"render_{name}" / "rgb_000.png")[..., :3]
+        assert _red(frame) >= 0.8 * _red(shown), name  # the object, not the white background
+        assert np.abs(frame.astype(int) - shown.astype(int)).mean() < 4, name
+
+
+def test_mlp_runs_get_a_box_and_camera_frustums_from_their_cameras(nerf_run):
+    """An MLP run has no scene box (aabb 0): the viewer derives one from the training cameras
+    (around their target, what they all see between near and far) and sizes the frustums by it."""
+    from warpnerf.train.nerf import load_run
+    from warpnerf.viewer import Viewer, load_scene
+
+    cfg, _, _ = load_run(nerf_run)
+    assert cfg.aabb == 0 and cfg.aabb_box() is None
+    scene = load_scene(nerf_run)
+    # built-in cameras: 2.5 units from the origin, near 1, far 4 -> half side min(1.5, 1.5)
+    assert np.allclose(scene.box, [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5], atol=1e-3)
+    assert math.isclose(scene.frustum_scale, 0.035 * 3.0, rel_tol=1e-3)
+    v = Viewer(scene, port=_free_port(), log=lambda *a: None)
+    try:
+        assert len(v.frustums) == len(scene.cameras)
+        assert all(f.scale > 0 for f in v.frustums)
+    finally:
+        v.close()
+
+
+def test_a_live_frame_stops_at_a_signal_and_the_training_still_gets_it():
+    """`train --viewer`: a frame renders in the training thread; Ctrl-C stops it at its next
+    block and the training's own handler (finish the step, checkpoint) still gets the signal."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from warpnerf.train._signals import stop_requests
+    from warpnerf.viewer import Viewer
+
+    v = Viewer(_slow_scene(2e-3), port=_free_port(), live=True, log=lambda *a: None,
+               still_seconds=30.0)  # fmt: skip
+    try:
+        st = _watching(v)
+        v.scene.ray_seconds = 2e-3  # (measured before): this still frame would take 30 s
+        with stop_requests() as stop:
+            threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+            t0 = time.perf_counter()
+            v.tick()
+            took = time.perf_counter() - t0
+        assert stop["signum"] == signal.SIGINT and st.client.images == []
+        assert took < 1.5, f"the live frame went on for {took:.1f} s after Ctrl-C"
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # all restored
+    finally:
+        v.close()

@@ -1,8 +1,9 @@
 """`warpnerf view` in a real headless browser: the system's Chromium (driven by selenium through
 the system's chromedriver) loads the page of a tiny run on a free localhost port, waits for the
 first rendered frame, and the screenshot shows the scene; the panel's camera-path editor saves a
-path into the run; the server then stops cleanly on Ctrl-C and frees its port. Skipped, with the
-reason, where no browser is installed (`.ci/run` installs Chromium and its driver with apt)."""
+path into the run; the server then stops cleanly on Ctrl-C, within 5 s, and frees its port.
+Skipped, with the reason, where no browser is installed (`.ci/run` installs Chromium and its
+driver with apt)."""
 
 from __future__ import annotations
 
@@ -97,13 +98,17 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
                 break
             time.sleep(0.5)
         assert shown > 0, text[:500]
-        time.sleep(2.0)  # let the browser draw the frame it received
         shot = Path(os.environ.get("WARPNERF_VIEWER_SHOT", tmp_path / "viewer.png"))
-        driver.save_screenshot(str(shot))
         import imageio.v3 as iio
 
-        img = iio.imread(shot)[..., :3].astype(int)
-        red = (img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)
+        deadline = time.time() + 30  # the browser draws the frame it received (the first is
+        while True:  # small and fast; a loaded machine's software WebGL may take seconds)
+            time.sleep(1.0)
+            driver.save_screenshot(str(shot))
+            img = iio.imread(shot)[..., :3].astype(int)
+            red = (img[..., 0] > 180) & (img[..., 1] < 80) & (img[..., 2] < 80)
+            if red.mean() > 0.3 or time.time() > deadline:
+                break
         # the rendered frame fills the background; the control panel covers about a third
         assert red.mean() > 0.3, f"only {red.mean():.1%} of the page shows the rendered scene"
         # the camera-path editor from the page: two keyframes of this view, saved in the run
@@ -126,14 +131,19 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
     finally:
         if driver is not None:
             driver.quit()
+        t0 = time.perf_counter()
         proc.send_signal(signal.SIGINT)
         try:
-            out, _ = proc.communicate(timeout=30)
+            out, _ = proc.communicate(timeout=15)
         except subprocess.TimeoutExpired:
             proc.kill()
             raise
+        took = time.perf_counter() - t0
     assert proc.returncode == 0, out
     assert "stopped after" in out
+    assert took < 5.0, f"the viewer took {took:.1f} s to stop after Ctrl-C"
+    # no noise: the port probes above and the browser leaving print no traceback or warning
+    assert "Traceback" not in out and "Warning" not in out, out
     with socket.socket() as s:  # no leaked listener (SO_REUSEADDR: closed connections may linger)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         s.bind(("127.0.0.1", port))

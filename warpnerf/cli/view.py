@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import time
 
 from ..errors import UserError
 from ..options import number_type
-from ._common import _device, _positive
+from ._common import _device, _existing, _positive
 
 
 def _host_port_flags(p, port_flag: str) -> None:
@@ -21,11 +24,13 @@ def _host_port_flags(p, port_flag: str) -> None:
 def view_flags(v) -> None:
     v.add_argument("run", help="a run folder (train nerf, volsdf, sdf or box)")
     _host_port_flags(v, "--port")
-    v.add_argument("--device", default=None, help="default: the run's device")
+    v.add_argument("--device", default=None, help="cpu or cuda (default: the run's device)")
     v.add_argument("--mesh", default=None, help="a PLY to overlay (default RUN/mesh.ply if any)")
     v.add_argument("--max-resolution", default=800,
                    type=number_type(int, lambda n: 64 <= n <= 4096, "in 64..4096"),
-                   help="longest side of a still frame, pixels (default 800)")  # fmt: skip
+                   help="longest side of the finest still frame, pixels (default 800; "
+                   "where that would take long, still frames start smaller, ~2 s each, and "
+                   "refine up to it)")  # fmt: skip
     v.add_argument("--frame-ms", type=_positive(float), default=100.0,
                    help="render time aimed at while the camera moves (default 100 ms)")  # fmt: skip
     v.add_argument("--exit-after", type=_positive(float), default=None, metavar="S",
@@ -48,7 +53,8 @@ def watch_flags(p) -> None:
         help="TensorBoard: scalars every N steps (default 10; history.json has all)",
     )
     p.add_argument("--viewer", action="store_true", help="serve the web viewer during "
-                   "training (frames render between steps; see `warpnerf view`)")  # fmt: skip
+                   "training (frames render between steps; Ctrl-C still stops the training "
+                   "after its step, checkpointed; see `warpnerf view`)")  # fmt: skip
     _host_port_flags(p, "--viewer-port")
 
 
@@ -74,21 +80,28 @@ def live_hooks(args, log=print) -> list:
 
 def cmd_view(args) -> int:
     from ..viewer import Viewer, load_scene
+    from ..viewer.server import signals_to
 
     check_port(args.port)
+    _existing(args.run)
     scene = load_scene(args.run, _device(args.device) if args.device else None, args.mesh)
+    stop = threading.Event()
     viewer = Viewer(
         scene, host=args.host, port=args.port, run=args.run,
         max_resolution=args.max_resolution, frame_seconds=args.frame_ms / 1e3,
     )  # fmt: skip
-    print(f"warpnerf view: {viewer.url} (Ctrl-C stops)", flush=True)
-    t0 = time.perf_counter()
     try:
-        while args.exit_after is None or time.perf_counter() - t0 < args.exit_after:
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
+        with signals_to(lambda *_: stop.set()):  # Ctrl-C, SIGTERM: stop in order
+            print(f"warpnerf view: {viewer.url} (Ctrl-C stops)", flush=True)
+            t0 = time.perf_counter()
+            while not stop.wait(0.1):
+                if args.exit_after is not None and time.perf_counter() - t0 >= args.exit_after:
+                    break
     finally:
         viewer.close()
     print(f"warpnerf view: stopped after {viewer.frames} frames", flush=True)
+    if viewer.rendering():  # a frame stuck in one native call (e.g. a kernel compiling): the
+        sys.stdout.flush()  # interpreter's teardown would wait for it or abort under it
+        sys.stderr.flush()
+        os._exit(0)
     return 0

@@ -8,14 +8,18 @@ The file is JSON::
      "aspect": 1.5,                # width / height of the viewer's canvas
      "frames": 120,                # frames of the rendered video
      "loop": false,                # true: the path returns to its first keyframe
-     "keyframes": [{"c2w": [[...], [...], [...], [0, 0, 0, 1]]}, ...]}
+     "keyframes": [{"c2w": [[...], [...], [...], [0, 0, 0, 1]],
+                    "near": 3.0, "far": 6.0}, ...]}   # optional, on every keyframe or none
 
 ``c2w`` is an OpenGL camera-to-world matrix (x right, y up, looking down -z) in the run's world
 frame. Between keyframes the position follows a Catmull-Rom spline through the keyframes'
 positions and the rotation a spherical linear interpolation (slerp) of their quaternions, each
-segment taking the same number of frames. A path file is input like any other: every count and
-number is bounded and checked, and a bad file is a :class:`~warpnerf.errors.UserError` naming
-the file and field.
+segment taking the same number of frames. ``near``/``far`` are the depth range the viewer
+rendered the keyframe with (:func:`window_rule`: the run's near..far moved with the camera's
+distance to the scene); between keyframes they are interpolated linearly. A file without them
+(written before they were saved) gets them from the same rule when rendered. A path file is
+input like any other: every count and number is bounded and checked, and a bad file is a
+:class:`~warpnerf.errors.UserError` naming the file and field.
 """
 
 from __future__ import annotations
@@ -37,27 +41,38 @@ __all__ = [
     "PATH_FORMAT",
     "matrix_to_quat",
     "quat_to_matrix",
+    "window_rule",
 ]
 
 PATH_FORMAT = 1
 MAX_KEYFRAMES = 1000
 MAX_FRAMES = 100000
+MAX_DEPTH = 1e9  # bound on a keyframe's near/far (contracted runs' far lies far out)
 
 
 class CameraPath:
-    """Keyframes [k, 4, 4] (float64 OpenGL c2w) with the field of view, aspect, frame count."""
+    """Keyframes [k, 4, 4] (float64 OpenGL c2w) with the field of view, aspect, frame count and,
+    optionally, each keyframe's depth range ``windows`` [k, 2] (near, far)."""
 
     def __init__(self, keyframes, fov_y: float = 0.8, aspect: float = 1.0, frames: int = 120,
-                 loop: bool = False):  # fmt: skip
+                 loop: bool = False, windows=None):  # fmt: skip
         self.keyframes = np.asarray(keyframes, dtype=np.float64).reshape(-1, 4, 4)
         self.fov_y, self.aspect = float(fov_y), float(aspect)
         self.frames, self.loop = int(frames), bool(loop)
+        self.windows = None
+        if windows is not None:
+            self.windows = np.asarray(windows, dtype=np.float64).reshape(-1, 2)
+            if len(self.windows) != len(self.keyframes):
+                raise ValueError("windows needs one (near, far) per keyframe")
 
     def to_dict(self) -> dict:
+        keys = [{"c2w": k.tolist()} for k in self.keyframes]
+        if self.windows is not None:
+            for key, (near, far) in zip(keys, self.windows.tolist()):
+                key.update(near=near, far=far)
         return {
             "warpnerf_camera_path": PATH_FORMAT, "fov_y": self.fov_y, "aspect": self.aspect,
-            "frames": self.frames, "loop": self.loop,
-            "keyframes": [{"c2w": k.tolist()} for k in self.keyframes],
+            "frames": self.frames, "loop": self.loop, "keyframes": keys,
         }  # fmt: skip
 
     def save(self, path) -> None:
@@ -79,6 +94,18 @@ class CameraPath:
     def cameras(self, frames: int | None = None) -> torch.Tensor:
         """[frames, 4, 4] float32 cameras along the path (:func:`interpolate_path`)."""
         return interpolate_path(self.keyframes, frames or self.frames, self.loop)
+
+    def frame_windows(self, frames: int | None = None) -> np.ndarray | None:
+        """[frames, 2] (near, far) of the frames along the path: the keyframes' depth ranges
+        interpolated linearly (same frames per segment as :meth:`cameras`); None when the file
+        has none (use :func:`window_rule`)."""
+        if self.windows is None:
+            return None
+        w, n, out = self.windows, len(self.windows), []
+        for f in range(frames or self.frames):
+            i, t = _segment(f, frames or self.frames, n, self.loop)
+            out.append(w[i] if n == 1 else (1 - t) * w[i] + t * w[(i + 1) % n])
+        return np.stack(out)
 
     def intrinsics(self, width: int, height: int) -> torch.Tensor:
         """[4] fx, fy, cx, cy of the path's vertical field of view at ``width`` x ``height``."""
@@ -128,7 +155,58 @@ def load_camera_path(path) -> CameraPath:
     c2w = np.stack(mats)
     labels = [f"keyframes[{i}]" for i in range(len(mats))]
     c2w = check_poses(c2w, str(p), labels)  # rotations, bottom row, centres
-    return CameraPath(np.asarray(c2w, dtype=np.float64), fov, aspect, frames, loop)
+    windows = _read_windows(p, keys)
+    return CameraPath(np.asarray(c2w, dtype=np.float64), fov, aspect, frames, loop, windows)
+
+
+def _read_windows(p: Path, keys: list) -> np.ndarray | None:
+    """[k, 2] (near, far) of the keyframes, None when no keyframe has them; UserError unless
+    every keyframe has both, finite, with 0 <= near < far <= :data:`MAX_DEPTH`."""
+    has = [("near" in k) or ("far" in k) for k in keys]
+    if not any(has):
+        return None
+    out = []
+    for i, k in enumerate(keys):
+        vals = [k.get("near"), k.get("far")]
+        ok = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals)
+        try:
+            ok = ok and all(math.isfinite(v) for v in vals)
+        except OverflowError:  # an integer too large for a float
+            ok = False
+        if not ok or not 0 <= vals[0] < vals[1] <= MAX_DEPTH:
+            raise UserError(f"{p}: keyframes[{i}] needs 'near' and 'far' numbers with "
+                            f"0 <= near < far <= {MAX_DEPTH:g} (on every keyframe or none), "
+                            f"got near={vals[0]!r}, far={vals[1]!r}")  # fmt: skip
+        out.append([float(vals[0]), float(vals[1])])
+    return np.array(out)
+
+
+def window_rule(c2w, near: float, far: float):
+    """``position [3] -> (near, far)``: the depth range the viewer renders a camera at
+    ``position`` with. The run's near..far window is kept at the same distance from the scene
+    centre (the training cameras ``c2w`` [n, 4, 4]'s common target), so that a camera further
+    out (or closer) than the training cameras sees the scene instead of a clipped part of it:
+    with ``s`` = the camera's distance to the centre minus the training cameras' mean distance,
+    the range is ``(max(0, near + s), far + s)``; unchanged while ``|s|`` is within 5 % of
+    ``far - near``. Without cameras (``None`` or one) the centre is the origin at distance
+    ``(near + far) / 2``."""
+    if c2w is not None and len(c2w) > 1:
+        from .cameras import camera_target
+
+        c2w = torch.as_tensor(c2w).detach().cpu().double()
+        centre = camera_target(c2w)
+        dist0 = float((c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+    else:
+        centre, dist0 = torch.zeros(3, dtype=torch.float64), 0.5 * (near + far)
+
+    def window(position) -> tuple:
+        pos = torch.as_tensor(np.asarray(position, dtype=np.float64).reshape(3))
+        shift = float((pos - centre).norm()) - dist0
+        if abs(shift) <= 0.05 * (far - near):
+            return float(near), float(far)
+        return max(0.0, near + shift), far + shift
+
+    return window
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
@@ -174,6 +252,17 @@ def _slerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
     return (math.sin((1 - t) * th) * a + math.sin(t * th) * b) / math.sin(th)
 
 
+def _segment(f: int, frames: int, n: int, loop: bool) -> tuple:
+    """(segment i, fraction t) of frame ``f`` of ``frames`` along ``n`` keyframes: equal frames
+    per segment; frame 0 is keyframe 0 and, without ``loop``, the last frame the last keyframe."""
+    segments = n if loop else n - 1
+    if segments <= 0:
+        return 0, 0.0
+    s = f / frames * segments if loop else f / max(frames - 1, 1) * segments
+    i = min(int(s), segments - 1)
+    return i, s - i
+
+
 def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor:
     """[frames, 4, 4] float32 cameras through ``keyframes`` [k, 4, 4] (OpenGL c2w): Catmull-Rom
     positions, slerped rotations, equal frames per segment; frame 0 is the first keyframe and,
@@ -189,9 +278,7 @@ def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor
         if segments == 0:
             out.append(k[0])
             continue
-        s = f / frames * segments if loop else f / max(frames - 1, 1) * segments
-        i = min(int(s), segments - 1)
-        t = s - i
+        i, t = _segment(f, frames, n, loop)
 
         def p(j):
             return pos[j % n] if loop else pos[min(max(j, 0), n - 1)]

@@ -15,9 +15,13 @@ Two kinds of run:
 
 Cameras are OpenGL camera-to-world matrices [4, 4] (x right, y up, looking down -z) with pixel
 intrinsics, as everywhere in the project. :meth:`RunScene.render` holds the scene's ``lock`` per
-row block (a checkpoint reload swaps the weights under it; a live training renders in its own
-thread between steps, so it needs no lock) and polls an ``abort`` callable between row blocks,
-so a frame that a newer camera has made stale stops early.
+block of rays (a checkpoint reload swaps the weights under it; a live training renders in its
+own thread between steps, so it needs no lock) and polls an ``abort`` callable between blocks,
+so a frame that a newer camera, a closed browser or a stop request has made useless stops
+early. For that it sizes the blocks from the measured speed (:attr:`ray_seconds` and the fixed
+cost of a block, :attr:`block_overhead`, fitted to recent blocks) so that each takes about
+``block_seconds`` (0.2 s in the viewer), also on a slow CPU; :meth:`RunScene.rays_within` says
+how many rays a frame can have to render in a given time.
 """
 
 from __future__ import annotations
@@ -26,11 +30,13 @@ import contextlib
 import copy
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..data.camera_path import window_rule
 from ..errors import UserError
 from ..io import to_uint8
 
@@ -41,6 +47,9 @@ SDF_MODES = ("rgb", "depth", "normals", "opacity")
 POINT_SDF_MODES = ("shaded", "normals", "depth", "opacity")
 MAX_OVERLAY_POINTS = 20000  # occupied cells drawn at most
 THUMBNAIL = 64  # training images shown in the frustums, longest side in pixels
+BLOCK_RAYS = 1 << 14  # rays rendered at a time (at most; fewer when blocks are timed)
+FIRST_BLOCK_RAYS = 64  # the first timed block while the speed is unknown
+TIMED_BLOCKS = 32  # recent blocks the speed is fitted to
 
 
 class Aborted(Exception):
@@ -53,7 +62,7 @@ class RunScene:
 
     def __init__(self, render_rays, modes, box, *, up=(0.0, 0.0, 1.0), cameras=None,
                  intrinsics=None, size=None, images=None, grid=None, far=None,
-                 title=""):  # fmt: skip
+                 window=None, title=""):  # fmt: skip
         self._render_rays = render_rays  # (o [n,3], d [n,3], mode) -> image values [n, 3]
         self.modes = tuple(modes)
         self.box = [float(v) for v in box]  # [6]
@@ -64,7 +73,13 @@ class RunScene:
         self.images = images  # [n, h, w, 3] uint8 thumbnails or None
         self.grid = grid
         self.far = far
+        self.window = window  # camera position [3] -> (near, far) the frame uses, or None
         self.title = title
+        ext = max(self.box[3] - self.box[0], self.box[4] - self.box[1], self.box[5] - self.box[2])
+        self.frustum_scale = 0.035 * ext if ext > 0 else 0.1  # training cameras' drawn size
+        self.ray_seconds = None  # measured seconds per ray, None until measured
+        self.block_overhead = 0.0  # measured fixed seconds of a block (launches, Python)
+        self._timings: list = []  # (rays, seconds) of recent blocks
         self.lock = threading.Lock()  # held while rendering and while reloading weights
         self.mesh = None  # (vertices [v, 3], faces [f, 3], colours [v, 3] uint8 or None)
         self.reload = None  # () -> step: re-reads the run's checkpoint (a run folder's scene)
@@ -114,11 +129,15 @@ class RunScene:
 
     @torch.no_grad()
     def render(self, c2w, fx: float, fy: float, width: int, height: int, mode: str = "",
-               abort=None, rows: int | None = None) -> np.ndarray:  # fmt: skip
+               abort=None, block_seconds: float | None = None) -> np.ndarray:  # fmt: skip
         """An image [height, width, 3] uint8 of the camera ``c2w`` [4, 4] (OpenGL) with focal
         lengths ``fx, fy`` (pixels, principal point at the centre) in ``mode`` (default the
-        first of :attr:`modes`). Rendered ``rows`` image rows at a time (default about 16k
-        rays); ``abort()`` true between blocks raises :class:`Aborted`."""
+        first of :attr:`modes`). Rendered :data:`BLOCK_RAYS` rays at a time or, with
+        ``block_seconds``, in blocks sized from the measured speed to take about that long
+        (the first one :data:`FIRST_BLOCK_RAYS` rays while the speed is unknown; each at most 4
+        times the last), each block an even sample of the whole image (a fixed shuffle of its
+        rays) so that every block costs alike, whatever part of it is empty; ``abort()`` true
+        between blocks raises :class:`Aborted`."""
         from ..ops import generate_rays
 
         mode = mode or self.modes[0]
@@ -131,15 +150,64 @@ class RunScene:
             raise ValueError("camera pose and focal lengths must be finite")
         k = torch.tensor([float(fx), float(fy), width / 2.0, height / 2.0], dtype=torch.float32)
         o, d = generate_rays(c2w[None], k[None], width, height)
-        rows = rows or max(1, (1 << 14) // width)
-        out = []
-        for r0 in range(0, height, rows):
+        n = width * height
+        img, start = torch.empty(n, 3), 0
+        order = torch.arange(n)
+        if block_seconds is not None:
+            order = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+        size = BLOCK_RAYS if block_seconds is None else self._block_rays(block_seconds, None)
+        while start < n:
             if abort is not None and abort():
                 raise Aborted
-            sl = slice(r0 * width, min(height, r0 + rows) * width)
+            idx = order[start : start + size]
             with self.lock:
-                out.append(self._render_rays(o[sl], d[sl], mode).float().cpu())
-        return to_uint8(torch.cat(out).reshape(height, width, 3))
+                t0 = time.perf_counter()
+                img[idx] = self._render_rays(o[idx], d[idx], mode).float().cpu()
+                dt = time.perf_counter() - t0
+            self._timed(len(idx), dt)
+            if block_seconds is not None:
+                size = self._block_rays(block_seconds, size)
+            start += len(idx)
+        return to_uint8(img.reshape(height, width, 3))
+
+    def _timed(self, n: int, seconds: float) -> None:
+        """Updates the speed from a block of ``n`` rays that took ``seconds``: the fixed cost
+        ``a`` of ``seconds = a + b n`` fitted to the recent blocks when their sizes differ
+        enough, the cost ``b`` a ray from the last 4 (so it follows what the camera sees)."""
+        t = self._timings
+        t.append((n, seconds))
+        del t[:-TIMED_BLOCKS]
+        ns, ts = np.array(t, dtype=np.float64).T
+        if len(t) >= 3 and ns.std() > 0.2 * ns.mean():
+            b, a = np.polyfit(ns, ts, 1)
+            if b > 0:  # (less than the quickest block took)
+                self.block_overhead = float(min(max(a, 0.0), 0.9 * ts.min()))
+        rn, rt = float(ns[-4:].sum()), float(ts[-4:].sum())
+        self.ray_seconds = max(rt - self.block_overhead * min(4, len(t)), 0.1 * rt) / rn
+
+    def _block_rays(self, seconds: float, last: int | None = None) -> int:
+        """Rays in the next timed block: about ``seconds`` at the measured speed, 16 to
+        :data:`BLOCK_RAYS`, at most 4 times the ``last`` block (default: the last one timed), so
+        that a wrong estimate costs one block at most."""
+        if self.ray_seconds is None:
+            return FIRST_BLOCK_RAYS
+        a = self.block_overhead  # (a block cannot take less: aim at 1.5 times it at least)
+        n = int((max(seconds, 1.5 * a) - a) / max(self.ray_seconds, 1e-12))
+        if last is None:
+            last = self._timings[-1][0] if self._timings else BLOCK_RAYS
+        return max(16, min(BLOCK_RAYS, n, 4 * last))
+
+    def rays_within(self, seconds: float, block_seconds: float = 0.2) -> int | None:
+        """How many rays a frame rendered in blocks of ``block_seconds`` can have to take at
+        most ``seconds`` at the measured speed (the blocks' fixed cost included); None while the
+        speed is unknown."""
+        if self.ray_seconds is None:
+            return None
+        a, b = self.block_overhead, max(self.ray_seconds, 1e-12)
+        block = max(16, min(BLOCK_RAYS, int((max(block_seconds, 1.5 * a) - a) / b)))
+        if seconds <= a + b * block:  # one block
+            return max(1, int((seconds - a) / b))
+        return max(1, int(seconds / (b + a / block)))
 
     # ------------------------------------------------------------------------ constructors
 
@@ -155,11 +223,11 @@ class RunScene:
         sdf = model.kind == "sdf"
         far = float(cfg.far)
         cams = train.c2w if train is not None else None
-        shifted = _window(cams, cfg.near, cfg.far)
+        shifted = window_rule(cams, cfg.near, cfg.far) if ndc is None else None
         moved = copy.copy(cfg)
 
         def window(cam):
-            if ndc is not None:
+            if shifted is None:
                 return cfg
             moved.near, moved.far = shifted(cam)
             return moved
@@ -184,10 +252,12 @@ class RunScene:
         box = cfg.aabb_box() or [-cfg.aabb, -cfg.aabb, -cfg.aabb, cfg.aabb, cfg.aabb, cfg.aabb]
         if ndc is not None:  # forward-facing: draw the cameras' neighbourhood instead
             box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+        elif cfg.aabb <= 0 and cams is not None:  # an MLP run has no box: what the cameras see
+            box = cameras_box(cams, cfg.near, cfg.far)
         up = _up_of(cams)
         return cls(render_rays, SDF_MODES if sdf else RADIANCE_MODES, box, up=up, cameras=cams,
                    intrinsics=intr, size=size, images=images, grid=model.grid, far=far,
-                   title=title)  # fmt: skip
+                   window=shifted, title=title)  # fmt: skip
 
     @classmethod
     def of_box(cls, volume, cfg, train=None, title: str = "") -> RunScene:
@@ -195,7 +265,7 @@ class RunScene:
         from ..render import render_rays as render_volume
 
         dev = volume.center.device
-        shifted = _window(train.c2w if train is not None else None, cfg.near, cfg.far)
+        shifted = window_rule(train.c2w if train is not None else None, cfg.near, cfg.far)
 
         def render_rays(o, d, mode):
             o, d = o.to(dev), d.to(dev)
@@ -211,7 +281,8 @@ class RunScene:
             cams, intr = train.c2w.cpu().numpy(), train.intrinsics.cpu().numpy()
             size, images = (int(train.width), int(train.height)), _thumbnails(train.images)
         return cls(render_rays, RADIANCE_MODES, box, up=_up_of(cams), cameras=cams,
-                   intrinsics=intr, size=size, images=images, far=cfg.far, title=title)  # fmt: skip
+                   intrinsics=intr, size=size, images=images, far=cfg.far, window=shifted,
+                   title=title)  # fmt: skip
 
     @classmethod
     def of_point_sdf(cls, model, cfg, title: str = "") -> RunScene:
@@ -253,27 +324,24 @@ def _image_values(res: dict, mode: str, far: float) -> torch.Tensor:
     return (dep * (acc > 0.5)).expand(-1, 3)
 
 
-def _window(c2w, near: float, far: float):
-    """``cam [3] -> (near, far)``: the run's near..far window kept at the same distance from
-    the scene centre (the training cameras' target), so that a viewer camera further out (or
-    closer) than the training cameras sees the scene instead of a clipped part of it; unchanged
-    within 5 % of the window of the training cameras' mean distance."""
-    if c2w is not None and len(c2w) > 1:
-        from ..data.cameras import camera_target
+def cameras_box(c2w, near: float, far: float) -> list:
+    """[6] a cube around the training cameras' common target holding what every camera sees
+    between ``near`` and ``far`` (for runs without a scene box, e.g. ``--field mlp``): half side
+    ``min(R - near, far - R)``, ``R`` the cameras' mean distance to the target (``R / 2`` when
+    that is not positive, e.g. cameras looking past each other)."""
+    from ..data.cameras import camera_target
 
-        c2w = torch.as_tensor(c2w).detach().cpu().double()
-        centre = camera_target(c2w)
-        dist0 = float((c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+    c2w = torch.as_tensor(c2w).detach().cpu().double()
+    if len(c2w) < 2:
+        centre = c2w[0, :3, 3] - c2w[0, :3, 2] * 0.5 * (near + far)
+        half = 0.25 * (far - near)
     else:
-        centre, dist0 = torch.zeros(3, dtype=torch.float64), 0.5 * (near + far)
-
-    def shifted(cam):
-        shift = float((torch.as_tensor(cam).double().cpu() - centre).norm()) - dist0
-        if abs(shift) <= 0.05 * (far - near):
-            return near, far
-        return max(0.0, near + shift), far + shift
-
-    return shifted
+        centre = camera_target(c2w)
+        r = float((c2w[:, :3, 3] - centre).norm(dim=-1).mean())
+        half = min(r - near, far - r)
+        half = half if half > 0 else 0.5 * r
+    c = centre.tolist()
+    return [c[0] - half, c[1] - half, c[2] - half, c[0] + half, c[1] + half, c[2] + half]
 
 
 def _thumbnails(images: torch.Tensor) -> np.ndarray:
@@ -347,7 +415,8 @@ def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunSc
         load_weights(volume, ckpt["volume"], run / "checkpoint.pt", "box parameters")
         train = None
         with contextlib.suppress(UserError):  # the cameras are an overlay
-            train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
+            train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
+                                 allow_outside=cfg.allow_outside_paths)  # fmt: skip
         scene = RunScene.of_box(volume, cfg, train, title=f"{run.name}: box fit")
     else:
         raise UserError(f"{run}: config.json's model {kind!r} is not one the viewer knows "

@@ -3,10 +3,18 @@ the run rendered by the project's own renderer from each browser's camera.
 
 Each connected browser has its own camera; a frame is rendered when that camera moves, when the
 mode changes, and (live training) when the weights have changed. The resolution adapts to the
-measured render speed: while the camera moves, frames are sized to take about
-``frame_seconds`` (coarse, fast); once it has been still for ``settle_seconds`` one frame is
-rendered at the full resolution (the browser canvas, at most ``max_resolution`` pixels a side).
-A stale frame stops between row blocks when a newer camera arrives.
+measured render speed (seconds per ray): while the camera moves, frames are sized to take about
+``frame_seconds`` (coarse, fast); once it has been still for ``settle_seconds``, still frames
+refine it: the first sized to take at most ``still_seconds``, each next one allowed 4 times
+longer, up to the full resolution (the browser canvas, at most ``max_resolution`` pixels a
+side) or ``refine_seconds`` a frame. A frame renders in blocks of rays sized to take about
+``BLOCK_SECONDS`` and stops at the next block when it is no longer wanted: a newer camera, the
+browser gone, the viewer closing, or (live training) Ctrl-C/SIGTERM.
+
+:meth:`Viewer.close` is bounded (about 2 s): the render thread stops at its next block, and
+viser's own stop (which may wait seconds on its event loop for browsers to answer the close)
+runs in a daemon thread that is waited for at most the rest of the time; the listening socket is
+the first thing it closes.
 
 Overlays drawn by the browser itself (three.js, toggled in the panel): the training cameras as
 frustums showing their images, the scene box, the occupancy grid's occupied cells, a mesh
@@ -21,8 +29,12 @@ The server binds 127.0.0.1 unless told otherwise (``host``): other machines cann
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import signal
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,10 +43,52 @@ from ..data.camera_path import CameraPath, matrix_to_quat, quat_to_matrix
 from ..errors import UserError
 from .scene import Aborted, RunScene
 
-__all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv"]
+__all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv", "signals_to"]
 
 _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL camera axes
 MAX_RESOLUTION = 4096  # pixels on the longest side of a frame
+BLOCK_SECONDS = 0.2  # a frame checks whether it is still wanted about this often
+FIRST_WIDTH = 16  # pixels across the first frame, which measures the render speed
+
+
+@contextlib.contextmanager
+def signals_to(handler):
+    """While inside, SIGINT (Ctrl-C) and SIGTERM call ``handler(signum, frame, previous)``
+    (``previous``: the handler it replaced); the previous handlers come back on exit. Outside
+    the main thread nothing is installed (Python delivers signals to the main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {}
+
+    def on_signal(signum, frame):
+        handler(signum, frame, old[signum])
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        old[sig] = signal.signal(sig, on_signal)
+    try:
+        yield
+    finally:
+        for sig, prev in old.items():
+            if signal.getsignal(sig) is on_signal:
+                signal.signal(sig, prev if prev is not None else signal.SIG_DFL)
+
+
+def _quiet_viser() -> None:
+    """Drops two messages that are not errors: viser's warning when a frame is sent to a browser
+    that disconnected an instant before (the frame is simply not delivered), and websockets'
+    traceback when something opens the port and closes it without a request (a port probe)."""
+    warnings.filterwarnings(
+        "ignore", "Queued a BackgroundImageMessage on a closed connection", UserWarning
+    )
+
+    class NoProbe(logging.Filter):
+        def filter(self, record):
+            return record.getMessage() != "opening handshake failed"
+
+    log = logging.getLogger("websockets.server")
+    if not any(type(f).__name__ == "NoProbe" for f in log.filters):
+        log.addFilter(NoProbe())
 
 
 def opencv_to_gl(wxyz, position) -> np.ndarray:
@@ -77,7 +131,10 @@ class _ClientState:
         self.pose = None  # (c2w [4, 4], fov_y, aspect, canvas width) of the latest camera
         self.moved_at = 0.0
         self.version = 0  # bumped by every camera or mode change
-        self.shown = (-1, -1, False)  # (version, weights version, full) of the last frame
+        self.gone = False  # the browser disconnected
+        # (version, weights version, level, final) of the last frame shown: level 0 while the
+        # camera moves, 1, 2, ... the still frames; final: no finer frame will follow
+        self.shown = (-1, -1, 0, False)
 
 
 class Viewer:
@@ -91,25 +148,29 @@ class Viewer:
 
     def __init__(self, scene: RunScene, *, host: str = "127.0.0.1", port: int = 7007,
                  run=None, live: bool = False, frame_seconds: float = 0.1,
-                 settle_seconds: float = 0.3, max_resolution: int = 800,
+                 settle_seconds: float = 0.3, still_seconds: float = 2.0,
+                 refine_seconds: float = 60.0, max_resolution: int = 800,
                  refresh_seconds: float = 2.0, log=print):  # fmt: skip
         import viser
 
         self.scene, self.live, self.log = scene, live, log
         self.frame_seconds, self.settle_seconds = float(frame_seconds), float(settle_seconds)
+        self.still_seconds, self.refine_seconds = float(still_seconds), float(refine_seconds)
         self.max_resolution, self.refresh_seconds = int(max_resolution), float(refresh_seconds)
         self.run = Path(run) if run is not None else None
-        self.ray_seconds = None  # measured seconds per ray (EMA)
         self.frames = 0
         self.weights_version, self._weights_at = 0, 0.0
         self._clients: dict[int, _ClientState] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self._signalled = False  # live: a SIGINT/SIGTERM arrived while a frame rendered
+        self._closed = False
         self._path: list = []
         self._path_handles: list = []
         self._last_tick_frame = self._last_frame_seconds = 0.0  # live: when and how long
         self.render_seconds = 0.0  # time spent rendering (live: taken from training)
         _check_address(host)
+        _quiet_viser()
         try:
             self.server = viser.ViserServer(host=host, port=port, label="warpnerf", verbose=False)
         except OSError as e:
@@ -136,14 +197,15 @@ class Viewer:
                             for z in (b[2], b[5])])  # fmt: skip
         edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5),
                  (2, 6), (3, 7)]  # fmt: skip
-        s.add_line_segments("/box", corners[np.array(edges)], (240, 160, 40),
-                            thickness=2.0, thickness_units="screen")  # fmt: skip
+        if max(b[3] - b[0], b[4] - b[1], b[5] - b[2]) > 0:  # (no box: nothing to draw)
+            s.add_line_segments("/box", corners[np.array(edges)], (240, 160, 40),
+                                thickness=2.0, thickness_units="screen")  # fmt: skip
         self.frustums = []
         if sc.cameras is not None:
             n = len(sc.cameras)
             w, h = sc.size
             pick = np.unique(np.linspace(0, n - 1, min(n, 200)).round().astype(int))
-            scale = 0.035 * max(b[3] - b[0], b[4] - b[1], b[5] - b[2])
+            scale = sc.frustum_scale
             for i in pick:
                 k = sc.intrinsics[i]
                 wxyz, pos = gl_to_opencv(sc.cameras[i])
@@ -253,11 +315,14 @@ class Viewer:
         self.path_info.content = f"keyframes: {len(keys)}"
 
     def path(self) -> CameraPath:
-        """The camera path being edited (the first keyframe's field of view and aspect)."""
+        """The camera path being edited (the first keyframe's field of view and aspect, and each
+        keyframe's near/far as the viewer renders it, so `render --path` sees what it showed)."""
         keys = self._path
         fov, aspect = (keys[0][1], keys[0][2]) if keys else (0.8, 1.0)
+        rule = self.scene.window
+        windows = [rule(k[0][:3, 3]) for k in keys] if rule is not None and keys else None
         return CameraPath([k[0] for k in keys], fov, aspect, int(self.path_frames.value),
-                          bool(self.path_loop.value))  # fmt: skip
+                          bool(self.path_loop.value), windows)  # fmt: skip
 
     def path_target(self) -> Path:
         """Where "Save path" writes: the file name typed in the panel, inside the run folder (or
@@ -308,6 +373,8 @@ class Viewer:
     # ---------------------------------------------------------------------------- clients
 
     def _connect(self, client) -> None:
+        if self._stop.is_set():
+            return
         st = _ClientState(client)
         with self._lock:
             self._clients[client.client_id] = st
@@ -326,7 +393,9 @@ class Viewer:
 
     def _disconnect(self, client) -> None:
         with self._lock:
-            self._clients.pop(client.client_id, None)
+            st = self._clients.pop(client.client_id, None)
+        if st is not None:
+            st.gone = True  # (a frame rendering for it stops at its next block)
 
     def _camera(self, st: _ClientState) -> None:
         cam = st.client.camera
@@ -360,20 +429,37 @@ class Viewer:
 
     # -------------------------------------------------------------------------- rendering
 
-    def _size(self, aspect: float, canvas: int, full: bool) -> tuple:
-        """(width, height) of the next frame: the longest side at most the slider's value."""
+    def _size(self, aspect: float, canvas: int, level: int) -> tuple:
+        """(width, height, final) of the next frame, the longest side at most the slider's value
+        (and the canvas): level 0 (moving) sized to take ``frame_seconds``; still level k sized
+        to take at most ``still_seconds * 4**(k-1)`` (at most ``refine_seconds``) at the measured
+        speed; final when it is the full size or may take ``refine_seconds``."""
         aspect = min(max(aspect, 1e-2), 1e2)
         cap = min(int(self.max_res.value), canvas or self.max_resolution)
         cap_w = cap if aspect >= 1 else max(1, int(cap * aspect))  # the longest side <= cap
-        if full or self.ray_seconds is None:
-            w = cap_w if full else min(cap_w, 128)
-        else:
-            w = int((self.frame_seconds / self.ray_seconds * aspect) ** 0.5)
-        w = max(16, min(cap_w, w))
-        return w, max(8, min(cap, int(round(w / aspect))))
+
+        def dims(w: int) -> tuple:
+            w = max(16, min(cap_w, w))
+            return w, max(8, min(cap, int(round(w / aspect))))
+
+        def within(seconds: float) -> int:  # rays that render in that time
+            return self.scene.rays_within(seconds, BLOCK_SECONDS)
+
+        if self.scene.ray_seconds is None:  # the speed is not known yet: a small frame measures it
+            return (*dims(FIRST_WIDTH), False)
+        if level == 0:
+            return (*dims(int((within(self.frame_seconds) * aspect) ** 0.5)), False)
+        full = dims(cap_w)
+        budget = min(self.still_seconds * 4.0 ** (level - 1), self.refine_seconds)
+        n = within(budget)
+        if full[0] * full[1] <= n:
+            return (*full, True)
+        w, h = dims(int(full[0] * (n / (full[0] * full[1])) ** 0.5))
+        return w, h, budget >= self.refine_seconds or (w, h) == full
 
     def _next_job(self):
-        """(state, version, full) of the frame most worth rendering now, or None."""
+        """(state, version, weights version, level) of the frame most worth rendering now (level
+        0: a moving camera's; 1, 2, ...: the still camera's refinements), or None."""
         now = time.perf_counter()
         with self._lock:
             for st in self._clients.values():
@@ -382,35 +468,45 @@ class Viewer:
                 still = now - st.moved_at >= self.settle_seconds
                 v, wv = st.version, self.weights_version
                 if st.shown[:2] != (v, wv):
-                    return st, v, wv, still
-                if still and not st.shown[2]:
-                    return st, v, wv, True
+                    return st, v, wv, 1 if still else 0
+                if still and not st.shown[3]:
+                    return st, v, wv, st.shown[2] + 1
         return None
 
-    def _render_job(self, job, abortable: bool) -> bool:
-        st, version, wversion, full = job
+    def _render_job(self, job) -> bool:
+        st, version, wversion, level = job
         c2w, fov, aspect, canvas = st.pose
-        w, h = self._size(aspect, canvas, full)
+        if self.scene.ray_seconds is None:
+            level = 0  # (a frame measuring the speed is no step of a still frame's refinement)
+        w, h, final = self._size(aspect, canvas, level)
         f = 0.5 * h / np.tan(0.5 * fov)
 
-        def stale():
-            return abortable and (st.version != version or self._stop.is_set())
+        def unwanted():  # a newer camera, the browser gone, the viewer closing, a stop request
+            return st.version != version or st.gone or self._stop.is_set() or self._signalled
 
         t0 = time.perf_counter()
         try:
-            img = self.scene.render(c2w, f, f, w, h, str(self.mode.value), abort=stale)
+            img = self.scene.render(c2w, f, f, w, h, str(self.mode.value), abort=unwanted,
+                                    block_seconds=BLOCK_SECONDS)  # fmt: skip
         except Aborted:
             return False
         dt = time.perf_counter() - t0
         self.render_seconds += dt
-        spr = dt / (w * h)
-        self.ray_seconds = spr if self.ray_seconds is None else 0.7 * self.ray_seconds + 0.3 * spr
+        if st.gone or self._stop.is_set():
+            return False  # nobody to send it to (viser would warn of a closed connection)
         st.client.scene.set_background_image(img, format="jpeg", jpeg_quality=90)
-        st.shown = (version, wversion, full)
+        st.shown = (version, wversion, level, final)
         self.frames += 1
         self.status.content = (f"rendered frames: {self.frames}, last {w}x{h} in "
                                f"{1e3 * dt:.0f} ms")  # fmt: skip
         return True
+
+    def _failed(self, job, e: Exception) -> None:
+        """A frame that raised: not retried until the camera moves; said in the panel."""
+        job[0].shown = (job[1], job[2], job[3], True)
+        if not self._stop.is_set():
+            self.status.content = f"render failed: {e}"
+            self.log(f"viewer: render failed: {e}")
 
     def _render_loop(self) -> None:
         while not self._stop.is_set():
@@ -419,16 +515,27 @@ class Viewer:
                 time.sleep(0.01)
                 continue
             try:
-                self._render_job(job, abortable=True)
+                self._render_job(job)
             except Exception as e:  # a broken frame must not kill the server
-                job[0].shown = (job[1], job[2], True)  # (not retried until the camera moves)
-                self.status.content = f"render failed: {e}"
-                self.log(f"viewer: render failed: {e}")
+                self._failed(job, e)
+
+    def _on_signal(self, signum, frame, prev) -> None:
+        """Live training: a SIGINT/SIGTERM while a frame renders stops the frame at its next
+        block, and the training's own handler still gets it (it checkpoints and stops as
+        without the viewer)."""
+        if prev is signal.SIG_IGN:
+            return
+        self._signalled = True
+        if callable(prev):
+            prev(signum, frame)
+        else:  # SIG_DFL (or a handler not set from Python): its usual effect
+            signal.signal(signum, prev or signal.SIG_DFL)
+            signal.raise_signal(signum)
 
     def tick(self) -> None:
         """Live training: renders at most one frame, in the caller's thread; frames are spaced
         so that rendering takes at most about a fifth of the time while someone watches."""
-        if not self._clients:
+        if not self._clients or self._signalled:
             return
         now = time.perf_counter()
         if now - self._last_tick_frame < max(0.05, 4.0 * self._last_frame_seconds):
@@ -438,17 +545,30 @@ class Viewer:
             return
         t0 = time.perf_counter()
         try:
-            self._render_job(job, abortable=False)
+            with signals_to(self._on_signal):
+                self._render_job(job)
         except Exception as e:  # a bad camera from a browser must not stop the training
-            job[0].shown = (job[1], job[2], True)  # (not retried until the camera moves)
-            self.status.content = f"render failed: {e}"
-            self.log(f"viewer: render failed: {e}")
+            self._failed(job, e)
         self._last_frame_seconds = time.perf_counter() - t0
         self._last_tick_frame = time.perf_counter()
 
-    def close(self) -> None:
-        """Stops the render thread and the server (its port is free afterwards)."""
+    def rendering(self) -> bool:
+        """Whether the render thread is still running (after :meth:`close`: a frame stuck in
+        one long native call, e.g. a kernel compiling)."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stops the render thread and the server within about ``timeout`` seconds (its port is
+        free afterwards). A frame in flight stops at its next block (about ``BLOCK_SECONDS``);
+        viser's stop runs in a daemon thread, waited for at most the time left (at least 0.5 s:
+        closing the listening socket is the first thing it does)."""
+        if self._closed:
+            return
+        self._closed = True
         self._stop.set()
+        t0 = time.perf_counter()
         if self._thread is not None:
-            self._thread.join(timeout=10)
-        self.server.stop()
+            self._thread.join(timeout=timeout)
+        stopper = threading.Thread(target=self.server.stop, daemon=True, name="viser-stop")
+        stopper.start()
+        stopper.join(timeout=max(0.5, timeout - (time.perf_counter() - t0)))
