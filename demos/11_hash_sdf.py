@@ -4,10 +4,12 @@ depth and geometry (sphere-traced normals of the learned SDF) along a spiral, th
 sphere-traced too (PSNR and time beside the volume renderer's), and a marching-cubes mesh cleaned
 of floating pieces with vertex colours baked from the radiance field (PLY + pyvista screenshot).
 
-    python demos/11_hash_sdf.py --out out/11                 # built-in scene, CPU, ~3 min
+    python demos/11_hash_sdf.py --out out/11                 # built-in scene, CPU, ~1 min
+    (measured on the project's idle 2-core CPU: 57 s, 24.3 dB val; 6 min when the CPU is
+    shared; the first run also compiles Warp's kernels)
     python demos/11_hash_sdf.py --data ../shared/data/lego --device cuda --max-seconds 300 \\
         --iters 100000 --batch 4096 --target-samples 262144 --hash-levels 16 \\
-        --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --eval-images 100
+        --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --march-step 0 --eval-images 100
     (the settings of scripts/gpu_hash_sdf.sh: lego on an H100 reached 31.1 dB on all 100 val
     images after 300 s, docs/PERFORMANCE.md)
 
@@ -25,16 +27,20 @@ from warpnerf.mesh import clean_mesh, extract_mesh, screenshot, vertex_colors, w
 from warpnerf.options import from_flags
 from warpnerf.train import evaluate_run, load_run, render_run, train_nerf
 from warpnerf.train.nerf_config import VolSDFConfig
+from warpnerf.train.presets import NERF_PRESETS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402
 
 # VolSDFConfig's fields shown here, and the demo's CPU-sized defaults
 FLAGS = ("data", "iters", "max_seconds", "batch", "target_samples", "hash_levels",
-         "hash_log2_size", "hash_max_res", "grid_res", "eikonal_weight", "aabb", "builtin_size",
-         "device")  # fmt: skip
+         "hash_log2_size", "hash_max_res", "grid_res", "march_step", "eikonal_weight", "aabb",
+         "builtin_size", "device")  # fmt: skip
+# (march_step: 256 steps across the built-in scene's box diagonal, the cpu preset's, instead of
+# 1024: the samples per ray, hence the time a step, drop about 4x; 0 = the box diagonal / 1024)
 DEFAULTS = dict(iters=200, batch=256, hash_levels=8, hash_log2_size=14, hash_max_res=256,
-                grid_res=32, builtin_size=32)  # fmt: skip
+                grid_res=32, march_step=NERF_PRESETS["cpu"]["hash_sdf"]["march_step"],
+                builtin_size=32)  # fmt: skip
 
 
 def main(argv=None) -> int:

@@ -13,18 +13,22 @@ from pathlib import Path
 import pytest
 
 from warpnerf.cli.parser import build_parser
+from warpnerf.cli.train import nerf_config_from_args
 from warpnerf.options import add_flags, flag_of, from_flags, option
 from warpnerf.train.box_fit import BoxFitConfig
 from warpnerf.train.nerf_config import GRID, VOLSDF, NeRFConfig, VolSDFConfig
+from warpnerf.train.presets import NERF_PRESETS, SDF_PRESETS, preset_fields
 from warpnerf.train.sdf import SDFConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# command -> (config class, its flag groups, the fields whose flag defaults to None (not given))
+# command -> (config class, its flag groups, the fields whose flag defaults to None (not given):
+# those a --preset sets too, train/presets.py)
+_NERF_UNSET = ("data", "iters", "device", *preset_fields(NERF_PRESETS))
 COMMANDS = {
-    "nerf": (NeRFConfig, GRID, ("data", "iters", "device")),
-    "volsdf": (VolSDFConfig, VOLSDF, ("data", "iters", "device")),
-    "sdf": (SDFConfig, (), ("points", "iters", "device")),
+    "nerf": (NeRFConfig, GRID, _NERF_UNSET),
+    "volsdf": (VolSDFConfig, VOLSDF, _NERF_UNSET),
+    "sdf": (SDFConfig, (), ("points", "iters", "device", *preset_fields(SDF_PRESETS))),
     "box": (BoxFitConfig, (), ("iters",)),
 }
 
@@ -121,13 +125,11 @@ def test_volsdf_defaults_and_groups():
     assert "grid_res" in dests  # the occupancy grid of --field hash_sdf
     _, sub = _subparser("nerf")
     assert "beta" not in {a.dest for a in sub._actions}
-    args = build_parser().parse_args(["train", "volsdf", "--out", "x"])
-    assert (args.field, args.pos_freqs, args.coarse_fine, args.fine_samples) == (
-        "volsdf",
-        6,
-        True,
-        64,
-    )
+    args = build_parser().parse_args(["train", "volsdf", "--data", "builtin", "--out", "x"])
+    assert (args.field, args.coarse_fine) == ("volsdf", True)
+    # (--pos-freqs and --fine-samples are "not given" on the command line: a preset may set them)
+    cfg = nerf_config_from_args(args)
+    assert (cfg.field, cfg.pos_freqs, cfg.n_fine) == ("volsdf", 6, 64)
     assert VolSDFConfig().n_fine == 64 and NeRFConfig().n_fine == 0
 
 

@@ -24,7 +24,9 @@ import argparse
 import dataclasses
 import math
 
-__all__ = ["option", "add_flags", "from_flags", "flag_of", "number_type", "CHECKS"]
+__all__ = [
+    "option", "add_flags", "from_flags", "apply_preset", "flag_of", "number_type", "CHECKS"
+]  # fmt: skip
 
 _AUTO = "auto"
 
@@ -117,14 +119,18 @@ def _default(f):
     return f.default_factory()
 
 
-def add_flags(parser, cls, *, groups=(), include=None, exclude=(), defaults=None, unset=()) -> None:
+def add_flags(
+    parser, cls, *, groups=(), include=None, exclude=(), defaults=None, unset=(), notes=None
+) -> None:
     """Adds the flags of config class ``cls`` to ``parser``: the fields declared with a flag,
     those of the given ``groups`` too (or exactly the fields named in ``include``). Each
     flag's default is the field's default, except for those in ``defaults`` (a demo's own,
     smaller settings: {field: value}) and those in ``unset`` (default None, meaning "not
-    given": the config's default applies, as :func:`from_flags` leaves them out; the help says
-    which default that is). The parsed value lands under the field's name."""
-    defaults = defaults or {}
+    given": the config's default applies, as :func:`from_flags` leaves them out, or a preset's
+    value, see :func:`apply_preset`; the help says which default that is). ``notes``
+    ({field: text}) are added to the fields' help (e.g. what a preset sets). The parsed value
+    lands under the field's name."""
+    defaults, notes = defaults or {}, notes or {}
     for f in _fields(cls, groups, include, exclude):
         m, kind = f.metadata, _kind(f)
         default = defaults.get(f.name, _default(f))
@@ -147,11 +153,14 @@ def add_flags(parser, cls, *, groups=(), include=None, exclude=(), defaults=None
             kw["metavar"] = flag_of(f)[2:].upper().replace("-", "_")
         if f.name in unset:
             kw["default"] = None
-            kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
+            if default is not None:
+                kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         else:
             kw["default"] = default
             if default is not None and "default" not in help_:
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
+        if f.name in notes:
+            kw["help"] = f"{kw['help']}; {notes[f.name]}" if kw["help"] else notes[f.name]
         parser.add_argument(flag_of(f), **kw)
 
 
@@ -168,3 +177,14 @@ def from_flags(cls, args, *, groups=(), include=None, exclude=()) -> dict:
             continue
         kw[f.name] = v
     return kw
+
+
+def apply_preset(kw: dict, values: dict) -> dict:
+    """The config keyword arguments ``kw`` (from :func:`from_flags`) with a preset's ``values``
+    ({field: value}) for the fields the user did not give: absent from ``kw`` or None (their
+    flags were added with ``unset``). Explicit flags win."""
+    out = dict(kw)
+    for name, value in values.items():
+        if out.get(name) is None:
+            out[name] = value
+    return out

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import sys
+
 from ..errors import UserError
 from ..io import json_dumps
-from ..options import CHECKS, add_flags, from_flags
+from ..options import CHECKS, add_flags, apply_preset, from_flags
 from ..train.box_fit import BoxFitConfig
 from ..train.nerf_config import (
     FINE_SAMPLES,
@@ -13,6 +16,14 @@ from ..train.nerf_config import (
     VOLSDF,
     NeRFConfig,
     VolSDFConfig,
+)
+from ..train.presets import (
+    NERF_PRESETS,
+    SDF_PRESETS,
+    cpu_hint,
+    preset_fields,
+    preset_help,
+    preset_values,
 )
 from ..train.sdf import SDFConfig
 from ._common import (
@@ -112,9 +123,19 @@ def nerf_config_from_args(args):
         raise UserError("--data DIR is required (or --data builtin for the built-in scene)")
     cls = VolSDFConfig if args.model == "volsdf" else NeRFConfig
     kw = from_flags(cls, args, groups=_GROUPS[args.model])
-    kw["n_fine"] = args.fine_samples if args.coarse_fine else 0
+    kw["n_fine"] = args.fine_samples  # (None: not given, the preset's or FINE_SAMPLES)
+    # the preset's sizes for the flags not given (explicit flags win)
+    kw = apply_preset(kw, preset_values(NERF_PRESETS, kw["preset"], kw["field"]))
+    kw["n_fine"] = (kw["n_fine"] or FINE_SAMPLES) if args.coarse_fine else 0
     kw["device"] = _device(args.device or cls.device)
     return cls(**kw)
+
+
+def _print_cpu_hint(cfg, command: str) -> None:
+    """One line on stderr when a CPU run meets GPU-sized settings (train/presets.py: cpu_hint)."""
+    line = cpu_hint(cfg, command)
+    if line:
+        print(line, file=sys.stderr, flush=True)
 
 
 def _silent(*args, **kw) -> None:
@@ -140,6 +161,8 @@ def cmd_train_nerf(args) -> int:
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
     else:
         cfg, device = nerf_config_from_args(args), None
+        if int(os.environ.get("RANK", "0") or 0) == 0:  # (one line per run, not per rank)
+            _print_cpu_hint(cfg, f"warpnerf train {args.model}")
     # started by torchrun (WORLD_SIZE > 1): one rank of a data-parallel run (train/distributed.py)
     from ..train.distributed import from_env
 
@@ -181,7 +204,10 @@ def cmd_train_sdf(args) -> int:
         if args.points is None:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
         kw = from_flags(SDFConfig, args)
-        kw.update(n_random=kw["batch"], skip=max(1, kw["n_layers"] // 2))
+        # the preset's sizes for the flags not given (explicit flags win), then the defaults
+        kw = apply_preset(kw, preset_values(SDF_PRESETS, kw["preset"], kw["field"]))
+        batch, layers = kw.get("batch", SDFConfig.batch), kw.get("n_layers", SDFConfig.n_layers)
+        kw.update(n_random=batch, skip=max(1, layers // 2))
         kw["device"] = _device(args.device or SDFConfig.device)
         cfg = SDFConfig(**kw)
         m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=tensorboard_every(args),
@@ -201,7 +227,7 @@ def _box_flags(tb) -> None:
     tb.add_argument(
         "--device",
         default=None,
-        help=f"{DEVICE} (default for a new fit) or cuda; on --resume, the run's own",
+        help=f"cpu or cuda (default {DEVICE}; on --resume, default the run's own)",
     )
     tb.add_argument("--frames", type=CHECKS[("int", "nonnegative")], default=40,
                     help="spiral video frames (0: none)")  # fmt: skip
@@ -217,10 +243,13 @@ def _sdf_flags(ts) -> None:
     ts.add_argument("--resume", action="store_true", help="continue the fit in --out exactly")
     ts.add_argument("--quiet", action="store_true", help="no progress bar")
     watch_flags(ts)
-    add_flags(ts, SDFConfig, exclude=("points",), unset=("iters", "device"))
+    add_flags(ts, SDFConfig, exclude=("points",), unset=("iters", "device", *_SDF_PRESET),
+              notes=preset_help(SDF_PRESETS))  # fmt: skip
 
 
 _GROUPS = {"nerf": GRID, "volsdf": VOLSDF + GRID}  # the config fields each command shows
+# the flags a preset sets: default None ("not given"), so that the preset fills them in
+_NERF_PRESET, _SDF_PRESET = preset_fields(NERF_PRESETS), preset_fields(SDF_PRESETS)
 
 
 def _nerf_flags(tn, model: str) -> None:
@@ -232,8 +261,11 @@ def _nerf_flags(tn, model: str) -> None:
     tn.add_argument("--resume", action="store_true", help="continue the run in --out exactly")
     tn.add_argument("--coarse-fine", action="store_true", default=cls.n_fine > 0,
                     help="add the fine network")  # fmt: skip
-    tn.add_argument("--fine-samples", type=CHECKS[("int", "positive")],
-                    default=cls.n_fine or FINE_SAMPLES, help="fine samples per ray")  # fmt: skip
+    fine = preset_help(NERF_PRESETS).get("n_fine")
+    tn.add_argument("--fine-samples", type=CHECKS[("int", "positive")], default=None,
+                    help=f"fine samples per ray (default {FINE_SAMPLES}; {fine})")  # fmt: skip
     tn.add_argument("--quiet", action="store_true", help="no progress bar")
     watch_flags(tn)
-    add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=("iters", "device"))
+    unset = ("iters", "device", *_NERF_PRESET)
+    add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=unset,
+              notes=preset_help(NERF_PRESETS))  # fmt: skip

@@ -14,6 +14,7 @@ from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..options import option
+from .presets import PRESET_NAMES
 
 __all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings"]
 
@@ -53,6 +54,11 @@ class NeRFConfig:
     # COLMAP/LLFF, resolved at the start: format, transform (world -> normalised [4][4]), ndc
     # camera (fx, fy, W, H) or None, near, far, aabb
     scene: dict | None = option(None, flag=None)
+    preset: str = option(
+        "default", "sizes: cpu (the built-in scene in under a minute on 2 CPU cores; sets the "
+        "flags marked --preset cpu, flags given explicitly win) or default/gpu (the defaults)",
+        choices=PRESET_NAMES,
+    )  # fmt: skip
     iters: int = option(20000, "total steps", check="positive")
     batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
     field: str = option(
@@ -197,6 +203,10 @@ class NeRFConfig:
     background: float = option(1.0, flag=None)  # white, as the NeRF-synthetic evaluation
     downscale: int = option(1, "image downscale factor", check="positive")
     max_images: int = option(0, "training images used (0 = all)", check="nonnegative")
+    allow_outside_paths: bool = option(
+        False, "let the dataset's files name images outside its folder (absolute paths, '..', "
+        "symlinks out of it); refused by default",
+    )  # fmt: skip
     images_on: str = option(
         "auto", "where the training images live on a GPU run: device (gathered on the GPU), "
         "host (host memory; each batch's pixels gathered there into pinned memory and copied: "
@@ -324,7 +334,7 @@ class NeRFConfig:
                    "sdf_density": ("laplace", "logistic"),
                    "color_direction": ("view", "reflect"),
                    "images_on": ("auto", "device", "host"),
-                   "contract": ("auto", "on", "off")}  # fmt: skip
+                   "contract": ("auto", "on", "off"), "preset": PRESET_NAMES}  # fmt: skip
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
