@@ -107,6 +107,93 @@ def test_mesh_command_cleans_and_decimates(tmp_path, capsys):
     assert e.value.code == 2 and "argument --decimate" in capsys.readouterr().err
 
 
+# ------------------------------------------------------ NeRF runs: density levels and colours
+
+RED_SIGMA = float(np.exp(4.0))  # ~54.6: the red box run's density inside its box
+
+
+def red_box_run(tmp_path):
+    """A one-step hash-field NeRF run on the built-in scene, then hand-set: its density is
+    exp(4) ~ 54.6 everywhere inside the scene box [-1, 1]^3 (and 0 outside it, as the hash field
+    always is) and its colour pure red whatever the position and direction: the level set of any
+    density in (0, 54.6) is the box, and its baked colour must be red."""
+    from warpnerf.cli.parser import main
+    from warpnerf.io import load_checkpoint, save_checkpoint
+
+    run = tmp_path / "redbox"
+    assert main(["train", "nerf", "--data", "builtin", "--builtin-size", "8", "--field", "hash",
+                 "--iters", "1", "--batch", "32", "--hash-levels", "2", "--hash-log2-size", "10",
+                 "--hidden", "16", "--grid-res", "16", "--val-images", "0", "--quiet",
+                 "--no-tensorboard", "--device", "cpu", "--out", str(run)]) == 0  # fmt: skip
+    ck = load_checkpoint(run / "checkpoint.pt")
+    f = ck["fields"]["coarse"]
+    f["density_mlp.2.weight"].zero_()
+    f["density_mlp.2.bias"].zero_()
+    f["density_mlp.2.bias"][0] = 4.0  # sigma = exp(4) inside the box
+    f["color_mlp.4.weight"].zero_()
+    f["color_mlp.4.bias"].copy_(torch.tensor([10.0, -10.0, -10.0]))  # sigmoid: red
+    save_checkpoint(run / "checkpoint.pt", ck)
+    return run
+
+
+@pytest.fixture(scope="module")
+def red_box(tmp_path_factory):
+    return red_box_run(tmp_path_factory.mktemp("mesh_runs"))
+
+
+def test_vertex_colors_look_along_the_inward_normal():
+    """The bake's camera looks at the surface along the inward normal, for an SDF and for minus
+    a density (a NeRF's level-set function): a field coloured by the viewing direction (red
+    looking inwards, blue outwards) is red on every vertex of a sphere."""
+    import torch.nn.functional as F
+
+    from warpnerf.mesh import vertex_colors
+
+    def field(x, d):  # colour = where the camera looks: cos(d, towards the centre)
+        inward = (d * -F.normalize(x, dim=-1)).sum(-1)
+        rgb = torch.stack([(1 + inward) / 2, torch.zeros_like(inward), (1 - inward) / 2], -1)
+        return torch.ones(len(x)), rgb
+
+    def sdf(p):
+        return p.norm(dim=-1) - 0.5
+
+    def minus_density(p):  # dense inside: 50 in the ball, 25 on its surface
+        return -50.0 * torch.sigmoid(-sdf(p) / 0.05)
+
+    for fn, level in ((sdf, 0.0), (minus_density, -25.0)):
+        v, f = extract_mesh(fn, [-1] * 3, [1] * 3, 24, level)
+        assert len(f) > 100
+        c = vertex_colors(field, fn, v, "cpu")
+        assert c.dtype == np.uint8 and c.shape == v.shape
+        assert c[:, 0].min() >= 250 and c[:, 2].max() <= 5, (c.min(0), c.max(0))
+
+
+def test_mesh_of_a_nerf_run_suggests_a_level_and_bakes_its_colours(red_box, tmp_path, capsys):
+    """`warpnerf mesh RUN`: with no surface at the level asked for, one error line with the
+    densities seen and a level to try (exit 2); that level gives the box, whose baked colours
+    are the field's red."""
+    from warpnerf.cli.parser import main
+
+    ply = tmp_path / "m.ply"
+    base = ["mesh", str(red_box), "--out", str(ply), "--resolution", "20", "--bounds", "1.25",
+            "--no-screenshot"]  # fmt: skip
+    assert main([*base, "--level", "100"]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "no surface at level 100.0" in err
+    assert f"range from 0 to {RED_SIGMA:.4g}" in err, err
+    hint = float(err.split("try --level ")[1].split()[0])
+    assert hint == pytest.approx(RED_SIGMA / 2, rel=1e-2)  # half the largest density
+    assert not ply.exists()
+    assert main([*base, "--level", str(hint), "--colors"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    v, f, c = read_ply(ply, colors=True)
+    assert res["colors"] and res["level"] == hint and len(f) == res["faces"] > 0
+    # the box's faces: |x|_inf within a grid step (0.13) of 1
+    assert np.abs(np.abs(v).max(1) - 1.0).max() < 0.14
+    assert np.array_equal(np.unique(c, axis=0), [[255, 0, 0]]), np.unique(c, axis=0)[:5]
+
+
 # ------------------------------------------------------------------ PLY files (plyfile-backed)
 
 

@@ -8,6 +8,9 @@ threshold for NeRFs. Vertices come back in world coordinates.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -18,6 +21,7 @@ from .io import atomic_path
 
 __all__ = [
     "extract_mesh",
+    "level_hint",
     "write_ply",
     "read_ply",
     "vertex_colors",
@@ -30,8 +34,10 @@ __all__ = [
 
 @torch.no_grad()
 def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, device="cpu",
-                 chunk: int = 1 << 18):  # fmt: skip
-    """(vertices [V, 3] float32 numpy, faces [F, 3] int32 numpy) of the level set."""
+                 chunk: int = 1 << 18, return_values: bool = False):  # fmt: skip
+    """(vertices [V, 3] float32 numpy, faces [F, 3] int32 numpy) of the level set; with
+    ``return_values`` also the field's values on the grid (float32 tensor [resolution^3] on
+    ``device``), e.g. for :func:`level_hint` when there is no surface."""
     import warp as wp
 
     from .ops._bridge import _wp
@@ -69,7 +75,41 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
         )
     v = verts.numpy().reshape(-1, 3).astype(np.float32)
     f = tris.numpy().reshape(-1, 3).astype(np.int32)
-    return v, f
+    return (v, f, vals) if return_values else (v, f)
+
+
+def level_hint(values, density: bool = False) -> str:
+    """Why a level set is empty, for an error line: the range of the grid's ``values`` (the
+    densities themselves when ``density``) and, for a density, a level to try.
+
+    The suggested density level is half the largest density on the grid: a VolSDF-style density
+    (the built-in scene's, sigma = Psi_beta(-sdf) / beta) is half its interior value on the
+    surface. Measured on built-in-scene runs trained with ``--preset cpu`` (peak densities 5.0
+    (mlp) and 20 (hash); 64^3 grid), the mean |true SDF| at the vertices was 0.051 and 0.037,
+    the best or within 0.001 of the best of the rules compared (99th and 95th percentiles, a
+    quarter of the peak, geometric means of the peak and the minimum or median: 0.036 to 0.22).
+    When half the peak is not above the smallest density (a field nearly constant inside the
+    box), the middle of the range is suggested instead.
+
+    Args:
+        values: the field on the grid (any shape), as returned by ``extract_mesh(...,
+            return_values=True)``.
+        density: ``values`` are densities (a NeRF): suggest a level.
+    """
+    v = torch.as_tensor(values).detach().reshape(-1).float().cpu().numpy()
+    lo, hi = float(v.min()), float(v.max())
+    p50, p99 = (float(x) for x in np.percentile(v, [50, 99]))
+    what = "densities" if density else "values"
+    msg = f"the {what} on the grid range from {lo:.4g} to {hi:.4g} (median {p50:.4g}, 99th "
+    msg += f"percentile {p99:.4g})"
+    if not density:
+        return msg
+    if hi <= lo:
+        return msg + "; the density is constant inside the box: try a larger --bounds"
+    half = hi / 2
+    if half > lo:
+        return msg + f"; try --level {half:.3g} (half the largest density)"
+    return msg + f"; try --level {(lo + hi) / 2:.3g} (the middle of the range)"
 
 
 def write_ply(path, vertices: np.ndarray, faces: np.ndarray, replace_foreign: bool = False,
@@ -317,19 +357,41 @@ def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a", colors=N
     pv.OFF_SCREEN = True
     cells = np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel()
     mesh = pv.PolyData(np.asarray(vertices, dtype=np.float64), cells)
-    plotter = pv.Plotter(off_screen=True, window_size=list(size))
-    if colors is not None:
-        mesh.point_data["rgb"] = np.asarray(colors, dtype=np.uint8)
-        plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True)
-    else:
-        plotter.add_mesh(mesh, color=color, smooth_shading=True)
-    plotter.set_background("white")
-    plotter.camera_position = "iso"
+    with _headless_vtk():
+        plotter = pv.Plotter(off_screen=True, window_size=list(size))
+        if colors is not None:
+            mesh.point_data["rgb"] = np.asarray(colors, dtype=np.uint8)
+            plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True)
+        else:
+            plotter.add_mesh(mesh, color=color, smooth_shading=True)
+        plotter.set_background("white")
+        plotter.camera_position = "iso"
+        try:
+            with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix
+                plotter.screenshot(str(tmp))
+        finally:
+            plotter.close()
+
+
+@contextlib.contextmanager
+def _headless_vtk():
+    """On Linux without an X display, VTK's render window asks for EGL directly.
+
+    VTK (9.4+) picks its OpenGL window at run time: X first, then EGL, then OSMesa, and it logs
+    why it fell back ("vtkXOpenGLRenderWindow ... WARN| bad X server connection. DISPLAY=", with
+    raw ANSI colour codes) to stderr on every headless screenshot. Without ``DISPLAY`` the X try
+    cannot succeed, so ``VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow`` skips it; VTK still falls
+    back to OSMesa (with its own messages) when EGL fails. A value the user set wins, and the
+    variable is restored afterwards (VTK reads it when the render window is made)."""
+    key = "VTK_DEFAULT_OPENGL_WINDOW"
+    if not sys.platform.startswith("linux") or os.environ.get("DISPLAY") or key in os.environ:
+        yield
+        return
+    os.environ[key] = "vtkEGLRenderWindow"
     try:
-        with atomic_path(path) as tmp:  # the temporary name keeps the .png suffix
-            plotter.screenshot(str(tmp))
+        yield
     finally:
-        plotter.close()
+        os.environ.pop(key, None)
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2",

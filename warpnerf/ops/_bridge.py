@@ -13,6 +13,8 @@ if not os.environ.get("WARPNERF_VERBOSE"):
     _warp.config.log_level = _warp.LOG_WARNING
 
 _READY = False
+_HELD_BACK = ""  # what Warp's native init printed that :func:`_wp` kept off stderr
+_DRIVER_NOTE = "Could not find or load the NVIDIA CUDA driver"
 FLOATS = (torch.float32, torch.float64)
 INTS = (torch.int32, torch.int64)
 INT32_MAX = 2**31 - 1  # kernels index with 32-bit ints: sizes and offsets must stay below this
@@ -24,13 +26,56 @@ def _wp():
     import warp as wp
 
     if not _READY:
-        wp.init()
+        if os.environ.get("WARPNERF_VERBOSE"):
+            wp.init()
+        else:
+            _quiet_init(wp)
         _READY = True
     return wp
 
 
+def _quiet_init(wp) -> None:
+    """``wp.init()`` without its CUDA driver warning on machines without the driver.
+
+    Warp's native ``wp_init`` always probes the CUDA driver and, when ``libcuda`` is missing,
+    writes "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver..." straight to the
+    process's stderr (C ``fprintf``; no config option skips the probe or the line). A CPU run does
+    not need CUDA, so the line is noise there: native stderr (fd 2) is sent to a temporary file
+    for the duration of the init, that line is held back (:func:`wp_device` repeats it if CUDA is
+    then asked of Warp; the CLI's ``--device cuda`` already fails with its own error when PyTorch
+    has no CUDA) and anything else Warp printed is written back to stderr."""
+    global _HELD_BACK
+    import sys
+    import tempfile
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable fd 2 (embedded interpreters): init as it is
+        wp.init()
+        return
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                wp.init()
+            finally:
+                os.dup2(saved, 2)
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", "replace")
+    finally:
+        os.close(saved)
+    lines = text.splitlines(keepends=True)
+    _HELD_BACK = "".join(ln for ln in lines if _DRIVER_NOTE in ln).strip()
+    rest = "".join(ln for ln in lines if _DRIVER_NOTE not in ln)
+    if rest:
+        os.write(2, rest.encode())
+
+
 def wp_device(device: torch.device) -> str:
     if device.type == "cuda":
+        if _HELD_BACK and not _wp().is_cuda_available():
+            raise RuntimeError(f"a CUDA tensor, but Warp has no CUDA here: {_HELD_BACK}")
         return f"cuda:{device.index if device.index is not None else torch.cuda.current_device()}"
     if device.type == "cpu":
         return "cpu"
