@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
+
 import pytest
 import torch
 import warp as wp
@@ -19,6 +23,26 @@ def device(request) -> torch.device:
     if request.param == "cuda" and not torch.cuda.is_available():
         pytest.skip(_NO_CUDA)
     return torch.device(request.param)
+
+
+def pytest_configure(config) -> None:
+    """The session's disk cache (the built-in scene's images) is a temporary folder, never the
+    user's ~/.cache; subprocesses of tests inherit it through the environment. Set before
+    collection, so even a test module's import-time use of the built-in scene goes there."""
+    folder = tempfile.mkdtemp(prefix="wn-cache-")
+    config._warpnerf_cache = (os.environ.get("WARPNERF_CACHE"), folder)
+    os.environ["WARPNERF_CACHE"] = folder
+
+
+def pytest_unconfigure(config) -> None:
+    old, folder = getattr(config, "_warpnerf_cache", (None, None))
+    if folder is None:
+        return
+    if old is None:
+        os.environ.pop("WARPNERF_CACHE", None)
+    else:
+        os.environ["WARPNERF_CACHE"] = old
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)

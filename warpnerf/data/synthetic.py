@@ -11,12 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import sys
+from pathlib import Path
 
 import torch
 from torch import nn
 
 from ..fields.sdf_volume import laplace_cdf, sdf_box, sdf_sphere
 from ..render import render_views
+from .builtin_cache import cached_arrays
 from .cameras import intrinsics_from_fov, orbit_views
 from .dataset import Dataset, LoadRequest, register_format
 
@@ -24,6 +28,9 @@ __all__ = ["GlossyScene", "make_synthetic_dataset"]
 
 NEAR, FAR, RADIUS, FOV_X = 1.0, 4.0, 2.5, 0.7
 BOUND = 1.0  # the scene lies inside [-BOUND, BOUND]^3
+# Bump when the scene's images change for a reason the sources hashed by _code_version miss
+# (e.g. a kernel of the renderer): cached images of older versions are then made again.
+SCENE_VERSION = 1
 
 
 class GlossyScene(nn.Module):
@@ -55,6 +62,69 @@ class GlossyScene(nn.Module):
         return sigma, rgb
 
 
+@functools.lru_cache(maxsize=1)
+def _code_version() -> str:
+    """SHA-256 of the sources that define the scene's images: this module (the field, cameras'
+    settings), the SDFs and density, the cameras and the rendering pipeline."""
+    h = hashlib.sha256(f"scene {SCENE_VERSION}".encode())
+    for fn in (render_views, laplace_cdf, orbit_views, GlossyScene):
+        path = getattr(sys.modules.get(fn.__module__), "__file__", None)
+        try:
+            h.update(Path(path).read_bytes() if path else fn.__module__.encode())
+        except OSError:
+            h.update(fn.__module__.encode())
+    return h.hexdigest()
+
+
+def _views(n: int, seed: int, size: int, device):
+    """The cameras of a split: c2w [n, 4, 4], intrinsics [n, 4]."""
+    cams = orbit_views(n, radius=RADIUS, seed=seed * 1.7).to(device)
+    k = intrinsics_from_fov(size, size, FOV_X).to(device).expand(n, 4).contiguous()
+    return cams, k
+
+
+def cache_entry(
+    n_train: int, n_val: int, size: int, view_dependent: bool, n_samples: int, device
+) -> tuple[dict, dict]:
+    """The disk cache's key of the scene's images (everything that determines them: the
+    settings, the device type and the code) and the spec the cached arrays must match."""
+    key = {
+        "code": _code_version(),
+        "n_train": n_train,
+        "n_val": n_val,
+        "size": size,
+        "view_dependent": bool(view_dependent),
+        "n_samples": n_samples,
+        "device": torch.device(device).type,  # (the GPU's floats differ from the CPU's)
+    }
+    spec = {
+        "train": ((n_train, size, size, 3), "float32", 0.0, 1.0),
+        "val": ((n_val, size, size, 3), "float32", 0.0, 1.0),
+    }
+    return key, spec
+
+
+def _scene_images(
+    n_train: int, n_val: int, size: int, view_dependent: bool, n_samples: int, device
+) -> dict:
+    """The splits' images {"train": [n_train, size, size, 3], "val": ...} (float32 numpy in
+    [0, 1]), from the disk cache (:mod:`~warpnerf.data.builtin_cache`) when they were made
+    before with the same settings, device type and code, else rendered (and stored)."""
+    key, spec = cache_entry(n_train, n_val, size, view_dependent, n_samples, device)
+
+    def make():
+        scene = GlossyScene(view_dependent)
+        out = {}
+        for split, n, seed in (("train", n_train, 0), ("val", n_val, 1)):
+            cams, k = _views(n, seed, size, device)
+            rgb = render_views(cams, k, size, size, NEAR, FAR, scene, n_samples=n_samples,
+                               mode="sigma", background=1.0)["rgb"]  # fmt: skip
+            out[split] = rgb.clamp(0, 1).float().cpu().numpy()
+        return out
+
+    return cached_arrays("builtin", key, spec, make)
+
+
 @functools.lru_cache(maxsize=4)
 def make_synthetic_dataset(
     n_train: int = 64,
@@ -66,22 +136,19 @@ def make_synthetic_dataset(
 ):
     r"""Renders the built-in scene: (train, val) :class:`~warpnerf.data.dataset.Dataset`\ s
     (images [N, H, W, 3], c2w [N, 4, 4], intrinsics [N, 4], near, far; no paths); white
-    background. Cached: treat the returned tensors as read-only."""
-    scene = GlossyScene(view_dependent)
+    background. Cached in the process (treat the returned tensors as read-only) and on disk
+    across processes (the images; see :func:`_scene_images`)."""
+    images = _scene_images(n_train, n_val, size, view_dependent, n_samples, device)
     out = []
-    for n, seed in ((n_train, 0), (n_val, 1)):
-        cams = orbit_views(n, radius=RADIUS, seed=seed * 1.7).to(device)
-        k = intrinsics_from_fov(size, size, FOV_X).to(device).expand(n, 4).contiguous()
-        img = render_views(
-            cams, k, size, size, NEAR, FAR, scene, n_samples=n_samples, mode="sigma", background=1.0
-        )["rgb"]
+    for split, n, seed in (("train", n_train, 0), ("val", n_val, 1)):
+        cams, k = _views(n, seed, size, device)
         out.append(
             Dataset(
-                images=img.clamp(0, 1),
+                images=torch.from_numpy(images[split]).to(device),
                 c2w=cams,
                 intrinsics=k,
                 format="builtin",
-                split="train" if seed == 0 else "val",
+                split=split,
                 near=NEAR,
                 far=FAR,
             )
