@@ -46,6 +46,15 @@ def _check_out(path, flag: str = "--out", file: bool = False) -> None:
             raise UserError(f"{flag} {path}: {q} is a file, not a folder")
 
 
+def _existing(path, what: str = "run folder") -> None:
+    """UserError ``PATH: not found`` when nothing exists at ``path`` (a run, a point cloud): the
+    loaders' own messages ("not a training run") are for paths that exist."""
+    import os
+
+    if not os.path.lexists(path):
+        raise UserError(f"{path}: not found (expected a {what})")
+
+
 def _saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
     from ..data._json import read_json

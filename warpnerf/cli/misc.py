@@ -53,6 +53,7 @@ def cmd_data(args) -> int:
 
     if args.holdout == 1:
         raise UserError("--holdout must be 0 (none) or >= 2")
-    info = data_summary(args.dir, args.format, args.downscale, args.holdout)
+    info = data_summary(args.dir, args.format, args.downscale, args.holdout,
+                        allow_outside=args.allow_outside_paths)  # fmt: skip
     print(json_dumps(info))
     return 0

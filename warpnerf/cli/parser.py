@@ -19,6 +19,11 @@ from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 from .view import cmd_view, view_flags
 
+# the runs eval, render and export read (the NeRF runner: any --field), and the --device help of
+# the commands that read a run
+RADIANCE_RUNS = "train nerf or train volsdf"
+RUN_DEVICE = "cpu or cuda (default: the run's device)"
+
 
 def _mesh_cleaning_flags(p) -> None:
     """--clean [MIN_FRACTION] (`mesh`, `eval --geometry`)."""
@@ -42,15 +47,18 @@ def build_parser() -> argparse.ArgumentParser:
         "spiral video, images and metrics.json (built-in scene, no data needed)",
     )
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.add_argument("--device", default="cpu", help="cpu or cuda")
-    d.add_argument("--iters", type=_positive(int), default=300)
+    d.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    d.add_argument("--iters", type=_positive(int), default=300,
+                   help="optimisation steps of the box fit (default 300)")  # fmt: skip
     d.add_argument("--size", type=_positive(int), default=64, help="training image size")
     d.add_argument("--frames", type=_positive(int), default=40, help="spiral video frames")
-    d.add_argument("--video-size", type=_positive(int), default=128)
+    d.add_argument("--video-size", type=_positive(int), default=128,
+                   help="spiral video width and height, pixels (default 128)")  # fmt: skip
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=cmd_demo)
 
-    t = sub.add_parser("train", help="train a model: nerf, or box (fit an SDF box to images)")
+    t = sub.add_parser("train", help="train a run: nerf, volsdf (neural SDF from images), sdf "
+                       "(neural SDF from points) or box (fit an SDF box to images)")  # fmt: skip
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
     tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
     _box_flags(tb)
@@ -72,17 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
     ts.set_defaults(func=cmd_train_sdf, subparser=ts)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
-    e.add_argument("run", help="run folder written by 'warpnerf train nerf'")
-    e.add_argument("--split", default="val", choices=["train", "val", "test"])
-    e.add_argument("--device", default=None, help="default: the run's device")
+    e.add_argument("run", help=f"run folder of {RADIANCE_RUNS} (--geometry: an SDF field's, "
+                   "volsdf or hash_sdf)")  # fmt: skip
+    e.add_argument("--split", default="val", choices=["train", "val", "test"],
+                   help="the data split to score (default val)")  # fmt: skip
+    e.add_argument("--device", default=None, help=RUN_DEVICE)
     e.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all images of the split")
     e.add_argument(
         "--chunk", type=_positive(int), default=None, help="rays rendered at once (run's own)"
     )
     e.add_argument(
-        "--march-step", type=_positive(float), default=None, help="grid runs: another step"
-    )
-    e.add_argument("--round-samples", type=_nonnegative, default=None, help="grid runs: another")
+        "--march-step", type=_positive(float), default=None,
+        help="grid runs: another marching step (default the run's)",
+    )  # fmt: skip
+    e.add_argument(
+        "--round-samples", type=_nonnegative, default=None,
+        help="grid runs: another sample-count rounding (0 = none; default the run's)",
+    )  # fmt: skip
     e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
     e.add_argument(
         "--renderer", default="volume", choices=["volume", "sphere"], help="SDF runs: sphere "
@@ -104,13 +118,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
-    r.add_argument("run")
+    r.add_argument("run", help=f"run folder of {RADIANCE_RUNS}")
     r.add_argument("--path", default="spiral", help="spiral, orbit, or a camera-path JSON "
                    "file saved by `warpnerf view`")  # fmt: skip
     r.add_argument("--frames", type=_positive(int), default=None,
                    help="default 40 (a path file: its own frame count)")  # fmt: skip
     r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
-    r.add_argument("--device", default=None)
+    r.add_argument("--device", default=None, help=RUN_DEVICE)
     r.add_argument(
         "--renderer", default="volume", choices=["volume", "sphere"],
         help="SDF runs: sphere-trace the surface (into RUN/render_PATH_sphere) or volume",
@@ -118,15 +132,17 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_render)
 
     m = sub.add_parser("mesh", help="marching cubes of an SDF scene or a trained run -> PLY + PNG")
-    m.add_argument("run", nargs="?", help="a NeRF run folder (density level set)")
+    m.add_argument("run", nargs="?", help="run folder of train nerf (density level set), "
+                   "volsdf or sdf (the SDF's zero level set); or give --sdf")  # fmt: skip
     m.add_argument("--sdf", help="SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
     m.add_argument("--resolution", type=int, default=256, help="grid nodes per axis")
     m.add_argument("--level", type=_finite, default=None, help="0 for SDFs; density for runs (10)")
     m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
     m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
     m.add_argument(
-        "--device", default=None, help="where to evaluate and march (default: the run's; cpu)"
-    )
+        "--device", default=None,
+        help="where to evaluate and march (default: the run's device; cpu for --sdf)",
+    )  # fmt: skip
     m.add_argument(
         "--colors", action="store_true", help="runs: bake the radiance field's colour into the "
         "vertices (seen along the normal, looking at the surface)",
@@ -136,7 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--decimate", type=_finite, default=None, metavar="R", help="quadric decimation "
         "removing about R of the faces, 0 < R < 1 (after --clean, before --colors)",
     )  # fmt: skip
-    m.add_argument("--no-screenshot", action="store_true")
+    m.add_argument("--no-screenshot", action="store_true",
+                   help="no PNG screenshot beside the .ply")  # fmt: skip
     m.set_defaults(func=cmd_mesh)
 
     v = sub.add_parser("view", help="web viewer of any run on a local port (viser): renders, "
@@ -148,14 +165,17 @@ def build_parser() -> argparse.ArgumentParser:
         "export", help="a run as files other tools open: a coloured point cloud with normals "
         "(PLY) or its cameras (nerfstudio transforms.json)",
     )  # fmt: skip
-    x.add_argument("run")
-    x.add_argument("what", choices=["pointcloud", "cameras"])
+    x.add_argument("run", help=f"run folder of {RADIANCE_RUNS}")
+    x.add_argument(
+        "what", choices=["pointcloud", "cameras"], help="pointcloud: rendered surface points "
+        "with colours and normals (PLY); cameras: the cameras as nerfstudio transforms.json",
+    )  # fmt: skip
     x.add_argument("--out", required=True, help="pointcloud: a .ply; cameras: a .json")
     x.add_argument("--views", type=_nonnegative, default=0, help="pointcloud: training views "
                    "used, spread evenly (0: all)")  # fmt: skip
     x.add_argument("--stride", type=_positive(int), default=2, help="pointcloud: every Nth pixel")
     x.add_argument("--min-opacity", type=_finite, default=0.5, help="pointcloud: rays kept")
-    x.add_argument("--device", default=None, help="pointcloud: default the run's")
+    x.add_argument("--device", default=None, help="pointcloud: " + RUN_DEVICE)
     x.set_defaults(func=cmd_export)
 
     dp = sub.add_parser(
@@ -163,7 +183,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     dp.add_argument("dir", help="Blender, nerfstudio, COLMAP or LLFF folder")
     _data_format_flags(dp)
-    dp.add_argument("--downscale", type=_positive(int), default=1)
+    dp.add_argument(
+        "--downscale", type=_positive(int), default=1,
+        help="load the images at 1/N resolution, as train --downscale N (default 1)",
+    )  # fmt: skip
+    dp.add_argument(
+        "--allow-outside-paths", action="store_true",
+        help="let the dataset's files name images outside its folder (absolute paths, '..', "
+        "symlinks out of it); refused by default",
+    )  # fmt: skip
     dp.set_defaults(func=cmd_data)
 
     b = sub.add_parser("bench", help="benchmark kernels against their PyTorch twins")
@@ -172,8 +200,9 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="?",
         default="composite",
         choices=["composite", "march", "encoding", "sphere-trace", "all"],
+        help="kernel family to time (default composite; all: every family)",
     )
-    b.add_argument("--device", default="cpu")
+    b.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     b.add_argument("--json", default=None, help="write the results as JSON here")
     b.add_argument("--quick", action="store_true", help="smallest sizes only")
     b.set_defaults(func=cmd_bench)
@@ -187,13 +216,20 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
 
+    from contextlib import nullcontext
+
+    from ..train.provenance import command_line
+
+    # what a run's run.json records as its command: this argv when called from Python
+    recorded = nullcontext() if argv is None else command_line(["warpnerf", *argv])
+
     def run():
         # torchrun (WORLD_SIZE > 1) is for the data-parallel trainers; any other command would run
         # whole on every rank and write the same outputs from each
         if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
                             "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
-        with _sigterm_exits():
+        with _sigterm_exits(), recorded:
             return args.func(args)
 
     return exit_status(f"warpnerf {args.command}", run)

@@ -1,4 +1,5 @@
-"""`warpnerf eval`, `render` and `mesh`: tools on a trained run (mesh also on an SDF scene)."""
+"""`warpnerf eval`, `render`, `mesh` and `export`: tools on a trained run (mesh also on an SDF
+scene)."""
 
 from __future__ import annotations
 
@@ -11,12 +12,13 @@ import numpy as np
 
 from ..errors import UserError
 from ..io import check_foreign, json_dumps, remove_own
-from ._common import _check_out, _device, _saved_config
+from ._common import _check_out, _device, _existing, _saved_config
 
 
 def cmd_eval(args) -> int:
     from ..train.nerf_eval import evaluate_geometry, evaluate_run
 
+    _existing(args.run)
     if args.geometry is not None:  # reads the run, writes nothing: prints the figures
         device = _device(args.device) if args.device else None
         _check_clean(args.clean)
@@ -51,6 +53,7 @@ def cmd_eval(args) -> int:
 def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
+    _existing(args.run)
     if Path(args.run).is_dir():
         name = args.path if args.path in ("spiral", "orbit") else Path(args.path).stem
         sub = f"render_{name}" + ("_sphere" if args.renderer == "sphere" else "")
@@ -77,6 +80,7 @@ class _MeshSource(NamedTuple):
     back: Callable | None  # vertices -> the data's own units
     device: str  # where the grid is evaluated and marched: --device, else the run's device
     field: object = None  # a radiance field (forward(x, d) -> (sigma, rgb)) for --colors
+    density: bool = False  # fn is minus a density (a NeRF): its values are -sigma
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -97,6 +101,7 @@ def _mesh_source(args) -> _MeshSource:
     from ..train.nerf import load_run
     from ..train.sdf import MODEL, load_sdf_run
 
+    _existing(args.run)
     run = Path(args.run)
     if _saved_config(run).get("model") == MODEL:
         cfg, model, ckpt = load_sdf_run(run, dev if args.device else None)
@@ -129,7 +134,7 @@ def _mesh_source(args) -> _MeshSource:
 
     # marching cubes of -density at -level: inside (dense) is negative like an SDF
     fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device, field)
+    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device, field, True)
 
 
 def _check_clean(clean) -> None:
@@ -160,7 +165,7 @@ def _clean_and_decimate(v, f, clean, decimate):
 def cmd_mesh(args) -> int:
     import time
 
-    from ..mesh import extract_mesh, screenshot, vertex_colors, write_ply
+    from ..mesh import extract_mesh, level_hint, screenshot, vertex_colors, write_ply
 
     if args.resolution < 8 or args.resolution > 1024:
         raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
@@ -174,17 +179,21 @@ def cmd_mesh(args) -> int:
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
         check_foreign([png])
-    fn, lo, hi, level, shown_level, what, back, dev, field = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, back, dev, field, density = _mesh_source(args)
     if args.colors and field is None:
         raise UserError(f"--colors needs a NeRF or VolSDF run (a radiance field); {what} has none")
     t0 = time.perf_counter()
     try:
-        v, f = extract_mesh(fn, lo, hi, args.resolution, level, device=dev)
+        v, f, vals = extract_mesh(fn, lo, hi, args.resolution, level, device=dev,
+                                  return_values=True)  # fmt: skip
     except ValueError as e:
         raise UserError(f"{what}: {e}") from None
     secs = time.perf_counter() - t0
     if len(f) == 0:
-        raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}")
+        hint = level_hint(-vals if density else vals, density)  # range seen, a level to try
+        raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}: "
+                        f"{hint}")  # fmt: skip
+    del vals
     t1 = time.perf_counter()
     v, f, post = _clean_and_decimate(v, f, args.clean, args.decimate)  # (the field's own frame)
     post_secs = time.perf_counter() - t1
@@ -229,6 +238,7 @@ def cmd_mesh(args) -> int:
 def cmd_export(args) -> int:
     from ..export import export_cameras, export_pointcloud
 
+    _existing(args.run)
     _check_out(args.out, file=True)
     if args.what == "pointcloud":
         if not args.out.endswith(".ply"):

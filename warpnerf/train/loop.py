@@ -24,6 +24,9 @@ The loop owns the duties every trainer shares, so no task re-implements them:
   does not count as training time). With step-based schedules (learning rate, beta, grid) the
   state at a snapshot is the state a run stopped by ``--max-seconds`` at that time would end with,
   so one run gives the whole curve.
+- provenance: ``run.json`` in the run folder gets one session per invocation (command line,
+  start time and steps, software versions and git commit, device, world size; see
+  :mod:`~warpnerf.train.provenance`), a resume appending its own.
 
 A task provides the model side: its parameters and optimiser, one step's loss, what its
 checkpoint holds besides the loop's keys, and optionally a validation and progress-bar text.
@@ -39,8 +42,17 @@ from pathlib import Path
 import torch
 
 from ..errors import Interrupted, UserError
-from ..io import adopt, check_foreign, load_weights, output_lock, save_checkpoint, write_json
+from ..io import (
+    adopt,
+    check_foreign,
+    load_weights,
+    make_folder,
+    output_lock,
+    save_checkpoint,
+    write_json,
+)
 from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
+from .provenance import RUN_INFO, finish_session, start_session
 
 __all__ = [
     "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
@@ -293,9 +305,13 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
 
     pending = [b for b in s.snapshot_seconds if b > elapsed0] if run is not None and main else []
     if pending:  # before any work: refuse to replace files warpnerf did not write
-        (Path(run) / SNAPSHOTS).mkdir(exist_ok=True)
+        make_folder(Path(run) / SNAPSHOTS, "snapshots folder")
         check_foreign([Path(run) / snapshot_name(b) for b in pending])
 
+    record = None  # RUN/run.json: how the run was made, one session per invocation
+    if run is not None and main:
+        device = params[0].device if params else "cpu"
+        record = start_session(run, device, start, s.iters, dist, resume=resume_from is not None)
     tv = time.perf_counter()
     for hook in hooks:
         hook.on_start(task, start)
@@ -374,6 +390,11 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
     if bar is not None:
         bar.close()
     halt = halt if dist is not None else stop["signum"]
+    if record is not None:
+        outcome = "interrupted" if halt is not None else "finished"
+        if halt is None and history["step"] and history["step"][-1] < s.iters:
+            outcome = "stopped"  # --max-seconds
+        finish_session(run, record, history["step"][-1] if history["step"] else start, outcome)
     if halt is not None:
         raise Interrupted(halt, history["step"][-1], run)
     return history
@@ -442,9 +463,9 @@ def lock_run(run: Path, locks: contextlib.ExitStack) -> None:
 
 def resume_checks(run: Path, step: int, iters: int, outputs) -> None:
     """Before continuing a run at checkpoint ``step``: ``iters`` must go beyond it, and the
-    run's files (from before the manifest existed) become the run's own."""
+    run's files (from before the manifest existed, or copied) become the run's own."""
     check_resume_iters(run, step, iters)
-    adopt(run, outputs)
+    adopt(run, (*outputs, RUN_INFO))
 
 
 def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) -> None:
@@ -453,7 +474,7 @@ def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) 
     locks.enter_context(output_lock(run, "run folder"))
     if (run / checkpoint).exists():
         raise UserError(f"{run}: already holds a run; choose another --out")
-    check_foreign([run / n for n in outputs])
+    check_foreign([run / n for n in (*outputs, RUN_INFO)])
 
 
 def adam(params, **kw) -> torch.optim.Adam:

@@ -14,6 +14,7 @@ from ..errors import UserError, check_fits
 from ..io import (
     check_foreign,
     depth_to_uint8,
+    make_folder,
     output_lock,
     remove_own,
     to_uint8,
@@ -22,7 +23,9 @@ from ..io import (
     write_video,
 )
 from ..metrics import psnr, ssim
+from .loop import snapshot_name
 from .nerf import (
+    CHECKPOINT,
     depth_scale,
     load_data,
     load_run,
@@ -121,18 +124,24 @@ def evaluate_run(
     sub = f"eval_{split}" + ("_sphere" if renderer == "sphere" else "")
     out_dir = Path(out_dir) if out_dir else Path(run) / sub
     n = ds.images.shape[0] if not max_images else min(max_images, ds.images.shape[0])
+    if out_dir == Path(run) / sub:  # a folder warpnerf makes in the run: a real one, no link
+        make_folder(out_dir, "evaluation folder")
     with output_lock(out_dir, "evaluation folder"):
         names = ["metrics.json"] + [f"{split}_{i:03d}.png" for i in range(n)]
         check_foreign([out_dir / x for x in names])  # another program's files stay untouched
         # a previous, possibly larger, evaluation's images (only those warpnerf wrote)
         remove_own(out_dir, sorted({p.name for p in out_dir.glob(f"{split}_*.png")} - set(names)))
         sphere = (render.get("chunk") or True) if renderer == "sphere" else None
-        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere)
+        which = CHECKPOINT if snapshot is None else snapshot_name(float(snapshot))
+        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere, which)
 
 
-def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
-    """``sphere``: None (volume rendering), else sphere tracing (the --chunk given, or True)."""
+def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=CHECKPOINT):
+    """``sphere``: None (volume rendering), else sphere tracing (the --chunk given, or True);
+    ``which``: the checkpoint file evaluated (metrics.json names it, its step, and the software
+    and device of the evaluation: :func:`~warpnerf.train.provenance.environment`)."""
     from .nerf import dataset_rays
+    from .provenance import command_now, environment
 
     with_ssim = min(ds.height, ds.width) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
@@ -174,7 +183,8 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
         )
     metrics = {
         "split": split,
-        "step": ckpt["step"],
+        "step": ckpt["step"],  # the checkpoint's
+        "checkpoint": which,
         "n_images": n,
         "psnr": sum(r["psnr"] for r in rows) / max(n, 1),
         "ssim": sum(r["ssim"] for r in rows) / max(n, 1) if with_ssim else None,
@@ -184,6 +194,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None):
         **{k: getattr(cfg, k) if k == "chunk" or grid else None for k in RENDER_SETTINGS},
         "renderer": "sphere" if sphere else "volume",
         "per_image": rows,
+        "provenance": {**command_now(), **environment(cfg.device)},
     }
     if sphere:
         for k in ("sphere_iters", "sphere_hits"):
@@ -227,8 +238,9 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
     RUN/render_{path}/ (RUN/render_{path}_sphere/ with ``renderer="sphere"``: SDF runs'
     surfaces sphere-traced). ``size`` = (W, H), default the training resolution. ``path``:
-    "spiral", "orbit" or a camera-path file saved by the viewer (its keyframes, field of view
-    and frame count; ``frames`` overrides the count; output in RUN/render_{file stem}/)."""
+    "spiral", "orbit" or a camera-path file saved by the viewer (its keyframes, field of view,
+    frame count and the near/far the viewer rendered each keyframe with; ``frames`` overrides
+    the count; output in RUN/render_{file stem}/)."""
     cfg, model, _ = load_run(run, device)
     _check_renderer(renderer, model, cfg)
     user_path = None
@@ -240,10 +252,12 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     frames = frames or 40
     train = load_data(cfg, "train")
     w0, h0 = train.width, train.height
+    windows = None  # per frame (near, far): a viewer's path renders with the viewer's
     if user_path is not None:  # the viewer's field of view and aspect, the training height
         w, h = size or (max(1, round(h0 * user_path.aspect)), h0)
         k = user_path.intrinsics(w, h).to(train.intrinsics)
         cams = user_path.cameras(frames).to(cfg.device)
+        windows = _path_windows(user_path, frames, model, cfg, train)
     else:
         w, h = size or (w0, h0)
         k = train.intrinsics[0].clone()
@@ -263,19 +277,46 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
     names = [f"{kind}_{f:03d}.png" for kind in kinds for f in range(frames)]
     names += [f"{kind}.{x}" for kind in kinds for x in ("gif", "mp4")]
+    make_folder(out_dir, "render folder")  # (a link to another folder is refused)
     with output_lock(out_dir, "render folder"):
         check_foreign([out_dir / x for x in names])
-        return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer)
+        return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer,
+                              windows)  # fmt: skip
 
 
-def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume"):
+def _path_windows(user_path, frames: int, model, cfg, train):
+    """[frames, 2] (near, far) of a viewer camera path's frames: those saved with its keyframes
+    (interpolated), else (files saved before they were) the viewer's rule
+    (:func:`~warpnerf.data.camera_path.window_rule`) at each frame's position; None for
+    forward-facing (NDC) runs, which the viewer renders with the run's own range."""
+    import numpy as np
+
+    from ..data.camera_path import window_rule
+
+    if cfg.ndc_camera() is not None:
+        return None
+    saved = user_path.frame_windows(frames)
+    if saved is not None:
+        return saved
+    rule = window_rule(with_refined_poses(model, train, "train").c2w, cfg.near, cfg.far)
+    return np.array([rule(c[:3, 3]) for c in user_path.cameras(frames).double().numpy()])
+
+
+def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume",
+                   windows=None):  # fmt: skip
+    import copy
+
     rgbs, depths, geo, t0, scale = [], [], [], time.perf_counter(), None
     for f in range(frames):
         o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
+        fc = cfg
+        if windows is not None:  # this frame's near/far (a viewer's camera path)
+            fc = copy.copy(cfg)
+            fc.near, fc.far = float(windows[f][0]), float(windows[f][1])
         if renderer == "sphere":
-            out = sphere_traced_rays_of(model, cfg, o, d)
+            out = sphere_traced_rays_of(model, fc, o, d)
         else:
-            out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+            out = render_rays_of(model, fc, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep, opa = out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu()
         if scale is None:  # the first frame that shows a surface sets it for the video
