@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .io import json_safe, write_image, write_json
+from .io import check_foreign, json_safe, make_folder, write_image, write_json
 
 __all__ = ["export_pointcloud", "export_cameras"]
 
@@ -43,6 +43,7 @@ def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: fl
         raise UserError(f"--min-opacity must be in (0, 1), got {min_opacity}")
     if views < 0:
         raise UserError(f"--views must be >= 0, got {views}")
+    check_foreign([out])  # before the work: another program's file there is refused
     cfg, model, _ = load_run(run, device)
     ds = with_refined_poses(model, load_data(cfg, "train"), "train")
     n = ds.images.shape[0] if not views else min(views, ds.images.shape[0])
@@ -112,15 +113,17 @@ def _normals(fn, x: torch.Tensor, h: float, chunk: int = 1 << 16) -> torch.Tenso
 
 
 def export_cameras(run, out, splits=("train", "val")) -> dict:
-    """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras; returns a
-    summary."""
+    """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras (and the images of a
+    dataset without image files in ``images/`` beside it); returns a summary. Every target is
+    checked before anything is written: a file warpnerf did not write there (the JSON or an
+    image), or a link in place of ``images/``, is refused with nothing written."""
     from .train.nerf import load_data, load_run, with_refined_poses
 
     out = Path(out)
     if out.suffix != ".json":
         raise UserError(f"--out must be a .json file, got {out}")
     cfg, model, _ = load_run(run, "cpu")
-    frames, written = [], 0
+    frames, images = [], []  # images: (path relative to the JSON, uint8 [H, W, C]) to write
     for split in splits:
         try:
             ds = with_refined_poses(model, load_data(cfg, split), split)
@@ -132,12 +135,9 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
             fx, fy, cx, cy = (float(v) for v in ds.intrinsics[i])
             if i < len(ds.paths):
                 path = os.path.relpath(Path(ds.paths[i]).resolve(), out.parent.resolve())
-            else:  # no image file (the built-in scene): write it beside the JSON
-                rel = f"images/{split}_{i:03d}.png"
-                (out.parent / "images").mkdir(parents=True, exist_ok=True)
-                img = (ds.images[i].clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-                write_image(out.parent / rel, img)
-                path, written = rel, written + 1
+            else:  # no image file (the built-in scene): written beside the JSON
+                path = f"images/{split}_{i:03d}.png"
+                images.append((path, (ds.images[i].clamp(0, 1) * 255 + 0.5).to(torch.uint8)))
             frames.append({
                 "file_path": path, "transform_matrix": ds.c2w[i].double().tolist(),
                 "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": ds.width, "h": ds.height,
@@ -146,6 +146,14 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
     doc = {"camera_model": "OPENCV", "frames": frames}
     if cfg.scene is not None:  # a capture: poses are in the run's normalised frame
         doc["applied_transform"] = np.asarray(cfg.scene["transform"])[:3].tolist()
+    folder = out.parent / "images"
+    if images and os.path.lexists(folder):  # a link or a file there: refused before any write
+        make_folder(folder, "exported images folder")
+    check_foreign([out, *(out.parent / rel for rel, _ in images)])
+    if images:
+        make_folder(folder, "exported images folder")
+    for rel, img in images:
+        write_image(out.parent / rel, img.numpy())
     write_json(out, json_safe(doc))
     frame = "normalised (applied_transform)" if cfg.scene is not None else "data"
-    return {"out": str(out), "frames": len(frames), "images_written": written, "frame": frame}
+    return {"out": str(out), "frames": len(frames), "images_written": len(images), "frame": frame}

@@ -1,21 +1,36 @@
-"""Atomic output writers: every file is written to a temporary name in its folder, flushed to disk,
-then renamed onto its target, so an interrupted run (an exception, a signal, a killed process, a
-full disk) never leaves a half-written image, video, mesh, checkpoint or metrics file: the target
-is the previous complete file or the new complete one. A process killed outright in the middle of
-a write (SIGKILL, or a signal without a Python handler) can leave the hidden temporary file
-(``.NAME.XXXXXXXX.SUFFIX``) behind, never a partial target."""
+"""Output writers and checkpoint loaders. Every output (image, video, mesh, checkpoint, JSON) is
+written through :func:`~warpnerf.files.atomic_path`: to a temporary name in its folder, flushed to
+disk, then renamed onto its target, so an interrupted run (an exception, a signal, a killed
+process, a full disk) never leaves a half-written file: the target is the previous complete file
+or the new complete one. A process killed outright in the middle of a write (SIGKILL, or a signal
+without a Python handler) can leave the hidden temporary file (``.NAME.XXXXXXXX.SUFFIX``) behind,
+never a partial target. How warpnerf writes into folders it does not own exclusively (no links
+followed, special files refused, manifests, the folder lock) is in :mod:`warpnerf.files`."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import math
-import os
-import tempfile
-import threading
 from pathlib import Path
 
 import numpy as np
+
+# The files warpnerf writes into run and output folders (atomic outputs, manifests, the folder
+# lock, no links followed, special files refused): warpnerf/files.py, re-exported here.
+from .files import (
+    LOCK,
+    MANIFEST,
+    adopt,
+    atomic_path,
+    check_foreign,
+    make_folder,
+    output_lock,
+    owned_files,
+    read_regular,
+    record,
+    remove_own,
+)
 
 __all__ = [
     "atomic_path",
@@ -26,239 +41,22 @@ __all__ = [
     "check_foreign",
     "remove_own",
     "output_lock",
+    "make_folder",
+    "read_regular",
+    "record",
     "json_safe",
     "json_dumps",
     "write_json",
     "save_checkpoint",
     "load_checkpoint",
     "load_weights",
+    "zip_directory",
+    "check_overlap",
     "write_image",
     "write_video",
     "to_uint8",
     "depth_to_uint8",
 ]
-
-
-MANIFEST = ".warpnerf-files.json"  # per folder: the names of the files warpnerf wrote there
-LOCK = ".warpnerf.lock"  # per output folder: held (flock) by the process writing into it
-_MANIFEST_MAX_BYTES = 1 << 20
-
-
-def _stamp(path: Path):
-    st = path.stat()
-    return [st.st_size, st.st_mtime_ns]
-
-
-def _read_manifest(folder) -> dict:
-    """{name: [size, mtime_ns]} of a folder's manifest; {} when absent or malformed."""
-    p = Path(folder) / MANIFEST
-    try:
-        if p.stat().st_size > _MANIFEST_MAX_BYTES:
-            return {}
-        data = json.loads(p.read_text())
-    except (OSError, ValueError, RecursionError):
-        return {}
-    if not isinstance(data, dict):
-        return {}
-    return {
-        n: v
-        for n, v in data.items()
-        if isinstance(n, str) and _plain_name(n) and isinstance(v, list) and len(v) == 2
-        and all(type(x) is int for x in v)
-    }  # fmt: skip
-
-
-def owned_files(folder) -> set:
-    """Names of the files warpnerf wrote in ``folder`` and nobody changed since: its
-    :data:`MANIFEST` records each file's size and modification time at the write, and a file
-    replaced or edited afterwards no longer counts as warpnerf's. The manifest is untrusted like
-    the rest of a run folder: anything but a JSON object of plain file names (no separators, no
-    ``..``) of bounded size reads as empty, so it can never widen what is deleted or replaced
-    beyond files of that folder."""
-    folder = Path(folder)
-    owned = set()
-    for name, stamp in _read_manifest(folder).items():
-        p = folder / name
-        try:
-            if not p.is_symlink() and p.is_file() and _stamp(p) == stamp:
-                owned.add(name)
-        except OSError:
-            continue
-    return owned
-
-
-def _plain_name(name: str) -> bool:
-    return name not in ("", ".", "..") and "/" not in name and "\\" not in name and "\0" not in name
-
-
-_MANIFEST_LOCK = threading.Lock()  # (a checkpoint written by a thread, a viewer's path file)
-
-
-def _record(path: Path) -> None:
-    """Records ``path`` (size and modification time) in its folder's manifest, atomically (and
-    one thread at a time: the read-modify-write would lose another thread's entry)."""
-    if path.name == MANIFEST:
-        return
-    with _MANIFEST_LOCK:
-        _record_locked(path)
-
-
-def _record_locked(path: Path) -> None:
-    entries = _read_manifest(path.parent)
-    entries = {n: v for n, v in entries.items() if (path.parent / n).exists()}  # prune
-    entries[path.name] = _stamp(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{MANIFEST}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(entries, f)
-        os.replace(tmp, path.parent / MANIFEST)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        raise
-
-
-def adopt(folder, names) -> None:
-    """Records ``names`` (those that exist) as warpnerf's in ``folder``'s manifest: the files of a
-    run that the user resumes, written before manifests existed."""
-    for name in names:
-        p = Path(folder) / name
-        if _plain_name(name) and p.is_file() and not p.is_symlink():
-            _record(p)
-
-
-def check_foreign(paths) -> None:
-    """:class:`UserError` if any of ``paths`` exists and was not written by warpnerf (is not in
-    its folder's manifest): commands replace only their own files. Called before the work starts
-    so that a refusal costs nothing."""
-    from .errors import UserError
-
-    for p in map(Path, paths):
-        if (p.exists() or p.is_symlink()) and p.name not in owned_files(p.parent):
-            raise UserError(
-                f"{p}: exists and was not written by warpnerf; refusing to replace it "
-                "(move it away or choose another output)"
-            )
-
-
-def remove_own(folder, names) -> list:
-    """Removes those of ``names`` in ``folder`` that warpnerf wrote there (listed in its
-    manifest); any other file is left alone. Returns the names removed."""
-    folder = Path(folder)
-    owned, gone = owned_files(folder), []
-    for name in names:
-        if name in owned and _plain_name(name):
-            p = folder / name
-            if p.is_file() and not p.is_symlink():
-                p.unlink()
-                gone.append(name)
-    return gone
-
-
-@contextlib.contextmanager
-def output_lock(folder, what: str = "output folder"):
-    """Holds an exclusive lock on ``folder`` (its :data:`LOCK` file, created if needed) for the
-    block: a second process writing into the same folder gets a :class:`UserError` naming the
-    holder's pid instead of mixing two runs' files. The lock is the OS's (``flock``): it is
-    released on every exit path, a crash or SIGKILL included, so a lock file left by a dead
-    process is stale by construction and simply taken over. Re-entrant within one process."""
-    from .errors import UserError
-
-    folder = Path(folder)
-    key = str(folder.resolve())
-    if key in _HELD:
-        _HELD[key] += 1
-        try:
-            yield
-        finally:
-            _HELD[key] -= 1
-        return
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / LOCK
-    try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    except OSError as e:
-        raise UserError(f"{path}: cannot create the lock file ({e.strerror or e})") from None
-    try:
-        _try_lock(fd)
-    except BlockingIOError:
-        os.lseek(fd, 0, os.SEEK_SET)
-        holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise UserError(
-            f"{folder}: this {what} is in use by another warpnerf process (pid {holder}); wait "
-            "for it to finish or choose another output"
-        ) from None
-    try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-        _HELD[key] = 1
-        yield
-    finally:
-        _HELD.pop(key, None)
-        os.close(fd)  # closing the descriptor releases the lock
-
-
-_HELD: dict = {}
-
-
-def _try_lock(fd: int) -> None:
-    """Non-blocking exclusive lock of an open file; BlockingIOError when another process holds
-    it."""
-    try:
-        import fcntl
-    except ImportError:  # Windows
-        import msvcrt
-
-        try:
-            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
-        except OSError:
-            raise BlockingIOError from None
-        return
-    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-
-
-@contextlib.contextmanager
-def atomic_path(path, replace_foreign: bool = False):
-    """Yields a temporary path next to ``path`` (same suffix); when the block succeeds the file is
-    fsynced and renamed onto ``path`` (then the folder is fsynced, so the rename survives a power
-    cut) and its name is recorded in the folder's manifest; when it raises (any exception,
-    KeyboardInterrupt included) the file is removed. An existing ``path`` that warpnerf did not
-    write is never replaced (:class:`UserError`) unless ``replace_foreign`` (a file the user named
-    explicitly, such as ``mesh --out FILE``)."""
-    path = Path(path)
-    if not replace_foreign:
-        check_foreign([path])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs get the usual permissions
-    try:
-        yield tmp
-        _fsync(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        raise
-    _record(path)
-    _fsync(path.parent)
-
-
-def _fsync(path) -> None:
-    """Flushes a file's data to disk (best effort: a folder cannot be opened on every OS)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def json_safe(obj):
@@ -312,7 +110,10 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
 
     path = Path(path)
     try:
+        _check_checkpoint_zip(path)
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except UserError:
+        raise
     except (PermissionError, FileNotFoundError, IsADirectoryError) as e:
         raise UserError(f"{path}: cannot read the checkpoint ({e.strerror or e})") from None
     except pickle.UnpicklingError as e:
@@ -339,17 +140,24 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
             f"{path}: not this kind of run's checkpoint (missing {', '.join(map(repr, missing))}; "
             "another model's run, or written by another version)"
         )
+    for k in keys:  # the entries every run kind shares, of the form the loop writes
+        if k in _ENTRIES and not _ENTRIES[k][0](ckpt[k]):
+            raise UserError(f"{path}: entry {k!r} must be {_ENTRIES[k][1]}, got {_show(ckpt[k])}")
     return ckpt
 
 
 def load_weights(module, state, path, what: str = "weights") -> None:
     """``module.load_state_dict(state)`` (a torch module, optimiser or scheduler) with a
     :class:`UserError` naming checkpoint ``path`` when the saved tensors do not fit: the run's
-    config.json and its checkpoint disagree (a resized model, another run's checkpoint)."""
+    config.json and its checkpoint disagree (a resized model, another run's checkpoint). A
+    module's load is strict (every parameter and buffer present, of its shape); an optimiser's
+    per-parameter state (Adam's moments) must have its parameter's shape."""
     from .errors import UserError
 
     try:
         module.load_state_dict(state)
+        if hasattr(module, "param_groups"):
+            _check_optimizer_state(module)
     except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as e:
         detail = " ".join(str(e).split())
         detail = detail if len(detail) <= 300 else detail[:297] + "..."
@@ -357,6 +165,109 @@ def load_weights(module, state, path, what: str = "weights") -> None:
             f"{path}: its {what} do not match the run's config.json (was the config edited, or "
             f"the checkpoint copied from another run?): {detail}"
         ) from None
+
+
+def _check_optimizer_state(opt) -> None:
+    """ValueError naming the first parameter whose saved state tensor (not a 0-dim counter) has
+    another shape than the parameter: ``load_state_dict`` does not check them, and the first
+    step would fail on them (or broadcast)."""
+    for g, group in enumerate(opt.param_groups):
+        for j, p in enumerate(group["params"]):
+            for key, v in opt.state.get(p, {}).items():
+                if hasattr(v, "shape") and v.dim() > 0 and v.shape != p.shape:
+                    raise ValueError(
+                        f"group {g} parameter {j}: state {key!r} has shape {list(v.shape)}, "
+                        f"the parameter {list(p.shape)}"
+                    )
+
+
+def _is_step(v) -> bool:
+    return type(v) is int and 0 <= v < 2**31
+
+
+def _is_generator_state(v) -> bool:
+    import torch
+
+    size = torch.Generator().get_state().numel()
+    return isinstance(v, torch.Tensor) and v.dtype == torch.uint8 and v.shape == (size,)
+
+
+def _is_history(v) -> bool:
+    return isinstance(v, dict) and all(isinstance(x, list) for x in v.values())
+
+
+_ENTRIES = {  # name: (test, what it must be)
+    "step": (_is_step, "an integer step in [0, 2^31)"),
+    "generator": (_is_generator_state, "a CPU generator's state (uint8)"),
+    "history": (_is_history, "a dict of lists"),
+    "optimizer": (lambda v: isinstance(v, dict), "an optimiser's state (a dict)"),
+}
+
+
+def _show(v) -> str:
+    import torch
+
+    if isinstance(v, torch.Tensor):
+        return f"a {v.dtype} tensor of shape {list(v.shape)}"
+    text = repr(v)
+    return f"a {type(v).__name__}" if len(text) > 40 else text
+
+
+def _check_checkpoint_zip(path: Path) -> None:
+    """A checkpoint's zip directory, read before torch unpacks anything: torch's zip format with
+    every member stored (``torch.save`` never compresses), each member's declared size its
+    stored size, and the members together no larger than the file (no overlapping members, the
+    zip bomb that reads one stored block many times). So loading allocates at most the file's
+    size for tensors. Anything else (a compressed member, torch's legacy pickle format) is
+    refused with a :class:`UserError`."""
+    import zipfile
+
+    from .errors import UserError
+
+    size = path.stat().st_size
+    if not zipfile.is_zipfile(path):
+        raise UserError(
+            f"{path}: not a readable checkpoint (not torch's zip format: corrupt, truncated, or "
+            "torch's legacy format, which warpnerf never writes)"
+        )
+    infos = zip_directory(path, "checkpoint")
+    for info in infos:
+        if info.compress_type != zipfile.ZIP_STORED:
+            raise UserError(
+                f"{path}: refused: member {info.filename!r} is compressed (torch never "
+                "compresses a checkpoint; a compressed one can inflate far beyond its size)"
+            )
+        if info.file_size != info.compress_size:
+            raise UserError(
+                f"{path}: refused: member {info.filename!r} declares {info.file_size} bytes but "
+                f"stores {info.compress_size} (corrupt or crafted)"
+            )
+    check_overlap(path, infos, size)
+
+
+def zip_directory(path: Path, what: str) -> list:
+    """The members (ZipInfo) of a zip file's central directory; UserError when unreadable."""
+    import zipfile
+
+    from .errors import UserError
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return z.infolist()
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, EOFError) as e:
+        raise UserError(f"{path}: unreadable {what} (a corrupt zip file: {e})") from None
+
+
+def check_overlap(path: Path, infos: list, size: int) -> None:
+    """UserError unless the members' stored bytes fit in the file (no overlapping members)."""
+    from .errors import UserError
+
+    stored = sum(i.compress_size for i in infos)
+    if stored > size:
+        raise UserError(
+            f"{path}: refused: its zip members declare {stored} stored bytes in a file of "
+            f"{size} (overlapping members: a zip bomb)"
+        )
 
 
 def to_uint8(img) -> np.ndarray:

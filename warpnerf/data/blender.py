@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ._images import read_all
+from ._images import read_all, read_image
 from ._json import read_json
+from ._paths import OPT_IN, outside_reason
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format
 
@@ -124,10 +125,13 @@ def _matrix(frame, i, path) -> np.ndarray:
     return arr
 
 
-def _read_image(root: Path, file_path, i, path) -> tuple[np.ndarray, Path]:
-    """frames[i].file_path as float32 [H, W, 3|4] in [0, 1]; '.png' tried when no extension."""
+def _read_image(root: Path, file_path, i, path, allow_outside=False) -> tuple[np.ndarray, Path]:
+    """frames[i].file_path as float32 [H, W, 3|4] in [0, 1]; '.png' tried when no extension.
+    The path must stay inside ``root`` (also after symlinks) unless ``allow_outside``."""
     if not isinstance(file_path, str) or not file_path:
         raise UserError(f"{path}: frames[{i}].file_path must be a non-empty string")
+    if not allow_outside:
+        _confine(root, file_path, None, i, path)
     p = root / file_path
     candidates = [p] if p.suffix.lower() in _IMAGE_EXTS else []
     candidates += [p.with_name(p.name + ext) for ext in _IMAGE_EXTS]
@@ -137,30 +141,18 @@ def _read_image(root: Path, file_path, i, path) -> tuple[np.ndarray, Path]:
             f"{path}: frames[{i}].file_path: image {p} not found (.png added when "
             "the path has no extension)"
         )
-    import imageio.v3 as iio
+    if not allow_outside:
+        _confine(root, file_path, img_path, i, path)
+    return read_image(img_path, f"frames[{i}].file_path in {path}"), img_path
 
-    try:
-        img = np.asarray(iio.imread(img_path))
-    except Exception as e:  # imageio raises many types for corrupt files
+
+def _confine(root: Path, file_path: str, img_path, i, path) -> None:
+    why = outside_reason(root, file_path, img_path)
+    if why is not None:
         raise UserError(
-            f"{img_path}: cannot read image (frames[{i}].file_path in {path}): {e}"
-        ) from None
-    if img.ndim == 2:
-        img = img[..., None]
-    if img.ndim == 3 and img.shape[-1] in (1, 2):  # grey, grey + alpha
-        img = np.concatenate([img[..., :1].repeat(3, -1), img[..., 1:]], -1)
-    if img.ndim != 3 or img.shape[-1] not in (3, 4):
-        raise UserError(
-            f"{img_path}: expected an RGB or RGBA image, got shape {img.shape} "
-            f"(frames[{i}].file_path in {path})"
+            f"{path}: frames[{i}].file_path {file_path!r} {why}, outside the dataset folder "
+            f"{root} (pass {OPT_IN} to use images outside it)"
         )
-    if img.dtype == np.uint8:
-        scale = 255.0
-    elif img.dtype == np.uint16:
-        scale = 65535.0
-    else:
-        raise UserError(f"{img_path}: expected 8- or 16-bit pixels, got {img.dtype}")
-    return img.astype(np.float32) / scale, img_path
 
 
 def _composite(img: np.ndarray, bg: np.ndarray) -> np.ndarray:
@@ -193,7 +185,7 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
 
     def read_one(j):
         i = indices[j]
-        img, ip = _read_image(root, frames[i].get("file_path"), i, path)
+        img, ip = _read_image(root, frames[i].get("file_path"), i, path, req.allow_outside)
         raws[j] = (img.shape[:2], ip)
         hw = img.shape[:2]
         if hw[0] < downscale or hw[1] < downscale:  # (checked for the first in order below)
@@ -259,8 +251,15 @@ def load_blender(root, split: str = "train", **options) -> Dataset:
     Intrinsics (:func:`~warpnerf.data.cameras.check_intrinsics`): ``camera_angle_x`` in (0, pi),
     focal lengths in (0, 1e8] pixels, field of view below about 179.8 degrees.
 
+    Every ``file_path`` must stay inside ``root``: relative, without ``..``, and resolving
+    (through symlinks) inside the folder, unless ``allow_outside=True``
+    (``--allow-outside-paths``). Images are read with bounded decoding
+    (:func:`warpnerf.data._images.read_image`: PNG or JPEG, size checked from the header, the
+    first frame only, colour modes converted to RGB(A)).
+
     ``options`` are those of :class:`~warpnerf.data.dataset.LoadRequest` (background,
-    downscale, max_images, holdout). Returns a :class:`~warpnerf.data.dataset.Dataset`.
+    downscale, max_images, holdout, allow_outside). Returns a
+    :class:`~warpnerf.data.dataset.Dataset`.
     """
     return _load(LoadRequest.make(root, split, **options))
 

@@ -38,7 +38,8 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ._images import read_all
+from ._arrays import load_npy
+from ._images import read_all, read_image
 from .blender import _area_downscale, _composite
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
@@ -82,17 +83,8 @@ def _image_size(path: Path) -> tuple[int, int]:
 
 
 def _read(path: Path) -> np.ndarray:
-    import imageio.v3 as iio
-
-    try:
-        img = np.asarray(iio.imread(path))
-    except Exception as e:  # imageio raises many types for corrupt files
-        raise UserError(f"{path}: cannot read image ({e})") from None
-    if img.ndim == 2:
-        img = img[..., None].repeat(3, -1)
-    if img.ndim != 3 or img.shape[-1] not in (3, 4) or img.dtype not in (np.uint8, np.uint16):
-        raise UserError(f"{path}: expected an 8/16-bit RGB(A) image, got {img.shape} {img.dtype}")
-    return img.astype(np.float32) / (255.0 if img.dtype == np.uint8 else 65535.0)
+    """float32 [H, W, 3|4] in [0, 1], bounded decoding (:func:`._images.read_image`)."""
+    return read_image(path)
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,10 +162,7 @@ def _colmap(root: Path, downscale: int) -> dict:
 
 def _llff(root: Path, downscale: int) -> dict:
     path = root / "poses_bounds.npy"
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except Exception as e:
-        raise UserError(f"{path}: cannot read ({e})") from None
+    arr = load_npy(path, "LLFF poses_bounds")  # (its header's shape checked before reading)
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1:
         raise UserError(f"{path}: expected an [N, 17] array (LLFF poses_bounds), got {arr.shape}")
     if not np.isfinite(arr).all():

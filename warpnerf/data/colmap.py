@@ -409,10 +409,9 @@ def read_model(folder) -> tuple[dict[int, Camera], dict[int, Image], dict | None
 
 def _check_name(name: str, path) -> None:
     """An image name must be a relative path inside the images folder."""
-    from pathlib import PurePosixPath, PureWindowsPath
+    from ._paths import is_inside_name
 
-    parts = PurePosixPath(name.replace("\\", "/")).parts
-    if not name or name.startswith("/") or PureWindowsPath(name).drive or ".." in parts:
+    if not is_inside_name(name):
         raise UserError(
             f"{path}: image name {name!r} must be a relative path inside the images folder"
         )

@@ -145,6 +145,8 @@ class LoadRequest:
         device: where the built-in scene is rendered (files are always read to the CPU).
         uint8: images as 8-bit values (x / 255 is the image; a quarter of float32's memory;
             RGBA composites rounded to 1/255), e.g. a large training split kept in host memory.
+        allow_outside: let the dataset's files name images outside its folder (absolute paths,
+            ``..``, symlinks out of it); refused by default (``--allow-outside-paths``).
     """
 
     root: Path
@@ -156,6 +158,7 @@ class LoadRequest:
     builtin_size: int = 48
     device: str = "cpu"
     uint8: bool = False
+    allow_outside: bool = False
 
     @classmethod
     def make(cls, root, split: str = "train", **options) -> LoadRequest:
@@ -176,6 +179,8 @@ class LoadRequest:
             raise UserError(f"holdout must be 0 (none) or >= 2, got {req.holdout!r}")
         if not isinstance(req.uint8, bool):
             raise UserError(f"uint8 must be True or False, got {req.uint8!r}")
+        if not isinstance(req.allow_outside, bool):
+            raise UserError(f"allow_outside must be True or False, got {req.allow_outside!r}")
         if not _positive_int(req.builtin_size):
             raise UserError(f"builtin_size must be a positive integer, got {req.builtin_size!r}")
         try:

@@ -95,11 +95,13 @@ def load_dataset(root, split: str = "train", fmt: str = "auto", **options) -> Da
     return REGISTRY[detect_format(root, split) if fmt == "auto" else fmt].load(req)
 
 
-def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOLDOUT) -> dict:
+def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOLDOUT,
+                 allow_outside: bool = False) -> dict:  # fmt: skip
     """What ``warpnerf data`` prints: format, images per split, image size, intrinsics, near/far,
     camera centres' box (and for COLMAP/LLFF the scene transform, NDC use and points' box; for
     COLMAP the reprojection error of the model's observations through the loader's cameras).
-    Loading each split validates the files (missing images, sizes, poses)."""
+    Loading each split validates the files (missing images, sizes, poses); ``allow_outside``:
+    images named outside the folder are allowed (``--allow-outside-paths``)."""
     if fmt not in FORMATS:
         raise UserError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     root = Path(root)
@@ -112,7 +114,8 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
         info = {"format": fmt, "splits": {}}
     for split in ("train", "val"):
         try:
-            ds = load_dataset(root, split, fmt=fmt, downscale=downscale, holdout=holdout)
+            ds = load_dataset(root, split, fmt=fmt, downscale=downscale, holdout=holdout,
+                              allow_outside=allow_outside)  # fmt: skip
         except UserError as e:
             if split == "val" and "empty" in str(e):
                 info["splits"]["val"] = 0

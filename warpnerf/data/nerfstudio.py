@@ -13,6 +13,8 @@ Cameras are checked as the Blender loader checks them (:func:`warpnerf.data.came
 before any image is read; the selected frames' poses finite, with rotations within 1e-4 of
 orthonormal used as they are, within 0.05 replaced by the nearest rotation (a UserWarning), and
 refused otherwise (degenerate, scaled, mirrored); camera centres within 1e6 of the origin.
+Every ``file_path`` must stay inside the folder (also through symlinks) unless
+``allow_outside=True`` (``--allow-outside-paths``), as in the Blender loader.
 
 Split rule (nerfstudio folders have no split files): the one hold-out rule
 (:func:`~warpnerf.data.dataset.holdout_indices`) in the order of ``frames``: by default ``val`` and

@@ -62,6 +62,35 @@ class RadianceModel(nn.Module):
             parts["poses"] = self.poses
         return parts
 
+    def load_parts(self, saved, path) -> None:
+        """Loads a checkpoint's ``fields`` (the layout of :meth:`parts`): every part this model
+        has must be there with each of its parameters and buffers of their shapes (a strict
+        load), and no part the model lacks may be; a :class:`~warpnerf.errors.UserError` naming
+        checkpoint ``path`` and the part or key otherwise (nothing is left freshly initialised).
+        """
+        from ..errors import UserError
+        from ..io import load_weights
+
+        parts = self.parts()
+        if not isinstance(saved, dict):
+            raise UserError(f"{path}: entry 'fields' must be a dict of the model's parts")
+        held = sorted(str(k) for k, v in saved.items() if v is not None)
+        for k, m in parts.items():
+            if m is not None and saved.get(k) is None:
+                raise UserError(
+                    f"{path}: the checkpoint has no weights for the {k} part that the run's "
+                    f"config.json gives the model ('fields' holds {held or 'nothing'})"
+                )
+        for k in held:
+            if parts.get(k) is None:
+                raise UserError(
+                    f"{path}: the checkpoint holds a {k!r} part that the model of the run's "
+                    "config.json does not have (was the config edited?)"
+                )
+        for k, m in parts.items():
+            if m is not None:
+                load_weights(m, saved[k], path, f"{k} field's weights")
+
     def eikonal_parts(self) -> list:
         """(mean, sample count) of each SDF field's eikonal term at its last rendered samples,
         coarse then fine ((None, 0) for a field without one), taken once like

@@ -75,6 +75,10 @@ class BoxFitConfig:
     beta: float = option(0.05, flag=None)
     alpha: float = option(1.0, flag=None)
     background: float = option(0.0, flag=None)  # black, as the seed's box task
+    allow_outside_paths: bool = option(
+        False, "let the dataset's files name images outside its folder (absolute paths, '..', "
+        "symlinks out of it); refused by default",
+    )  # fmt: skip
     ckpt_every: int = option(100, "steps between checkpoints", check="positive")
     max_seconds: float = option(
         0.0, "stop (a run folder checkpoints) after this much fitting time in this call (a "
@@ -339,7 +343,8 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad folder stops the fit before anything is written.
     # every frame is fitted (holdout 0: no frames held out of a single transforms.json)
-    ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
+    ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
+                      allow_outside=cfg.allow_outside_paths)  # fmt: skip
     dev = torch.device(device)
     tb = [TensorBoardLog(out, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:

@@ -11,6 +11,12 @@ and importance jitter are keyed by the global ray index (``ray_offset``), so N r
 loss curve of one process with the whole batch up to float rounding. Only rank 0 writes files
 (config, checkpoints, history, logs) and validates; a checkpoint holds nothing rank-specific,
 so a run resumes with any number of ranks. NCCL on CUDA, gloo on CPU.
+
+A rank that dies (killed, out of memory, its machine gone) makes the others' next collective
+fail (gloo and NCCL report the closed connection, or the timeout, ``WARPNERF_DIST_TIMEOUT``
+seconds, default 600, when a peer hangs): every collective here turns that failure into a
+:class:`PeerLost`, a :class:`~warpnerf.errors.UserError` (one line naming this rank and the
+backend's message, exit status 2, no traceback); the run keeps its last checkpoint.
 """
 
 from __future__ import annotations
@@ -20,7 +26,23 @@ import os
 
 import torch
 
-__all__ = ["Dist", "from_env"]
+from ..errors import UserError
+
+__all__ = ["Dist", "PeerLost", "from_env"]
+
+
+class PeerLost(UserError):
+    """A collective of a data-parallel run failed: another rank died, hung past the timeout, or
+    never joined."""
+
+
+def _lost(rank: int, world: int, e: BaseException) -> PeerLost:
+    first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
+    first = first if len(first) <= 200 else first[:197] + "..."
+    return PeerLost(
+        f"rank {rank} of {world}: the data-parallel run lost another rank ({first}); stopping. "
+        "The run keeps its last checkpoint: continue it with --resume"
+    )
 
 
 class Dist:
@@ -40,18 +62,26 @@ class Dist:
         lo = self.rank * base + min(self.rank, extra)
         return slice(lo, lo + base + (1 if self.rank < extra else 0))
 
+    def _collective(self, fn, *args, **kw):
+        """``fn(*args, **kw)``, a collective; :class:`PeerLost` when it fails (a peer died or
+        timed out: the backend raises a RuntimeError, torch's DistError included)."""
+        try:
+            return fn(*args, **kw)
+        except RuntimeError as e:
+            raise _lost(self.rank, self.world, e) from None
+
     def sum_(self, t: torch.Tensor) -> torch.Tensor:
         """In place: the sum over the ranks."""
         import torch.distributed as td
 
-        td.all_reduce(t, op=td.ReduceOp.SUM)
+        self._collective(td.all_reduce, t, op=td.ReduceOp.SUM)
         return t
 
     def max_(self, t: torch.Tensor) -> torch.Tensor:
         """In place: the maximum over the ranks."""
         import torch.distributed as td
 
-        td.all_reduce(t, op=td.ReduceOp.MAX)
+        self._collective(td.all_reduce, t, op=td.ReduceOp.MAX)
         return t
 
     def average_grads(self, params) -> None:
@@ -74,7 +104,7 @@ class Dist:
     def barrier(self) -> None:
         import torch.distributed as td
 
-        td.barrier()
+        self._collective(td.barrier)
 
     def close(self) -> None:
         """Leaves the process group at the end of a run that finished on every rank (NCCL warns
@@ -85,7 +115,7 @@ class Dist:
         import torch.distributed as td
 
         if td.is_initialized():
-            td.barrier()
+            self._collective(td.barrier)
             td.destroy_process_group()
 
 
@@ -105,5 +135,8 @@ def from_env(device: str) -> tuple[Dist | None, str]:
         device = f"cuda:{local}"
     if not td.is_initialized():
         timeout = datetime.timedelta(seconds=float(os.environ.get("WARPNERF_DIST_TIMEOUT", 600)))
-        td.init_process_group("nccl" if device.startswith("cuda") else "gloo", timeout=timeout)
+        try:
+            td.init_process_group("nccl" if device.startswith("cuda") else "gloo", timeout=timeout)
+        except RuntimeError as e:  # a peer that never came, a port taken (DistError included)
+            raise _lost(rank, world, e) from None
     return Dist(rank, world), device

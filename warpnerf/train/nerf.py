@@ -16,7 +16,6 @@ from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
 from ..io import (
     load_checkpoint,
-    load_weights,
     write_json,
 )
 from ..ops import random_pixels
@@ -104,6 +103,7 @@ def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False):
         builtin_size=cfg.builtin_size,
         device=cfg.device,
         uint8=uint8,
+        allow_outside=cfg.allow_outside_paths,
     )
 
 
@@ -306,9 +306,7 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
     ckpt = load_checkpoint(ckpt_path, cfg.device, keys)
     if not isinstance(ckpt["fields"], dict):
         raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
-    for k, f in model.parts().items():
-        if f is not None and k in ckpt["fields"]:  # (runs before the grid existed have none)
-            load_weights(f, ckpt["fields"][k], ckpt_path, f"{k} field's weights")
+    model.load_parts(ckpt["fields"], ckpt_path)  # every part the config gives it, strictly
     if hasattr(model.coarse, "set_step"):  # the last step's schedules (open levels, beta), as
         model.coarse.set_step(max(int(ckpt["step"]) - 1, 0))  # its saved buffers hold them
     return cfg, model, ckpt

@@ -1,0 +1,539 @@
+"""Files warpnerf writes into run and output folders, which may hold anything: a run folder is
+downloaded, unpacked and shared, so a name where warpnerf writes may be a symbolic link, a FIFO
+or a device. Every file and folder the program creates or updates there is opened without
+following links (``O_NOFOLLOW``; ``O_EXCL`` where it creates), special files (FIFOs, devices,
+sockets) are refused with a :class:`~warpnerf.errors.UserError` naming the path (a FIFO is opened
+with ``O_NONBLOCK`` before ``fstat``, so it cannot hang a command), and every read of a file
+warpnerf wrote earlier is bounded by the bytes actually read, never by ``st_size``.
+
+- :func:`atomic_path`: an output is written to a temporary name beside its target (created with
+  ``O_EXCL | O_NOFOLLOW``), flushed, and renamed onto the target only when the target is absent or
+  a regular file warpnerf wrote (or, for the file named on the command line, any regular file or
+  a link, which is replaced, never written through). An interrupted write leaves the previous
+  complete file or the new complete one; a SIGKILL mid-write can leave the hidden temporary file
+  (``.NAME.XXXXXXXX.SUFFIX``), never a partial target.
+- The manifest (:data:`MANIFEST`): per folder, an append-only log of the files warpnerf wrote, one
+  JSON record ``["name", size, mtime_ns]`` per line (a file counts as warpnerf's while it still
+  has the recorded size and time). A record is one ``O_APPEND`` write, so recording costs the same
+  in a folder of 30,000 outputs as in an empty one; the log is rewritten without stale records
+  when it has doubled since it was last read or rewritten (so its size stays proportional to the
+  live outputs). Manifests of earlier versions (one JSON object ``{name: [size, mtime_ns]}``) are
+  read as well and appended to. Records are not fsynced one by one: a record lost in a power cut
+  only makes its file count as foreign (refused, never deleted).
+- The folder lock (:data:`LOCK`, :func:`output_lock`) and the folders warpnerf makes inside a run
+  (:func:`make_folder`: ``eval_*``, ``render_*``, ``snapshots``, export's ``images``), checked with
+  ``lstat`` to be real folders.
+
+The threat is a folder prepared in advance (an archive), not a process racing the program on the
+same machine: paths are checked, then used by name (writers such as ffmpeg and ``torch.save``
+need a path).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import stat
+import tempfile
+import threading
+from pathlib import Path
+
+__all__ = [
+    "MANIFEST",
+    "LOCK",
+    "atomic_path",
+    "owned_files",
+    "record",
+    "adopt",
+    "check_foreign",
+    "remove_own",
+    "output_lock",
+    "make_folder",
+    "read_regular",
+]
+
+MANIFEST = ".warpnerf-files.json"  # per folder: the files warpnerf wrote there (a JSON-lines log)
+LOCK = ".warpnerf.lock"  # per output folder: held (flock) by the process writing into it
+_MANIFEST_MAX_BYTES = 1 << 28  # 256 MiB: about 3 million records
+_COMPACT_MIN_BYTES = 1 << 20  # the log is never rewritten below this size
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
+_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
+
+
+def _user_error(text: str):
+    from .errors import UserError
+
+    return UserError(text)
+
+
+def _kind(mode: int) -> str:
+    kinds = ((stat.S_ISLNK, "symbolic link"), (stat.S_ISDIR, "folder"), (stat.S_ISFIFO, "FIFO"),
+             (stat.S_ISSOCK, "socket"), (stat.S_ISCHR, "character device"),
+             (stat.S_ISBLK, "block device"))  # fmt: skip
+    for test, name in kinds:
+        if test(mode):
+            return name
+    return "special file"
+
+
+def _refuse(path, mode: int, what: str):
+    """The UserError for a link or a special file where warpnerf reads or writes its ``what``."""
+    if stat.S_ISLNK(mode):
+        return _user_error(
+            f"{path}: is a symbolic link; warpnerf does not follow links where it writes (its "
+            f"{what}); remove the link or choose another output"
+        )
+    return _user_error(
+        f"{path}: is a {_kind(mode)}, not a regular file; warpnerf refuses it as its {what} "
+        "(remove it or choose another output)"
+    )
+
+
+def _open(path, flags: int, what: str, mode: int = 0o666) -> int:
+    """``os.open`` that never follows a link at ``path``, never blocks on a FIFO and returns the
+    descriptor of a regular file only (:class:`UserError` naming ``path`` otherwise)."""
+    try:
+        fd = os.open(path, flags | _NOFOLLOW | _NONBLOCK | _CLOEXEC, mode)
+    except OSError as e:
+        try:
+            st = os.lstat(path)
+        except OSError:
+            raise e from None
+        if not stat.S_ISREG(st.st_mode):  # ELOOP (a link), ENXIO (a FIFO without reader), ...
+            raise _refuse(path, st.st_mode, what) from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise _refuse(path, st.st_mode, what)
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _read_upto(fd: int, limit: int) -> bytes:
+    """At most ``limit`` bytes of an open file, counted as they are read."""
+    parts, n = [], 0
+    while n < limit:
+        b = os.read(fd, min(limit - n, 1 << 20))
+        if not b:
+            break
+        parts.append(b)
+        n += len(b)
+    return b"".join(parts)
+
+
+def read_regular(path, max_bytes: int, what: str = "file") -> bytes | None:
+    """The bytes of ``path``, a file warpnerf wrote earlier (or the file a command is about to
+    replace), read without following a link and never blocking on a FIFO; None when absent.
+    :class:`UserError` naming ``path`` for a link, a special file, or more than ``max_bytes``
+    bytes (read: at most ``max_bytes + 1``, whatever ``st_size`` says)."""
+    try:
+        fd = _open(path, os.O_RDONLY, what)
+    except FileNotFoundError:
+        return None
+    try:
+        data = _read_upto(fd, max_bytes + 1)
+    finally:
+        os.close(fd)
+    if len(data) > max_bytes:
+        raise _user_error(f"{path}: larger than {max_bytes} bytes; not a {what} warpnerf wrote "
+                          "(remove it or choose another output)")  # fmt: skip
+    return data
+
+
+def _create_temp(folder: Path, prefix: str, suffix: str = "") -> tuple[int, str]:
+    """A new file ``folder/PREFIX<random>SUFFIX``: (descriptor open for writing, its path).
+    ``tempfile.mkstemp`` opens it with ``O_CREAT | O_EXCL | O_NOFOLLOW``; its mode becomes the
+    usual 0o666 less the umask (mkstemp makes 0o600)."""
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=folder)
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())
+    except BaseException:
+        os.close(fd)
+        os.remove(tmp)
+        raise
+    return fd, tmp
+
+
+_UMASK: list = []
+
+
+def _umask() -> int:
+    """The process's umask, read once (reading it means setting it: not done per file, where
+    another thread could create a file meanwhile)."""
+    if not _UMASK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+        _UMASK.append(mask)
+    return _UMASK[0]
+
+
+def make_folder(path, what: str = "output folder") -> Path:
+    """Creates ``path``, a folder warpnerf makes inside a run or output folder (``eval_val``,
+    ``render_spiral``, ``snapshots``; its parents as needed), and checks with ``lstat`` that it is
+    a real folder: a link to another folder (a whole render written elsewhere) or a file there is
+    a :class:`UserError`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with contextlib.suppress(FileExistsError):
+        os.mkdir(path)
+    st = os.lstat(path)
+    if stat.S_ISLNK(st.st_mode):
+        raise _user_error(f"{path}: is a symbolic link; warpnerf writes its {what} only into a "
+                          "real folder (remove the link or choose another output)")  # fmt: skip
+    if not stat.S_ISDIR(st.st_mode):
+        raise _user_error(f"{path}: exists and is a {_kind(st.st_mode)}, not a folder; move it "
+                          "away or choose another output")  # fmt: skip
+    return path
+
+
+# --- the manifest -----------------------------------------------------------------------------
+
+
+def _plain_name(name: str) -> bool:
+    return name not in ("", ".", "..") and "/" not in name and "\\" not in name and "\0" not in name
+
+
+def _valid(name, stamp) -> bool:
+    return (isinstance(name, str) and _plain_name(name) and isinstance(stamp, list)
+            and len(stamp) == 2 and all(type(x) is int for x in stamp))  # fmt: skip
+
+
+def _parse(data: bytes) -> dict:
+    """{name: [size, mtime_ns]} of a manifest's text: records ``["name", size, mtime_ns]`` one a
+    line (later ones win) and objects ``{name: [size, mtime_ns]}`` (the earlier format); anything
+    malformed is skipped (the manifest is untrusted: it can only narrow what is warpnerf's)."""
+    entries = {}
+    text = data.decode("utf-8", errors="replace")
+    try:  # the earlier format: one object, possibly over several lines
+        whole = json.loads(text) if text.lstrip().startswith("{") else None
+    except (ValueError, RecursionError):
+        whole = None
+    lines = [whole] if isinstance(whole, dict) else text.split("\n")
+    for line in lines:
+        if isinstance(line, str):
+            if not line.strip():
+                continue
+            try:
+                line = json.loads(line)
+            except (ValueError, RecursionError):
+                continue
+        if isinstance(line, list) and len(line) == 3:
+            line = {line[0]: line[1:]} if isinstance(line[0], str) else {}
+        if isinstance(line, dict):
+            entries.update((n, s) for n, s in line.items() if _valid(n, s))
+    return entries
+
+
+class _Cached:
+    """A folder's manifest as last read or written by this process: ``ident`` (device, inode,
+    size, mtime) says whether the file on disk is still that one."""
+
+    def __init__(self, ident, entries: dict, base: int):
+        self.ident, self.entries, self.base = ident, entries, base
+
+
+_CACHE: dict = {}
+_LOCK = threading.RLock()  # the cache and the appends (a checkpoint written by a thread)
+
+
+def _ident(st) -> tuple:
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def _entries(folder: Path) -> dict:
+    """{name: [size, mtime_ns]} of ``folder``'s manifest ({} when absent); read again only when
+    the file changed since this process last read or wrote it. :class:`UserError` for a link, a
+    special file or a manifest over :data:`_MANIFEST_MAX_BYTES`."""
+    p = folder / MANIFEST
+    key = os.path.abspath(folder)
+    with _LOCK:
+        try:
+            st = os.lstat(p)
+        except (FileNotFoundError, NotADirectoryError):
+            _CACHE.pop(key, None)
+            return {}
+        c = _CACHE.get(key)
+        if c is not None and c.ident == _ident(st):
+            return c.entries
+        fd = _open(p, os.O_RDONLY, "manifest")
+        try:
+            st = os.fstat(fd)
+            data = _read_upto(fd, _MANIFEST_MAX_BYTES + 1)
+        finally:
+            os.close(fd)
+        if len(data) > _MANIFEST_MAX_BYTES:
+            raise _user_error(
+                f"{p}: the manifest is larger than {_MANIFEST_MAX_BYTES} bytes, which warpnerf "
+                "never writes; remove it (warpnerf then treats the folder's files as not its own)"
+            )
+        entries = _parse(data)
+        _CACHE[key] = _Cached(_ident(st), entries, st.st_size)
+        return entries
+
+
+def _stamp_of(path: Path):
+    """[size, mtime_ns] of a regular file (not a link), else None."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns] if stat.S_ISREG(st.st_mode) else None
+
+
+def owned_files(folder, names=None) -> set:
+    """Names of the files warpnerf wrote in ``folder`` and nobody changed since (of ``names``
+    only, when given): the :data:`MANIFEST` records each file's size and modification time at
+    the write, and a file replaced, edited or turned into a link afterwards no longer counts as
+    warpnerf's. The manifest is untrusted like the rest of a run folder: only plain file names
+    (no separators, no ``..``) count, so it can never widen what is deleted or replaced beyond
+    files of that folder."""
+    folder = Path(folder)
+    entries = _entries(folder)
+    pick = entries if names is None else [n for n in names if n in entries]
+    return {n for n in pick if _stamp_of(folder / n) == entries[n]}
+
+
+def record(path) -> None:
+    """Records ``path`` (a regular file warpnerf just wrote) in its folder's manifest: one line
+    appended (``O_APPEND | O_NOFOLLOW``); the log is rewritten without stale records once it has
+    doubled (and passed :data:`_COMPACT_MIN_BYTES`) since it was last read or rewritten."""
+    path = Path(path)
+    stamp = _stamp_of(path)
+    if path.name == MANIFEST or stamp is None or not _plain_name(path.name):
+        return
+    folder, line = path.parent, (json.dumps([path.name, *stamp]) + "\n").encode()
+    key = os.path.abspath(folder)
+    with _LOCK:
+        _entries(folder)  # (refuses a planted manifest; fills the cache)
+        fd = _open(folder / MANIFEST, os.O_RDWR | os.O_APPEND | os.O_CREAT, "manifest")
+        try:
+            before = os.fstat(fd)
+            if before.st_size and _last_byte(fd, before.st_size) != b"\n":
+                line = b"\n" + line  # (an earlier version's manifest ends without one)
+            while line:
+                line = line[os.write(fd, line) :]
+            after = os.fstat(fd)
+        finally:
+            os.close(fd)
+        c = _CACHE.get(key)
+        if c is not None and c.ident[:3] == _ident(before)[:3]:  # nobody else wrote meanwhile
+            c.entries[path.name] = stamp
+            c.ident = _ident(after)
+        else:
+            _CACHE.pop(key, None)
+            c = None
+        base = c.base if c is not None else before.st_size
+        if after.st_size > max(_COMPACT_MIN_BYTES, 2 * base):
+            _compact(folder)
+
+
+def _last_byte(fd: int, size: int) -> bytes:
+    if hasattr(os, "pread"):
+        return os.pread(fd, 1, size - 1)
+    os.lseek(fd, size - 1, os.SEEK_SET)
+    return os.read(fd, 1)
+
+
+def _compact(folder: Path) -> None:
+    """Rewrites ``folder``'s manifest with one record per file that is still warpnerf's
+    (atomically: a temporary file fsynced, then renamed over the manifest)."""
+    entries = _entries(folder)
+    live = {n: s for n, s in entries.items() if _stamp_of(folder / n) == s}
+    text = "".join(json.dumps([n, *s]) + "\n" for n, s in live.items()).encode()
+    fd, tmp = _create_temp(folder, f"{MANIFEST}.")
+    try:
+        try:
+            while text:
+                text = text[os.write(fd, text) :]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        _check_replaceable(folder / MANIFEST, "manifest")
+        os.replace(tmp, folder / MANIFEST)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+    st = os.lstat(folder / MANIFEST)
+    _CACHE[os.path.abspath(folder)] = _Cached(_ident(st), live, st.st_size)
+
+
+def adopt(folder, names) -> None:
+    """Records ``names`` (those that are regular files) as warpnerf's in ``folder``'s manifest:
+    the files of a run that the user resumes, written before manifests existed."""
+    for name in names:
+        if _plain_name(name):
+            record(Path(folder) / name)
+
+
+def check_foreign(paths) -> None:
+    """:class:`UserError` if any of ``paths`` exists and was not written by warpnerf (is not in
+    its folder's manifest, or is a link or a special file): commands replace only their own
+    files. Called with every target before the work starts, so that a refusal costs nothing
+    (each folder's manifest is read once, and refused there and then if it is a link, a special
+    file or oversized, even when no target exists yet)."""
+    by_folder: dict = {}
+    for p in map(Path, paths):
+        by_folder.setdefault(p.parent, []).append(p.name)
+    for folder, names in by_folder.items():
+        present = [n for n in names if os.path.lexists(folder / n)]
+        owned = owned_files(folder, present)
+        for n in present:
+            if n not in owned:
+                raise _user_error(
+                    f"{folder / n}: exists and was not written by warpnerf; refusing to replace "
+                    "it (move it away or choose another output)"
+                )
+
+
+def remove_own(folder, names) -> list:
+    """Removes those of ``names`` in ``folder`` that warpnerf wrote there (listed in its
+    manifest, unchanged, regular files); any other file is left alone. Returns the names
+    removed."""
+    folder = Path(folder)
+    names = [n for n in names if _plain_name(n)]
+    owned, gone = owned_files(folder, names), []
+    for name in names:
+        if name in owned:
+            os.unlink(folder / name)
+            gone.append(name)
+    return gone
+
+
+# --- the folder lock --------------------------------------------------------------------------
+
+
+_HELD: dict = {}
+
+
+@contextlib.contextmanager
+def output_lock(folder, what: str = "output folder"):
+    """Holds an exclusive lock on ``folder`` (its :data:`LOCK` file, created if needed, never
+    through a link, a regular file with one name only) for the block: a second process writing
+    into the same folder gets a :class:`UserError` naming the holder's pid instead of mixing two
+    runs' files. The lock is the OS's (``flock``): it is released on every exit path, a crash or
+    SIGKILL included, so a lock file left by a dead process is stale by construction and simply
+    taken over. Re-entrant within one process."""
+    folder = Path(folder)
+    key = str(folder.resolve())
+    if key in _HELD:
+        _HELD[key] += 1
+        try:
+            yield
+        finally:
+            _HELD[key] -= 1
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK
+    try:
+        fd = _open(path, os.O_RDWR | os.O_CREAT, "lock file", 0o644)
+    except OSError as e:
+        raise _user_error(f"{path}: cannot create the lock file ({e.strerror or e})") from None
+    if os.fstat(fd).st_nlink != 1:  # a hard link to a file elsewhere: never truncated
+        os.close(fd)
+        raise _user_error(f"{path}: the lock file has other names (hard links); warpnerf "
+                          "refuses to write it (remove it)")  # fmt: skip
+    try:
+        _try_lock(fd)
+    except BlockingIOError:
+        os.lseek(fd, 0, os.SEEK_SET)
+        holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise _user_error(
+            f"{folder}: this {what} is in use by another warpnerf process (pid {holder}); wait "
+            "for it to finish or choose another output"
+        ) from None
+    try:
+        os.ftruncate(fd, 0)
+        os.lseek(fd, 0, os.SEEK_SET)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        _HELD[key] = 1
+        yield
+    finally:
+        _HELD.pop(key, None)
+        os.close(fd)  # closing the descriptor releases the lock
+
+
+def _try_lock(fd: int) -> None:
+    """Non-blocking exclusive lock of an open file; BlockingIOError when another process holds
+    it."""
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)
+        except OSError:
+            raise BlockingIOError from None
+        return
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+# --- atomic outputs ---------------------------------------------------------------------------
+
+
+def _check_replaceable(path: Path, what: str = "output") -> None:
+    """:class:`UserError` unless ``path`` is absent, a regular file or a link (a rename
+    replaces the link itself): never a folder or a special file."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode)):
+        raise _refuse(path, st.st_mode, what)
+
+
+@contextlib.contextmanager
+def atomic_path(path, replace_foreign: bool = False):
+    """Yields a temporary path next to ``path`` (same suffix; created with ``O_EXCL |
+    O_NOFOLLOW``); when the block succeeds the file is fsynced and renamed onto ``path`` (then
+    the folder is fsynced, so the rename survives a power cut) and recorded in the folder's
+    manifest; when it raises (any exception, KeyboardInterrupt included) the file is removed. An
+    existing ``path`` that warpnerf did not write (a link, a special file, another program's
+    file) is never replaced (:class:`UserError`, checked before the block and again just before
+    the rename) unless ``replace_foreign`` (a file the user named explicitly, such as ``mesh
+    --out FILE``: a regular file, or a link, which is replaced and never written through)."""
+    path = Path(path)
+
+    def check():
+        if replace_foreign:
+            _check_replaceable(path)
+            _entries(path.parent)  # (a planted manifest: refused before the write)
+        else:
+            check_foreign([path])
+
+    check()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = _create_temp(path.parent, f".{path.stem}.", path.suffix)
+    os.close(fd)
+    try:
+        yield tmp
+        _fsync(tmp)
+        check()
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(tmp)
+        raise
+    record(path)
+    _fsync(path.parent)
+
+
+def _fsync(path) -> None:
+    """Flushes a file's data to disk (best effort: a folder cannot be opened on every OS)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | _NOFOLLOW | _NONBLOCK | _CLOEXEC)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
