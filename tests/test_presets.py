@@ -153,6 +153,8 @@ def test_cli_prints_the_hint_once_on_stderr(tmp_path, monkeypatch, capsys):
     import warpnerf.train.nerf as nerf
 
     def record(cfg, *a, **kw):
+        for hook in kw.get("hooks", []):  # (the loop's start: config and data checked)
+            hook.on_start(None, 0)
         print(json.dumps({"preset": cfg.preset}))
         return {"step": [1], "psnr": [0.0], "val_psnr": [], "seconds": [0.0]}
 

@@ -14,6 +14,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -71,16 +72,18 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
          "--max-resolution", "256", "--exit-after", "240"],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
-    driver = None
+    driver, lines = None, []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()  # (the output, read as it comes: the URL with its token is printed first)
     try:
-        deadline = time.time() + 90
-        while True:  # the server is up once its port accepts connections
-            with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            assert proc.poll() is None, proc.stdout.read()
-            assert time.time() < deadline, "the viewer did not start listening"
-            time.sleep(0.5)
+        deadline, url = time.time() + 90, None
+        while url is None:  # the server is up once it prints its URL
+            m = re.search(r"warpnerf view: (http://\S+)", "".join(lines))
+            url = m.group(1) if m else None
+            assert url is not None or proc.poll() is None, "".join(lines)
+            assert time.time() < deadline, "the viewer did not print its URL"
+            time.sleep(0.2)
+        assert re.fullmatch(rf"http://localhost:{port}/\?token=[\w-]{{32,}}", url), url
         opts = webdriver.ChromeOptions()
         opts.binary_location = CHROMIUM
         for a in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage",
@@ -88,7 +91,9 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
                   "--enable-unsafe-swiftshader"):  # fmt: skip
             opts.add_argument(a)
         driver = webdriver.Chrome(service=Service(DRIVER), options=opts)
-        driver.get(f"http://127.0.0.1:{port}")
+        driver.get(f"http://127.0.0.1:{port}")  # without the token: refused
+        assert "needs its token" in driver.execute_script("return document.body.innerText")
+        driver.get(url)
         deadline, text, shown = time.time() + 120, "", 0
         while time.time() < deadline:  # the panel's status line counts the frames shown
             text = driver.execute_script("return document.body.innerText")
@@ -134,11 +139,13 @@ def test_view_page_shows_the_rendered_scene(tmp_path):
         t0 = time.perf_counter()
         proc.send_signal(signal.SIGINT)
         try:
-            out, _ = proc.communicate(timeout=15)
+            proc.wait(timeout=15)
         except subprocess.TimeoutExpired:
             proc.kill()
             raise
         took = time.perf_counter() - t0
+        reader.join(10)
+        out = "".join(lines)
     assert proc.returncode == 0, out
     assert "stopped after" in out
     assert took < 5.0, f"the viewer took {took:.1f} s to stop after Ctrl-C"

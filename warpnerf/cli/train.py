@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 
 from ..errors import UserError
@@ -131,11 +130,27 @@ def nerf_config_from_args(args):
     return cls(**kw)
 
 
-def _print_cpu_hint(cfg, command: str) -> None:
-    """One line on stderr when a CPU run meets GPU-sized settings (train/presets.py: cpu_hint)."""
-    line = cpu_hint(cfg, command)
-    if line:
-        print(line, file=sys.stderr, flush=True)
+class _CpuNote:
+    """A loop hook printing one line on stderr when a CPU run meets GPU-sized settings
+    (train/presets.py: cpu_hint). It speaks at the loop's start, once the config and the data
+    have been checked: a user mistake stays a one-line error with no note before it."""
+
+    def __init__(self, cfg, command: str):
+        self.cfg, self.command = cfg, command
+
+    def on_start(self, task, step: int) -> None:
+        line = cpu_hint(self.cfg, self.command)
+        if line:
+            print(line, file=sys.stderr, flush=True)
+
+    def on_step(self, step: int, history: dict, lr: float) -> None:
+        pass
+
+    def on_validation(self, step: int, figures: dict, task) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 def _silent(*args, **kw) -> None:
@@ -161,8 +176,6 @@ def cmd_train_nerf(args) -> int:
         cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
     else:
         cfg, device = nerf_config_from_args(args), None
-        if int(os.environ.get("RANK", "0") or 0) == 0:  # (one line per run, not per rank)
-            _print_cpu_hint(cfg, f"warpnerf train {args.model}")
     # started by torchrun (WORLD_SIZE > 1): one rank of a data-parallel run (train/distributed.py)
     from ..train.distributed import from_env
 
@@ -173,8 +186,9 @@ def cmd_train_nerf(args) -> int:
         cfg.device = rank_device if not args.resume else cfg.device
     main = dist is None or dist.main
     # (only rank 0 prints: the other ranks' lines would repeat its own)
+    notes = [] if args.resume else [_CpuNote(cfg, f"warpnerf train {args.model}")]
     hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
-                      device=device, hooks=live_hooks(args) if main else [],
+                      device=device, hooks=(live_hooks(args) + notes) if main else [],
                       tensorboard=tensorboard_every(args), dist=dist,
                       log=print if main else _silent)  # fmt: skip
     if dist is not None:  # (every rank finished: they leave the group together)

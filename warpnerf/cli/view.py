@@ -16,7 +16,8 @@ from ._common import _device, _existing, _positive
 def _host_port_flags(p, port_flag: str) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address the viewer listens on "
                    "(default 127.0.0.1: this machine only; 0.0.0.0 lets other machines "
-                   "connect)")  # fmt: skip
+                   "connect, with a warning: whoever reaches the port and has the printed "
+                   "URL's token can use the viewer)")  # fmt: skip
     p.add_argument(port_flag, type=int, default=7007, dest="port",
                    help="the viewer's port (default 7007; the next free one if taken)")  # fmt: skip
 

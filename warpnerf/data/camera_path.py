@@ -24,6 +24,7 @@ input like any other: every count and number is bounded and checked, and a bad f
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -76,24 +77,38 @@ class CameraPath:
         }  # fmt: skip
 
     def save(self, path) -> None:
-        """Writes the path atomically; an existing file is replaced only when it is a camera
-        path warpnerf wrote (never a run's config, history or another file)."""
+        """Writes the path atomically, checked as :func:`load_camera_path` checks a file (a
+        keyframe with a NaN, a frame count out of range: :class:`UserError`, nothing written).
+        An existing file is replaced only when it is a camera path warpnerf wrote (never a run's
+        config, history or another file); a link, FIFO or device at ``path`` is refused without
+        being opened (:func:`~warpnerf.files.check_foreign`), so it cannot hang the save."""
+        from ..files import check_foreign, read_regular
         from ..io import write_json
+        from ._json import MAX_JSON_BYTES
 
-        if len(self.keyframes) == 0:
-            raise UserError(f"{path}: a camera path needs at least one keyframe")
         p = Path(path)
-        if p.exists() or p.is_symlink():
+        if len(self.keyframes) == 0:
+            raise UserError(f"{p}: a camera path needs at least one keyframe")
+        d = self.to_dict()
+        _from_dict(p, d)  # (what the file would say, checked before writing)
+        check_foreign([p])
+        data = read_regular(p, MAX_JSON_BYTES, "camera path")
+        if data is not None:
             try:
-                load_camera_path(p)
-            except UserError:
+                _from_dict(p, json.loads(data.decode("utf-8")))
+            except (UserError, ValueError, RecursionError):  # (UnicodeDecodeError, JSON)
                 raise UserError(f"{p}: exists and is not a camera path; refusing to replace "
                                 "it (choose another name)") from None  # fmt: skip
-        write_json(p, self.to_dict())
+        write_json(p, d)
 
     def cameras(self, frames: int | None = None) -> torch.Tensor:
         """[frames, 4, 4] float32 cameras along the path (:func:`interpolate_path`)."""
         return interpolate_path(self.keyframes, frames or self.frames, self.loop)
+
+    def iter_cameras(self, frames: int | None = None):
+        """The cameras [4, 4] (float64) along the path one at a time, each computed when asked
+        for (a long path costs no memory); the same cameras as :meth:`cameras`."""
+        return _path_frames(self.keyframes, frames or self.frames, self.loop)
 
     def frame_windows(self, frames: int | None = None) -> np.ndarray | None:
         """[frames, 2] (near, far) of the frames along the path: the keyframes' depth ranges
@@ -116,7 +131,12 @@ class CameraPath:
 def load_camera_path(path) -> CameraPath:
     """Reads and checks a camera-path file (the format in the module's docstring)."""
     p = Path(path)
-    d = read_json(p, "camera path")
+    return _from_dict(p, read_json(p, "camera path"))
+
+
+def _from_dict(p: Path, d) -> CameraPath:
+    """The :class:`CameraPath` of a parsed file ``d`` (from ``p``), checked; UserError naming
+    ``p`` and the field otherwise."""
     if not isinstance(d, dict) or d.get("warpnerf_camera_path") != PATH_FORMAT:
         raise UserError(f"{p}: not a warpnerf camera path (expected a JSON object with "
                         f'"warpnerf_camera_path": {PATH_FORMAT})')  # fmt: skip
@@ -267,16 +287,21 @@ def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor
     """[frames, 4, 4] float32 cameras through ``keyframes`` [k, 4, 4] (OpenGL c2w): Catmull-Rom
     positions, slerped rotations, equal frames per segment; frame 0 is the first keyframe and,
     without ``loop``, the last frame is the last keyframe."""
+    out = list(_path_frames(keyframes, frames, loop))
+    return torch.as_tensor(np.stack(out), dtype=torch.float32)
+
+
+def _path_frames(keyframes, frames: int, loop: bool = False):
+    """The cameras of :func:`interpolate_path` one at a time ([4, 4] float64)."""
     k = np.asarray(keyframes, dtype=np.float64).reshape(-1, 4, 4)
     if len(k) == 0 or frames < 1:
         raise ValueError("need at least one keyframe and one frame")
     pos, quats = k[:, :3, 3], [matrix_to_quat(m[:3, :3]) for m in k]
     n = len(k)
     segments = n if loop else n - 1
-    out = []
     for f in range(frames):
         if segments == 0:
-            out.append(k[0])
+            yield k[0].copy()
             continue
         i, t = _segment(f, frames, n, loop)
 
@@ -289,5 +314,4 @@ def interpolate_path(keyframes, frames: int, loop: bool = False) -> torch.Tensor
         m = np.eye(4)
         m[:3, :3] = quat_to_matrix(_slerp(quats[i], quats[(i + 1) % n], t))
         m[:3, 3] = c
-        out.append(m)
-    return torch.as_tensor(np.stack(out), dtype=torch.float32)
+        yield m

@@ -24,13 +24,20 @@ browser's camera along the path ("Preview") and saves it as a JSON file in the r
 ``warpnerf render RUN --path FILE`` renders to video (:mod:`warpnerf.data.camera_path`). "Reload
 checkpoint" re-reads the run's checkpoint (a training in another process keeps writing it).
 
-The server binds 127.0.0.1 unless told otherwise (``host``): other machines cannot connect.
+The server binds 127.0.0.1 unless told otherwise (``host``: other addresses print a warning
+naming the exposure). Every request needs the token in :attr:`Viewer.url` (or the cookie its
+page sets), and a websocket from another site's page is refused (:mod:`.gate`). Every value a
+browser sends is checked here: camera parameters (non-finite ones refused, the frame not
+rendered), the resolution (never above ``max_resolution``), the path's frame count (at most
+:data:`~warpnerf.data.camera_path.MAX_FRAMES`, flown lazily by "Preview") and keyframe count; a
+panel callback that raises leaves one line in the panel and the log, never a traceback.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import signal
 import threading
 import time
@@ -39,8 +46,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.camera_path import CameraPath, matrix_to_quat, quat_to_matrix
+from ..data.camera_path import (
+    MAX_FRAMES,
+    MAX_KEYFRAMES,
+    CameraPath,
+    matrix_to_quat,
+    quat_to_matrix,
+)
 from ..errors import UserError
+from .gate import Gate, bounded, check_address, client_pose, exposure
 from .scene import Aborted, RunScene
 
 __all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv", "signals_to"]
@@ -106,25 +120,6 @@ def gl_to_opencv(c2w) -> tuple:
     return matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
 
 
-def _check_address(host: str) -> None:
-    """UserError unless ``host`` is an address this machine can listen on (viser would try 1000
-    ports on it and then wait forever)."""
-    import socket
-
-    try:
-        infos = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as e:
-        raise UserError(f"--host {host}: not an address of this machine ({e})") from None
-    for family, kind, proto, _, addr in infos:
-        try:
-            with socket.socket(family, kind, proto) as s:
-                s.bind(addr)
-                return
-        except OSError as e:
-            err = e
-    raise UserError(f"--host {host}: cannot listen there ({err.strerror or err})")
-
-
 class _ClientState:
     def __init__(self, client):
         self.client = client
@@ -169,19 +164,29 @@ class Viewer:
         self._path_handles: list = []
         self._last_tick_frame = self._last_frame_seconds = 0.0  # live: when and how long
         self.render_seconds = 0.0  # time spent rendering (live: taken from training)
-        _check_address(host)
+        self._previews: dict = {}  # client id -> the number of its latest "Preview" click
+        check_address(host)
         _quiet_viser()
+        self.gate = Gate()
         try:
-            self.server = viser.ViserServer(host=host, port=port, label="warpnerf", verbose=False)
+            with self.gate.installed():
+                self.server = viser.ViserServer(host=host, port=port, label="warpnerf",
+                                                verbose=False)  # fmt: skip
         except OSError as e:
             raise UserError(f"viewer: cannot listen on {host}:{port} ({e.strerror or e})") from None
+        if not self.gate.hooked:  # (a viser that no longer starts websockets.serve: fail closed)
+            self.server.stop()
+            raise RuntimeError("viewer: cannot install the token check on viser's server")
         self.port = self.server.get_port()
         shown = "localhost" if host in ("127.0.0.1", "localhost") else host
-        self.url = f"http://{shown}:{self.port}"
+        self.url = f"http://{shown}:{self.port}/?token={self.gate.token}"
+        warning = exposure(host, self.port)
+        if warning is not None:
+            self.log(warning)
         self._build_scene()
         self._build_gui()
-        self.server.on_client_connect(self._connect)
-        self.server.on_client_disconnect(self._disconnect)
+        self.server.on_client_connect(self._guarded("connect", self._connect))
+        self.server.on_client_disconnect(self._guarded("disconnect", self._disconnect))
         self._thread = None
         if not live:
             self._thread = threading.Thread(target=self._render_loop, daemon=True)
@@ -239,57 +244,78 @@ class Viewer:
             visible=visible,
         )  # fmt: skip
 
+    def _guarded(self, what: str, fn):
+        """``fn`` as a viser callback: an exception it raises becomes one line in the panel's
+        status and the log (``what failed: ...``), never a traceback or a dead server."""
+
+        def run(*args):
+            try:
+                return fn(*args)
+            except Exception as e:  # noqa: BLE001 (a browser's request must not kill the server)
+                self._say(f"{what} failed: {type(e).__name__}: {e}")
+
+        return run
+
+    def _say(self, msg: str, line=None) -> None:
+        """``msg`` in the panel (``line``, default the status line) and the log."""
+        with contextlib.suppress(Exception):  # (the server may be stopping)
+            (line or self.status).content = msg[:300]
+        self.log(f"viewer: {msg[:300]}")
+
     def _build_gui(self) -> None:
-        g = self.server.gui
+        g, guard = self.server.gui, self._guarded
         g.add_markdown(f"**warpnerf** {self.scene.title}")
         self.mode = g.add_dropdown("Mode", self.scene.modes, initial_value=self.scene.modes[0])
-        self.mode.on_update(lambda _: self._bump())
-        self.max_res = g.add_slider("Max resolution", 64, MAX_RESOLUTION, 32,
-                                    min(max(self.max_resolution, 64), MAX_RESOLUTION))  # fmt: skip
-        self.max_res.on_update(lambda _: self._bump())
+        self.mode.on_update(guard("mode", lambda _: self._bump()))
+        top = min(max(self.max_resolution, 64), MAX_RESOLUTION)
+        self.max_res = g.add_slider("Max resolution", 64, top, 32, top)
+        self.max_res.on_update(guard("resolution", lambda _: self._bump()))
         self.status = g.add_markdown("rendered frames: 0")
         self.train_info = g.add_markdown("training: starting") if self.live else None
         if self.scene.reload is not None and not self.live:
             reload = g.add_button("Reload checkpoint")
-            reload.on_click(lambda _: self._reload())
+            reload.on_click(guard("reload", lambda _: self._reload()))
         with g.add_folder("Overlays"):
             show_cams = g.add_checkbox("Training cameras", True)
-            show_cams.on_update(lambda e: [setattr(f, "visible", show_cams.value)
-                                           for f in self.frustums])  # fmt: skip
+            show_cams.on_update(guard("cameras", lambda e: [
+                setattr(f, "visible", bool(show_cams.value)) for f in self.frustums]))  # fmt: skip
             if self.grid_points is not None:
                 show_grid = g.add_checkbox("Occupancy grid", False)
 
                 def toggle_grid(_):
                     if self.live and show_grid.value:
                         self._show_grid()  # (the grid changes while training)
-                    self.grid_points.visible = show_grid.value
+                    self.grid_points.visible = bool(show_grid.value)
 
-                show_grid.on_update(toggle_grid)
+                show_grid.on_update(guard("occupancy grid", toggle_grid))
             if self.mesh is not None:
                 show_mesh = g.add_checkbox("Mesh", False)
-                show_mesh.on_update(lambda _: setattr(self.mesh, "visible", show_mesh.value))
+                show_mesh.on_update(guard("mesh", lambda _: setattr(
+                    self.mesh, "visible", bool(show_mesh.value))))  # fmt: skip
         with g.add_folder("Camera path"):
             add = g.add_button("Add keyframe (this view)")
             undo = g.add_button("Remove last keyframe")
             clear = g.add_button("Clear")
-            self.path_frames = g.add_number("Frames", 120, min=1, max=100000, step=1)
+            self.path_frames = g.add_number("Frames", 120, min=1, max=MAX_FRAMES, step=1)
             self.path_loop = g.add_checkbox("Loop", False)
             self.path_file = g.add_text("File (in the run folder)", "camera_path.json")
             save = g.add_button("Save path")
             preview = g.add_button("Preview path (this browser)")
             self.path_info = g.add_markdown("keyframes: 0")
-        preview.on_click(lambda e: threading.Thread(target=self._preview, args=(e.client,),
-                                                    daemon=True).start())  # fmt: skip
-        add.on_click(lambda e: self._add_keyframe(e.client))
-        undo.on_click(lambda _: self._set_path(self._path[:-1]))
-        clear.on_click(lambda _: self._set_path([]))
-        save.on_click(lambda e: self._save_path(e.client))
+        preview.on_click(guard("preview", lambda e: self._start_preview(e.client)))
+        add.on_click(guard("add keyframe", lambda e: self._add_keyframe(e.client)))
+        undo.on_click(guard("remove keyframe", lambda _: self._set_path(self._path[:-1])))
+        clear.on_click(guard("clear", lambda _: self._set_path([])))
+        save.on_click(guard("save path", lambda e: self._save_path(e.client)))
 
     # ------------------------------------------------------------------------ camera path
 
     def _add_keyframe(self, client) -> None:
         st = self._clients.get(client.client_id)
         if st is None or st.pose is None:
+            return
+        if len(self._path) >= MAX_KEYFRAMES:
+            self._say(f"not added: a path has at most {MAX_KEYFRAMES} keyframes", self.path_info)
             return
         self._set_path(self._path + [st.pose])
 
@@ -306,7 +332,7 @@ class Viewer:
                 color=(220, 40, 40),
             ))  # fmt: skip
         if len(keys) >= 2:
-            cams = self.path().cameras(min(400, 20 * len(keys))).numpy()
+            cams = self.path(min(400, 20 * len(keys))).cameras().numpy()
             pts = cams[:, :3, 3]
             self._path_handles.append(s.add_line_segments(
                 "/path/line", np.stack([pts[:-1], pts[1:]], 1), (220, 40, 40), thickness=2.0,
@@ -314,34 +340,58 @@ class Viewer:
             ))  # fmt: skip
         self.path_info.content = f"keyframes: {len(keys)}"
 
-    def path(self) -> CameraPath:
+    def path_frame_count(self) -> int:
+        """The panel's "Frames", checked (a browser may send any number): ValueError unless an
+        integer in 1..:data:`~warpnerf.data.camera_path.MAX_FRAMES`."""
+        return bounded(self.path_frames.value, 1, MAX_FRAMES, "Frames")
+
+    def path(self, frames: int | None = None) -> CameraPath:
         """The camera path being edited (the first keyframe's field of view and aspect, and each
-        keyframe's near/far as the viewer renders it, so `render --path` sees what it showed)."""
+        keyframe's near/far as the viewer renders it, so `render --path` sees what it showed);
+        ``frames`` default: the panel's (:meth:`path_frame_count`)."""
         keys = self._path
         fov, aspect = (keys[0][1], keys[0][2]) if keys else (0.8, 1.0)
         rule = self.scene.window
         windows = [rule(k[0][:3, 3]) for k in keys] if rule is not None and keys else None
-        return CameraPath([k[0] for k in keys], fov, aspect, int(self.path_frames.value),
-                          bool(self.path_loop.value), windows)  # fmt: skip
+        frames = self.path_frame_count() if frames is None else frames
+        return CameraPath([k[0] for k in keys], fov, aspect, frames,
+                          self.path_loop.value is True, windows)  # fmt: skip
 
     def path_target(self) -> Path:
         """Where "Save path" writes: the file name typed in the panel, inside the run folder (or
         the working folder without one). The browser chooses the name only: no folders, so a
         client can never write elsewhere on the machine."""
-        name = str(self.path_file.value).strip()
+        name = str(self.path_file.value)[:1000].strip()
         if (not name or "/" in name or "\\" in name or name in (".", "..") or "\0" in name
                 or not name.endswith(".json") or len(name) > 200):  # fmt: skip
-            raise UserError(f"{name!r}: give a plain file name ending in .json (it is saved in "
-                            "the run folder)")  # fmt: skip
+            raise UserError(f"{name[:60]!r}: give a plain file name ending in .json (it is saved "
+                            "in the run folder)")  # fmt: skip
         return (self.run if self.run is not None else Path(".")) / name
 
-    def _preview(self, client, fps: float = 20.0) -> None:
+    def _start_preview(self, client) -> None:
+        """The "Preview" button: flies this browser's camera along the path in a thread; a
+        newer click (or the browser leaving) ends the one before: one flight per browser."""
+        cid = client.client_id
+        with self._lock:
+            n = self._previews.get(cid, 0) + 1
+            self._previews[cid] = n
+        threading.Thread(target=self._guarded("preview", self._preview), args=(client, 20.0, n),
+                         daemon=True).start()  # fmt: skip
+
+    def _preview(self, client, fps: float = 20.0, number: int | None = None) -> None:
         """Flies the browser's camera along the path (frames at ``fps``; the viewer renders what
-        it can keep up with)."""
+        it can keep up with), each camera computed when it is shown (a path of 100000 frames
+        costs no memory); stops early when ``number`` is no longer the browser's latest
+        preview, the browser leaves or the viewer closes."""
         if not self._path:
             return
-        for c2w in self.path().cameras().double().numpy():
-            if self._stop.is_set():
+        path = self.path()
+        cid = client.client_id
+        for c2w in path.iter_cameras():
+            if self._stop.is_set() or (number is not None and self._previews.get(cid) != number):
+                return
+            st = self._clients.get(cid)
+            if st is not None and st.gone:
                 return
             wxyz, pos = gl_to_opencv(c2w)
             with client.atomic():
@@ -357,18 +407,16 @@ class Viewer:
             msg = f"reloaded the checkpoint of step {step}"
         except Exception as e:  # a checkpoint being replaced, a broken file: keep the old one
             msg = f"reload failed: {e}"
-        self.status.content = msg
-        self.log(f"viewer: {msg}")
+        self._say(msg)
 
     def _save_path(self, client) -> None:
         try:
             target = self.path_target()
             self.path().save(target)
             msg = f"saved {len(self._path)} keyframes to {target}"
-        except (UserError, OSError) as e:
+        except (UserError, OSError, ValueError) as e:
             msg = f"not saved: {e}"
-        self.path_info.content = msg
-        self.log(f"viewer: {msg}")
+        self._say(msg, self.path_info)
 
     # ---------------------------------------------------------------------------- clients
 
@@ -389,20 +437,26 @@ class Viewer:
             client.camera.position = tuple(target + 2.5 * np.asarray(sc.up)[[1, 2, 0]])
         client.camera.look_at = tuple(target)
         client.camera.up_direction = tuple(sc.up)
-        client.camera.on_update(lambda cam: self._camera(st))
+        client.camera.on_update(self._guarded("camera", lambda cam: self._camera(st)))
 
     def _disconnect(self, client) -> None:
         with self._lock:
             st = self._clients.pop(client.client_id, None)
+            self._previews.pop(client.client_id, None)  # (its preview stops)
         if st is not None:
             st.gone = True  # (a frame rendering for it stops at its next block)
 
     def _camera(self, st: _ClientState) -> None:
-        cam = st.client.camera
-        c2w = opencv_to_gl(cam.wxyz, cam.position)
-        width = int(getattr(cam, "image_width", 0) or 0)
+        """A browser's camera moved: its pose checked (:func:`~.gate.client_pose`); a camera
+        with non-finite values is refused (no frame; the panel says why)."""
+        try:
+            wxyz, position, fov, aspect, width = client_pose(st.client.camera)
+        except ValueError as e:
+            self._say(f"camera refused: {e}")
+            return
+        c2w = opencv_to_gl(wxyz, position)
         with self._lock:
-            st.pose = (c2w, float(cam.fov), float(cam.aspect), width)
+            st.pose = (c2w, fov, aspect, width)
             st.moved_at = time.perf_counter()
             st.version += 1
 
@@ -429,13 +483,27 @@ class Viewer:
 
     # -------------------------------------------------------------------------- rendering
 
+    def resolution_cap(self, canvas: int = 0) -> int:
+        """The longest side of the next frame at most: the slider's value (a browser may send
+        any number: bounded here), never above ``max_resolution`` nor the browser's canvas
+        (``canvas`` pixels across; 0: unknown), at least 16."""
+        try:
+            slider = float(self.max_res.value)
+        except (TypeError, ValueError, OverflowError):
+            slider = math.nan
+        top = min(self.max_resolution, MAX_RESOLUTION)
+        cap = int(min(slider, top)) if math.isfinite(slider) else top
+        if canvas and canvas > 0:
+            cap = min(cap, int(canvas))
+        return max(16, cap)
+
     def _size(self, aspect: float, canvas: int, level: int) -> tuple:
         """(width, height, final) of the next frame, the longest side at most the slider's value
         (and the canvas): level 0 (moving) sized to take ``frame_seconds``; still level k sized
         to take at most ``still_seconds * 4**(k-1)`` (at most ``refine_seconds``) at the measured
         speed; final when it is the full size or may take ``refine_seconds``."""
-        aspect = min(max(aspect, 1e-2), 1e2)
-        cap = min(int(self.max_res.value), canvas or self.max_resolution)
+        aspect = min(max(aspect, 1e-2), 1e2) if math.isfinite(aspect) else 1.0
+        cap = self.resolution_cap(canvas)
         cap_w = cap if aspect >= 1 else max(1, int(cap * aspect))  # the longest side <= cap
 
         def dims(w: int) -> tuple:
@@ -486,7 +554,9 @@ class Viewer:
 
         t0 = time.perf_counter()
         try:
-            img = self.scene.render(c2w, f, f, w, h, str(self.mode.value), abort=unwanted,
+            mode = str(self.mode.value)
+            mode = mode if mode in self.scene.modes else self.scene.modes[0]
+            img = self.scene.render(c2w, f, f, w, h, mode, abort=unwanted,
                                     block_seconds=BLOCK_SECONDS)  # fmt: skip
         except Aborted:
             return False
