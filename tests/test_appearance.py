@@ -67,6 +67,7 @@ def _exposure_folder(root):
     return root
 
 
+@pytest.mark.slow
 def test_codes_absorb_exposure_changes(tmp_path):
     """Half the photos under-exposed: with codes the fit is closer (view dependence off, which
     could otherwise absorb a per-view exposure with so few views), and the codes separate the

@@ -124,6 +124,7 @@ def test_cli_bench_encoding_quick(tmp_path):
     assert rows[0]["max_err_out"] < 1e-4 and rows[0]["max_err_v_table"] < 1e-3
 
 
+@pytest.mark.slow
 def test_cli_bench_march_and_sphere_trace_quick(tmp_path):
     """Marching: samples per ray grow with occupancy, the kernel matches the float64 brute force
     (at most a boundary sample off); sphere tracing matches the float64 twin."""
@@ -252,6 +253,7 @@ TINY_NERF = [
 ]
 
 
+@pytest.mark.slow
 def test_cli_train_eval_render_nerf(tmp_path):
     p = run(
         [
@@ -346,6 +348,7 @@ def test_cli_nerf_user_errors(tmp_path, monkeypatch, capsys, args, needle):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_cli_train_hash_field_then_eval(tmp_path):
     args = ["train", "nerf", "--data", "builtin", "--out", "r", "--field", "hash", "--iters", "3"]
     args += ["--builtin-size", "8", "--samples", "8", "--coarse-fine", "--fine-samples", "8"]
@@ -363,6 +366,7 @@ def test_cli_train_hash_field_then_eval(tmp_path):
 @pytest.mark.parametrize(
     "demo", ["03_nerf_lego.py", "04_nerf_view_dependence.py", "05_positional_encoding.py"]
 )
+@pytest.mark.slow
 def test_nerf_demos_tiny(tmp_path, demo):
     extra = ["--frames", "2"] if demo.startswith("03") else []
     p = run([str(ROOT / "demos" / demo), "--out", "o", *TINY_NERF, *extra], tmp_path)
@@ -373,6 +377,7 @@ def test_nerf_demos_tiny(tmp_path, demo):
 
 
 @pytest.mark.parametrize("demo", ["06_sphere_trace_torus.py", "07_sphere_trace_scene.py"])
+@pytest.mark.slow
 def test_sphere_trace_demos_tiny(tmp_path, demo):
     p = run([str(ROOT / "demos" / demo), "--out", "o", "--frames", "2", "--size", "24"], tmp_path)
     res = last_json(p.stdout)
@@ -417,6 +422,7 @@ def test_cli_mesh_user_errors(tmp_path, monkeypatch, capsys, args, needle):
     assert not list(tmp_path.glob("x.*"))
 
 
+@pytest.mark.slow
 def test_cli_train_sdf_resume_and_mesh(tmp_path):
     import numpy as np
 
@@ -435,6 +441,7 @@ def test_cli_train_sdf_resume_and_mesh(tmp_path):
     assert res["faces"] > 0 and min(res["bounds_min"]) > 2  # back in the points' units (centre 5)
 
 
+@pytest.mark.slow
 def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path):
     args = ["train", "sdf", "--points", "builtin", "--out", "s", "--iters", "2", "--batch", "32"]
     args += ["--layers", "2", "--width", "32", "--pos-freqs", "2", "--resolution", "8", "--quiet"]
@@ -468,6 +475,7 @@ def test_cli_sdf_user_errors(tmp_path, monkeypatch, capsys, args, needle):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_demo_08_neural_sdf_tiny(tmp_path):
     p = run([str(ROOT / "demos" / "08_neural_sdf.py"), "--out", "o", "--iters", "5", "--batch",
              "128", "--width", "48", "--resolution", "24", "--frames", "2", "--size", "16"],
@@ -487,6 +495,7 @@ def test_demo_08_neural_sdf_tiny(tmp_path):
     assert (tmp_path / "o" / "run" / "sub" / "data.bin").read_bytes() == b"x"
 
 
+@pytest.mark.slow
 def test_cli_train_volsdf_render_mesh_and_demo_09(tmp_path):
     args = ["train", "volsdf", "--data", "builtin", "--out", "r", "--iters", "3", "--quiet"]
     args += ["--builtin-size", "8", "--layers", "2", "--width", "48", "--samples", "8"]
@@ -506,6 +515,7 @@ def test_cli_train_volsdf_render_mesh_and_demo_09(tmp_path):
     assert res["iters"] == 2 and res["beta"] > 0 and res["val_psnr"] > 0
 
 
+@pytest.mark.slow
 def test_demo_11_hash_sdf_tiny(tmp_path):
     """The surface workflow demo: train hash_sdf, eval, spiral renders with geometry, a mesh with
     baked colours (read back)."""

@@ -162,6 +162,7 @@ def test_box_run_folder_guards(tmp_path, box_scene, points):
 
 
 @pytest.mark.parametrize("model", ["sdf", "box", "nerf"])
+@pytest.mark.slow
 def test_cli_sigterm_exits_143_with_the_last_checkpoint(tmp_path, box_scene, points, model):
     """`warpnerf train sdf|box|nerf` under SIGTERM: exit 143, one line naming the step, a
     checkpoint equal to history.json, no temporary files, no final outputs."""

@@ -119,6 +119,7 @@ def test_depth_prior_resumes_exactly(tmp_path):
         assert torch.equal(v, b["fields"]["coarse"][k]), k
 
 
+@pytest.mark.slow
 def test_depth_prior_pulls_the_rendered_depth_to_the_points(tmp_path):
     """Random photos leave the geometry open, so the prior's gradient leads: the observation
     rays' depth term (logged every step) ends lower than in the same run with a negligible

@@ -52,6 +52,7 @@ HASH_GRID = ["--field", "hash", "--hash-levels", "4", "--hash-log2-size", "10",
     ],
     ids=["mlp", "hash_grid_distortion", "hash_grid"],
 )
+@pytest.mark.slow
 def test_two_ranks_follow_one_process(tmp_path, extra):
     one = _train(tmp_path / "one", extra, 1)
     two = _train(tmp_path / "two", extra, 2)
@@ -72,6 +73,7 @@ def test_two_ranks_follow_one_process(tmp_path, extra):
 
 
 @pytest.mark.parametrize("field", ["hash_sdf", "volsdf"])
+@pytest.mark.slow
 def test_two_ranks_follow_one_process_with_sdf_fields(tmp_path, field):
     """VolSDF's eikonal term on the rendered samples is the mean over every rank's samples (each
     rank's count differs with the grid's marching), so two ranks still follow one process."""
@@ -88,6 +90,7 @@ def test_two_ranks_follow_one_process_with_sdf_fields(tmp_path, field):
         assert abs(a - b) <= 1e-5 * abs(a), (one["loss"], two["loss"])
 
 
+@pytest.mark.slow
 def test_two_rank_run_resumes_on_one(tmp_path):
     """A checkpoint of two ranks holds nothing rank-specific: resumed by one process it goes on
     as the checkpoint of a one-process run does."""
@@ -102,6 +105,7 @@ def test_two_rank_run_resumes_on_one(tmp_path):
 
 
 @pytest.mark.parametrize("command", ["train sdf", "train box", "eval", "render", "mesh"])
+@pytest.mark.slow
 def test_other_commands_refuse_torchrun(tmp_path, command):
     env = dict(os.environ, WORLD_SIZE="2")
     argv = [sys.executable, "-m", "warpnerf.cli", *command.split(), str(tmp_path / "r")]
@@ -114,6 +118,7 @@ def test_other_commands_refuse_torchrun(tmp_path, command):
     assert "Traceback" not in res.stderr and not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
 def test_only_rank_zero_logs(tmp_path):
     """A two-rank run prints its log lines once (rank 0's), and leaves its process group
     (no NCCL/gloo warning of a group left open at exit)."""

@@ -25,6 +25,7 @@ def sdf_run(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 def test_pointcloud_lies_on_the_surface_with_outward_normals(sdf_run, tmp_path, capsys):
     """Points are where rays terminate: near the learned SDF's zero level set (within a few
     beta); normals are the SDF's unit gradient there; colours are the rendered ones."""

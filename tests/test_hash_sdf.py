@@ -250,6 +250,7 @@ def test_ply_with_colors_round_trips(tmp_path):
         write_ply(tmp_path / "x.ply", v, f, colors=c[:3])
 
 
+@pytest.mark.slow
 def test_eval_geometry_against_a_reference(tmp_path, capsys):
     """`eval RUN --geometry REF`: a reference sampled from the run's own surface gives a Chamfer
     distance near zero, a shifted one the shift; --clean; the materials reference and its depth

@@ -189,6 +189,7 @@ def test_second_writer_is_refused_and_a_dead_holders_lock_is_stale(runs, tmp_pat
     assert _strict_json(run / "history.json")["step"][-1] == 3
 
 
+@pytest.mark.slow
 def test_two_trainings_into_one_out_at_once(runs, tmp_path):
     """Two real processes race for one --out: one trains, the other exits 2 naming the folder;
     the folder holds one run's config, checkpoint and history."""
@@ -430,6 +431,7 @@ def test_name_too_long_and_not_a_folder(runs, tmp_path, capsys, monkeypatch):
     _one_line(capsys, rc, 2, "ENAMETOOLONG")
 
 
+@pytest.mark.slow
 def test_eval_render_mesh_bench_disk_full(runs, tmp_path, monkeypatch, capsys):
     import imageio.v3 as iio
 

@@ -56,6 +56,7 @@ def test_geometric_init_is_a_sphere_and_double_backward_works():
     assert sum(g.abs().sum() for g in grads) > 0
 
 
+@pytest.mark.slow
 def test_builtin_shape_trains_to_chamfer_floor(tmp_path):
     """Torus points (5000), 300 steps, CPU: measured Chamfer 0.0049 bounding-box diagonals
     (2026-11-22, about 8 s of training); the floor is 0.01."""
@@ -166,6 +167,7 @@ def test_hash_field_starts_as_a_sphere_with_unit_gradient():
     assert not g2.requires_grad and torch.equal(g2, g.detach())
 
 
+@pytest.mark.slow
 def test_hash_field_trains_on_builtin_torus(tmp_path):
     """Torus points (5000), 300 steps of the hash field, CPU: measured Chamfer 0.0047 bounding-box
     diagonals for seeds 0-3 (2026-11-25, about 15 s of training), at the metric's floor for

@@ -60,6 +60,7 @@ def test_mesh_with_screenshot_prints_nothing_else(tmp_path):
     assert res["screenshot"] and (tmp_path / "mesh.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_train_sdf_prints_only_progress(tmp_path):
     run = tmp_path / "sdf"
     p = _run(["train", "sdf", "--points", "builtin", "--out", str(run), "--device", "cpu",

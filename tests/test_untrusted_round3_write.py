@@ -362,6 +362,7 @@ def _port() -> int:
 
 
 @pytest.mark.parametrize("dead", [1, 0])
+@pytest.mark.slow
 def test_dead_rank_stops_the_other_with_one_line(tmp_path, dead):
     """Two gloo ranks started as torchrun would; one is killed mid-training (SIGKILL): the other
     exits non-zero within seconds with one line saying so, no traceback."""

@@ -60,6 +60,7 @@ def _red_run(tmp_path) -> Path:
     return run
 
 
+@pytest.mark.slow
 def test_view_page_shows_the_rendered_scene(tmp_path):
     webdriver = pytest.importorskip("selenium.webdriver")
     from selenium.webdriver.chrome.service import Service
