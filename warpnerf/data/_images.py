@@ -10,6 +10,7 @@ with no such conversion is refused by name."""
 from __future__ import annotations
 
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -41,7 +42,11 @@ def read_image(path, where: str = "") -> np.ndarray:
 
     ctx = f" ({where})" if where else ""
     try:
-        with Image.open(path) as im:
+        with warnings.catch_warnings():  # (the header is checked against MAX_PIXELS below;
+            # Pillow's own warning from 89 M pixels would only repeat it, as a Python warning)
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)
+        with im:
             _check_header(im, path, ctx)
             im.seek(0)  # (the first frame; nothing beyond it is decoded)
             mode = im.mode
