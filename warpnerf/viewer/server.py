@@ -36,6 +36,7 @@ panel callback that raises leaves one line in the panel and the log, never a tra
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import math
 import signal
@@ -169,7 +170,9 @@ class Viewer:
         _quiet_viser()
         self.gate = Gate()
         try:
-            with self.gate.installed():
+            # (viser prints a panel with its address, without the token, whatever `verbose`
+            # says: the one address to open is the tokened URL this viewer prints)
+            with self.gate.installed(), contextlib.redirect_stdout(io.StringIO()):
                 self.server = viser.ViserServer(host=host, port=port, label="warpnerf",
                                                 verbose=False)  # fmt: skip
         except OSError as e:
@@ -640,5 +643,6 @@ class Viewer:
         if self._thread is not None:
             self._thread.join(timeout=timeout)
         stopper = threading.Thread(target=self.server.stop, daemon=True, name="viser-stop")
-        stopper.start()
-        stopper.join(timeout=max(0.5, timeout - (time.perf_counter() - t0)))
+        with contextlib.redirect_stdout(io.StringIO()):  # (viser's "Server stopped" line)
+            stopper.start()
+            stopper.join(timeout=max(0.5, timeout - (time.perf_counter() - t0)))
