@@ -322,7 +322,7 @@ def test_cli_train_eval_render_nerf(tmp_path):
     [
         (["train", "nerf", "--data", "missing_dir", "--out", "o"], "missing_dir"),
         (["train", "nerf", "--out", "o"], "--data"),
-        (["train", "nerf", "--out", "o", "--resume", "--iters", "3"], "not a training run"),
+        (["train", "nerf", "--out", "o", "--resume", "--iters", "3"], "o: not found"),
         (["eval", "nothing"], "not found"),
         (["render", "nothing", "--size", "10by3"], "WxH"),
         (["train", "nerf", "--data", "builtin", "--out", "o", "--near", "5", "--far", "1"], "near"),
@@ -466,7 +466,7 @@ def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path):
         ),  # fmt: skip
         (["train", "sdf", "--out", "o"], "--points"),
         (["train", "sdf", "--points", "none.npz", "--out", "o"], "no such point-cloud"),
-        (["train", "sdf", "--out", "o", "--resume", "--iters", "4"], "not a training run"),
+        (["train", "sdf", "--out", "o", "--resume", "--iters", "4"], "o: not found"),
     ],
 )
 def test_cli_sdf_user_errors(tmp_path, monkeypatch, capsys, args, needle):

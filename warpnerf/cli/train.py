@@ -28,6 +28,7 @@ from ..train.sdf import SDFConfig
 from ._common import (
     _check_out,
     _device,
+    _existing,
     _saved_config,
 )
 from .view import live_hooks, tensorboard_every, watch_flags
@@ -113,6 +114,7 @@ def _resume_device(args):
             f"with --resume the run's saved config is used; drop {names} "
             "(only --iters, --device and --max-seconds may change)"
         )
+    _existing(args.out, "training run to continue (--out RUN --resume)")
     return _device(args.device) if args.device else None
 
 
