@@ -57,7 +57,7 @@ def test_beta_floor_and_fixed_beta():
     f = VolSDFField(1.0, 2, 32, 1, 2, 1, n_features=4, color_width=16, beta=0.05, beta_min=0.01)
     with torch.no_grad():
         f.beta_param.fill_(-5.0)
-    assert abs(float(f.beta) - 5.01) < 1e-6  # |b| + floor: never below the floor
+    assert abs(float(f.beta.detach()) - 5.01) < 1e-6  # |b| + floor: never below the floor
     g = VolSDFField(1.0, 2, 32, 1, 2, 1, n_features=4, color_width=16, beta=0.05, learn_beta=False)
     assert g.beta_param is None and abs(float(g.beta) - 0.05) < 1e-7
     assert all("beta" not in n for n, _ in g.named_parameters())
