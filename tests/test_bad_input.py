@@ -321,7 +321,7 @@ CASES = [
     (["train", "sdf", "--out", "box_run", "--resume", "--iters", "9"], ["not a neural-SDF run"]),
     (["train", "box", "--out", "nerf_run", "--resume", "--iters", "9"], ["not a box run"]),
     (["train", "box", "--out", "sdf_run", "--resume", "--iters", "9"], ["not a box run"]),
-    (["train", "box", "--out", "nope", "--resume", "--iters", "9"], ["nope", "not a training"]),
+    (["train", "box", "--out", "nope", "--resume", "--iters", "9"], ["nope", "not found"]),
     (["train", "box", "--out", "box_corrupt", "--resume", "--iters", "9"], ["box_corrupt/"]),
     (["train", "sdf", "--out", "sdf_corrupt", "--resume", "--iters", "9"], ["sdf_corrupt"]),
     # an output path that is a file, or lies under a file
