@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 from ..errors import UserError, exit_status
 from ._common import (
@@ -232,7 +233,16 @@ def main(argv=None) -> int:
         with _sigterm_exits(), recorded:
             return args.func(args)
 
-    return exit_status(f"warpnerf {args.command}", run)
+    code = exit_status(f"warpnerf {args.command}", run)
+    dist = sys.modules.get("warpnerf.train.distributed")
+    if argv is None and dist is not None and dist.LOST:
+        # a data-parallel run that lost a rank: its process group is broken, and tearing the
+        # interpreter down with the backend's threads still alive aborts in C++ ("terminate
+        # called without an active exception") after the one-line error; leave at once
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 def split_command(argv: list) -> tuple:

@@ -36,7 +36,12 @@ class PeerLost(UserError):
     never joined."""
 
 
+LOST = False  # set once a collective has failed: the process group is broken for good
+
+
 def _lost(rank: int, world: int, e: BaseException) -> PeerLost:
+    global LOST
+    LOST = True
     first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), type(e).__name__)
     first = first if len(first) <= 200 else first[:197] + "..."
     return PeerLost(
