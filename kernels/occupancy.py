@@ -21,8 +21,9 @@ test's own floor() (rounding can only re-test an interval, never skip one; rays 
 to a cell face need this: the exit plane and floor() then disagree by ~ulp / |d|). Samples therefore
 are exactly the dense lattice intervals whose midpoint cell is occupied (tests compare with that
 brute force). One kernel serves both passes: ``fill == 0`` counts a ray's samples (capped at
-``max_samples``), ``fill == 1`` writes them at the ray's offset (the exclusive prefix sum of the
-counts). ``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done).
+``max_samples``), ``fill == 1`` writes the first ``counts[r]`` of them at the ray's offset (the
+exclusive prefix sum of the counts; fewer than counted where a fixed-capacity buffer is full).
+``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done).
 """
 
 import warp as wp
@@ -123,7 +124,7 @@ def march(
     max_samples: int,
     fill: int,
     offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
-    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass)
+    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass); in (fill pass): samples to write
     k_next: wp.array(dtype=wp.int32),  # [n_rays] out (count pass): next index, -1 = done
     t_starts: wp.array(dtype=float),  # [n] out (fill pass)
     t_ends: wp.array(dtype=float),  # [n] out (fill pass)
@@ -143,11 +144,13 @@ def march(
     inv = wp.vec3(1.0 / cell_size[0], 1.0 / cell_size[1], 1.0 / cell_size[2])
     n = int(0)
     base = int(0)
+    limit = max_samples
     if fill != 0:
         base = int(offsets[r])
+        limit = int(counts[r])  # the count pass's own, or fewer (a fixed-capacity buffer)
     if k < 0 or not (t1 > t0):
         k = -1
-    while k >= 0 and n < max_samples:
+    while k >= 0 and n < limit:
         s = t0 + (float(k) + j) * dt
         if s >= t1:
             k = -1
@@ -272,7 +275,7 @@ def march_contracted(
     max_samples: int,
     fill: int,
     offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
-    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass)
+    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass); in (fill pass): samples to write
     k_next: wp.array(dtype=wp.int32),  # [n_rays] out (count pass): next index, -1 = done
     t_starts: wp.array(dtype=float),  # [n] out (fill pass)
     t_ends: wp.array(dtype=float),  # [n] out (fill pass)
@@ -293,11 +296,13 @@ def march_contracted(
     inv = float(res) / (4.0 * a)
     n = int(0)
     base = int(0)
+    limit = max_samples
     if fill != 0:
         base = int(offsets[r])
+        limit = int(counts[r])  # the count pass's own, or fewer (a fixed-capacity buffer)
     if k < 0:
         k = -1
-    while k >= 0 and n < max_samples:
+    while k >= 0 and n < limit:
         s = lattice_t(s0 + float(k) + j, dt, cone)
         if s >= t1:
             k = -1

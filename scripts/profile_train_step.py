@@ -42,8 +42,10 @@ def main():
     cuda = cfg.device.startswith("cuda")
     sync = torch.cuda.synchronize if cuda else (lambda: None)
 
-    def step(i):
-        return float(bare_step(task, opt, i, lr_at(s, i)))  # the loop's one host sync a step
+    history = {}
+
+    def step(i):  # the loop's one host sync a step: the loss and terms, recorded
+        return float(bare_step(task, opt, i, lr_at(s, i), history=history))
 
     for i in range(a.warm):
         step(i)
@@ -74,13 +76,22 @@ def main():
              if k.key in ("aten::_local_scalar_dense", "aten::item", "aten::nonzero",
                           "cudaStreamSynchronize", "cudaDeviceSynchronize")}  # fmt: skip
     launches = sum(k.count for k in ka if k.key in ("cudaLaunchKernel", "cuLaunchKernel"))
+    # what the host issues besides kernels: graph replays (each runs a whole captured step)
+    # and copies
+    issued = {k.key: k.count / n_prof for k in ka
+              if k.key in ("cudaGraphLaunch", "cudaMemcpyAsync", "cudaMemsetAsync")}  # fmt: skip
     top = sorted(ka, key=lambda k: -getattr(k, dev_key, 0.0))[:15]
     res = {
         "step_ms_median": statistics.median(times),
         "device_busy_ms_per_step": dev_total if cuda else None,
         "host_syncs_per_step": syncs,
         "kernel_launches_per_step": launches / n_prof,
-        "samples_per_step": task.batch,
+        "other_issued_per_step": issued,
+        "launches_issued_per_step": launches / n_prof + sum(issued.values()),
+        "rays_per_step": task.batch,
+        "samples_per_ray": history.get("samples_per_ray", [None])[-1],
+        "dropped_samples_last_50": sum(history.get("dropped_samples", [])[-50:]),
+        "graphs_captured": getattr(getattr(task, "graph", None), "captures", None),
         "top_device_ops_ms_per_step": {k.key: getattr(k, dev_key) / 1e3 / n_prof for k in top},
         "device": torch.cuda.get_device_name() if cuda else "cpu",
     }

@@ -107,13 +107,16 @@ class OccupancyGrid(nn.Module):
         self.bits.copy_(ops.grid_pack_bits(self.density, self.threshold()))
         self.n_updates += 1
 
-    def march(self, origins, directions, near, far, *, jitter=None, k_begin=None, max_samples=1024):
+    def march(self, origins, directions, near, far, *, jitter=None, k_begin=None, max_samples=1024,
+              capacity=None):  # fmt: skip
         """Packed samples in occupied cells (see :func:`warpnerf.ops.occupancy.march_rays`, and
-        ``march_rays_contracted`` for an unbounded scene)."""
+        ``march_rays_contracted`` for an unbounded scene; ``capacity``: static shapes, no host
+        sync, and a third output, the marching's counts)."""
         if self.contract:
             return ops.march_rays_contracted(
                 origins, directions, near, far, self.bits, self.res, self.contract, self.dt,
                 self.cone, jitter=jitter, k_begin=k_begin, max_samples=max_samples,
+                capacity=capacity,
             )  # fmt: skip
         return ops.march_rays(
             origins,
@@ -127,4 +130,5 @@ class OccupancyGrid(nn.Module):
             jitter=jitter,
             k_begin=k_begin,
             max_samples=max_samples,
+            capacity=capacity,
         )

@@ -20,6 +20,7 @@ __all__ = [
     "render_views",
     "render_nerf",
     "render_marched",
+    "render_marched_fixed",
     "render_chunks",
     "render_sphere_traced",
 ]
@@ -319,6 +320,68 @@ def render_marched(
         out["distortion"] = distortion_loss(
             distortion_s(kept.t_starts), distortion_s(kept.t_ends), kept.ray_indices, weights[0],
             n_rays, packed_info=kept.packed_info, check=False,
+        )  # fmt: skip
+    return out
+
+
+def render_marched_fixed(
+    grid,
+    field,
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] unit length
+    near,  # float or [n_rays]
+    far,  # float or [n_rays] (a ray with far <= near gets no samples: an unused slot)
+    *,
+    marched: int,
+    kept: int,
+    jitter: torch.Tensor | None = None,
+    background=1.0,
+    t_threshold: float = 1e-4,
+    max_samples: int = 1024,
+    ray_images: torch.Tensor | None = None,
+    distortion_s=None,
+):
+    """:func:`render_marched` with static shapes and no host sync, for a training step captured
+    in a CUDA graph (:mod:`warpnerf.train.graph_step`): the marched samples fill ``marched``
+    slots, the live ones (before each ray's transmittance drops below ``t_threshold``) are
+    compacted into ``kept`` slots, and the field runs on all slots of each (unused ones hold
+    finite positions no ray composites, so their gradients are zero). Rays past a full buffer
+    lose samples, deterministically by ray order (``stats`` counts them; the trainer sizes the
+    buffers from the previous steps so that this stays rare). With enough capacity, every ray's
+    samples, colour and gradients are :func:`render_marched`'s.
+
+    Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays] (and ``distortion`` [n_rays] with
+    ``distortion_s``) and ``stats``, an int64 device tensor [5]: (samples marched, marched
+    samples dropped, rays refused, live samples, live samples dropped).
+    """
+    from .ops.occupancy import live_samples_fixed
+
+    smp, _, march_stats = grid.march(origins, directions, near, far, jitter=jitter,
+                                     max_samples=max_samples, capacity=marched)  # fmt: skip
+    ri = smp.ray_indices
+    positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    with torch.no_grad():
+        sigmas, _ = field.density(positions)
+    live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
+    sigmas, feats = field.density(positions[src])
+    dirs = directions[live.ray_indices]
+    if ray_images is None:
+        rgbs = field.color(feats, dirs)
+    else:
+        rgbs = field.color(feats, dirs, image_ids=ray_images[live.ray_indices])
+    rgb, depth, opacity, *weights = render_packed(
+        live.t_starts, live.t_ends, live.ray_indices, sigmas, rgbs, origins.shape[0],
+        background=background, packed_info=live.packed_info, t_threshold=t_threshold,
+        check=False, return_weights=distortion_s is not None,
+    )  # fmt: skip
+    out = {"rgb": rgb, "depth": depth, "opacity": opacity,
+           "stats": torch.cat([march_stats, live_stats])}  # fmt: skip
+    if distortion_s is not None:
+        from .ops.distortion import distortion_loss
+
+        out["distortion"] = distortion_loss(
+            distortion_s(live.t_starts), distortion_s(live.t_ends), live.ray_indices, weights[0],
+            origins.shape[0], packed_info=live.packed_info, check=False,
         )  # fmt: skip
     return out
 

@@ -118,8 +118,10 @@ class _Composite(torch.autograd.Function):
         v_opacity = grad_or_zeros(v_opacity, (n_rays,))
         if v_weights is None or v_weights.numel() == 0:
             v_weights = torch.empty(0, device=dev, dtype=dt)
-        v_values = torch.empty_like(values)
-        v_rgbs = torch.empty_like(rgbs)
+        # zeros: samples no ray references (the unused slots of a fixed-capacity buffer) get a
+        # zero gradient; the kernels write every sample that a ray's range covers
+        v_values = torch.zeros_like(values)
+        v_rgbs = torch.zeros_like(rgbs)
         a = _bridge.arr
         head = [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values)]
         upstream = [a(v_rgb), a(v_depth), a(v_opacity), a(v_weights), a(v_values), a(v_rgbs)]

@@ -22,6 +22,7 @@ __all__ = [
     "grid_ema_update",
     "grid_pack_bits",
     "live_samples",
+    "live_samples_fixed",
     "unpack_bits",
 ]
 
@@ -168,6 +169,7 @@ def march_rays(
     jitter: torch.Tensor | None = None,  # [n_rays] in [0, 1): lattice shift (training)
     k_begin: torch.Tensor | None = None,  # [n_rays] int32: resume each ray at this index
     max_samples: int = 1024,
+    capacity: int | None = None,
 ):
     """Packed samples in the occupied cells along each ray (see kernels/occupancy.py).
 
@@ -185,6 +187,14 @@ def march_rays(
     ValueError) for a float ``k_begin``. These value checks cost no extra host sync: offending
     rays are given no samples before the kernel runs (it could otherwise loop for ~2^31 steps)
     and the error is raised at the sync that reads the sample total, which marching needs anyway.
+
+    ``capacity`` (static shapes: a training step captured in a CUDA graph): the outputs have
+    exactly ``capacity`` slots and nothing is read back to the host. Rays keep their samples in
+    ray order until the buffer is full; later rays lose theirs (deterministically: by ray
+    order), and packed_info says what each ray kept. Slots past the samples hold t = 0 and
+    ray 0 (finite, referenced by no ray). Refused rays get no samples and no error. Returns
+    ``(Samples, k_next, stats)`` with ``stats`` an int64 device tensor [3]: (samples marched,
+    samples dropped for want of capacity, rays refused).
     """
     from warpnerf.kernels import occupancy as K
 
@@ -236,6 +246,8 @@ def march_rays(
     ]
     no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
     _bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
+    if capacity is not None:
+        return _fill_fixed(K.march, head, counts, k_next, bad, capacity, dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     # the one host sync: the sample total and whether any ray was refused
@@ -252,6 +264,27 @@ def march_rays(
         )
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> tuple:
+    """The fill pass into ``capacity`` slots, with no host sync (see ``march_rays``'s
+    ``capacity``): each ray keeps ``clamp(capacity - offset, 0, count)`` of its samples."""
+    capacity = _bridge.check_int("capacity", capacity, lo=1)
+    csum = torch.cumsum(counts, 0, dtype=torch.int64)
+    offsets64 = csum - counts
+    kept = torch.minimum((capacity - offsets64).clamp_min(0), counts.to(torch.int64))
+    offsets, kept = offsets64.clamp_max(capacity).to(torch.int32), kept.to(torch.int32)
+    # slots no ray writes stay finite: t = 0 on ray 0 (positions are the ray's origin)
+    t_starts = torch.zeros(capacity, device=dev, dtype=torch.float32)
+    t_ends = torch.zeros(capacity, device=dev, dtype=torch.float32)
+    ray_indices = torch.zeros(capacity, device=dev, dtype=torch.int32)
+    a = _bridge.arr
+    fill = [1, a(offsets), a(kept), a(k_next), a(t_starts), a(t_ends), a(ray_indices)]
+    _bridge.launch(kernel, counts.shape[0], head + fill, dev)
+    total = csum[-1] if counts.numel() else torch.zeros((), device=dev, dtype=torch.int64)
+    stats = torch.stack([total, (total - capacity).clamp_min(0), bad.sum()])
+    packed_info = torch.stack([offsets, kept], -1)
+    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next, stats
 
 
 def _packed_outputs(total: int, csum, counts, dev) -> tuple:
@@ -337,6 +370,7 @@ def march_rays_contracted(
     jitter: torch.Tensor | None = None,  # [n_rays] in [0, 1)
     k_begin: torch.Tensor | None = None,  # [n_rays] int32
     max_samples: int = 1024,
+    capacity: int | None = None,
 ):
     """Packed samples of an unbounded scene (see kernels/occupancy.py, "the contracted grid"):
     lattice intervals from ``near`` to ``far`` whose steps are ``dt`` up to distance
@@ -383,6 +417,8 @@ def march_rays_contracted(
         K.march_contracted, n_rays, head + [0, no_i, a_(counts), a_(k_next), no_f, no_f, no_i],
         dev,
     )  # fmt: skip
+    if capacity is not None:
+        return _fill_fixed(K.march_contracted, head, counts, k_next, bad, capacity, dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
@@ -414,6 +450,48 @@ def _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin):
         f"a ray spans more than {MAX_STEPS} lattice steps of dt={dt} (directions too short, "
         "dt too small for the box, or a value overflowed)"
     )
+
+
+def live_samples_fixed(samples: Samples, sigmas: torch.Tensor, t_threshold: float,
+                       capacity: int):  # fmt: skip
+    """Static-shape :func:`live_samples` plus compaction, with no host sync (a training step
+    captured in a CUDA graph): each ray's samples before its transmittance drops below
+    ``t_threshold``, packed into ``capacity`` slots in ray order (rays past a full buffer keep
+    fewer, deterministically).
+
+    ``samples`` must be packed by the library's own marcher (``march_rays(capacity=...)``): its
+    packed_info is trusted, slots no ray references are ignored. Returns ``(kept, src,
+    stats)``: ``kept`` Samples of ``capacity`` slots (unused ones repeat slot 0 of
+    ``samples``, referenced by no ray), ``src`` [capacity] int64: the index in ``samples`` of
+    each kept slot, ``stats`` int64 [2] on the device: (live samples, samples dropped for want of
+    capacity)."""
+    from warpnerf.kernels import occupancy as K
+
+    capacity = _bridge.check_int("capacity", capacity, lo=1)
+    ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
+    _bridge.check_float("sigmas", sigmas, (ts.shape[0],), torch.float32, ts.device)
+    n, n_rays, dev = ts.shape[0], info.shape[0], ts.device
+    n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    a = _bridge.arr
+    inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]
+    _bridge.launch(K.live_counts, n_rays, inputs, dev)
+    ri = samples.ray_indices.long()
+    start = info[:, 0].long()
+    live = n_live.long()
+    keep = (torch.arange(n, device=dev) - start[ri]) < live[ri]  # (unused slots: ray 0, past it)
+    csum = torch.cumsum(live, 0)
+    first = csum - live  # each ray's first kept slot
+    kept_n = torch.minimum((capacity - first).clamp_min(0), live)
+    dest = first[ri] + torch.arange(n, device=dev) - start[ri]
+    dest = torch.where(keep & (dest < capacity), dest, torch.full_like(dest, capacity))
+    src = torch.zeros(capacity + 1, device=dev, dtype=torch.int64)
+    src.scatter_(0, dest, torch.arange(n, device=dev))  # (the dump slot's winner is unused)
+    src = src[:capacity]
+    total = csum[-1] if n_rays else torch.zeros((), device=dev, dtype=torch.int64)
+    stats = torch.stack([total, (total - capacity).clamp_min(0)])
+    packed = torch.stack([first.clamp_max(capacity), kept_n], -1).to(torch.int32)
+    kept = Samples(ts[src], te[src], samples.ray_indices[src], packed)
+    return kept, src, stats
 
 
 def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, check=True):

@@ -116,9 +116,14 @@ def snapshot_name(seconds: float) -> str:
 
 def set_lr(opt, lr: float) -> None:
     """Sets the step's learning rate on every parameter group (a group's ``lr_scale``, e.g. the
-    pose corrections', scales it)."""
+    pose corrections', scales it). A group whose rate is a tensor (an optimiser captured in a
+    CUDA graph reads it from there) gets the value written into that tensor."""
     for group in opt.param_groups:
-        group["lr"] = lr * group.get("lr_scale", 1.0)
+        value = lr * group.get("lr_scale", 1.0)
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(value)
+        else:
+            group["lr"] = value
 
 
 def lr_at(s: LoopSettings, step: int) -> float:
@@ -147,6 +152,13 @@ class Task:
         returns the scalar loss to minimise and a dict of terms for the history (0-dim tensors,
         read at the step's one sync, or Python numbers)."""
         raise NotImplementedError
+
+    def train_step(self, step: int, opt, params) -> tuple | None:
+        """The whole step in one go, or None for the usual one (:meth:`loss`, then the loop's
+        backward, divergence flags and optimiser step). A task that returns (loss, terms,
+        flags) has done all of that itself (a step captured in a CUDA graph: the loss's
+        backward, :func:`nonfinite_flags` of ``params`` and ``opt.step()`` are in it)."""
+        return None
 
     def after_step(self, step: int, history: dict) -> None:
         """After the optimiser step of ``step`` and its history entry (projections such as
@@ -228,6 +240,10 @@ def _own_implementation(opt, saved):
             for k in ("fused", "foreach", "capturable"):
                 if k in g_now:
                     g_saved[k] = g_now[k]
+            if isinstance(g_now.get("lr"), torch.Tensor) or isinstance(g_saved.get("lr"),
+                                                                        torch.Tensor):  # fmt: skip
+                # a captured optimiser reads its rate from its own tensor (set every step)
+                g_saved["lr"] = g_now["lr"]
         groups.append(g_saved)
     groups += saved["param_groups"][len(groups) :]
     return {**saved, "param_groups": groups}
@@ -322,13 +338,20 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
         for step in range(start, s.iters):
             lr = lr_at(s, step)
             set_lr(opt, lr)
-            loss, terms = task.loss(step)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if dist is not None:
-                dist.average_grads(params)
-            flags = nonfinite_flags(loss, params)
-            opt.step()
+            # the last step's autograd graph must be gone before this step runs: a captured
+            # step's gradients may not accumulate into nodes made on another stream
+            loss = terms = flags = None
+            whole = task.train_step(step, opt, params)
+            if whole is not None:
+                loss, terms, flags = whole
+            else:
+                loss, terms = task.loss(step)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if dist is not None:
+                    dist.average_grads(params)
+                flags = nonfinite_flags(loss, params)
+                opt.step()
             done = step + 1
             # the step's one host sync: the loss, the terms and the divergence flags (a step
             # that diverged is never saved: the run keeps its last good checkpoint)
@@ -477,26 +500,41 @@ def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) 
     check_foreign([run / n for n in (*outputs, RUN_INFO)])
 
 
-def adam(params, **kw) -> torch.optim.Adam:
+def adam(params, capturable: bool = False, **kw) -> torch.optim.Adam:
     """Adam, fused (one multi-tensor kernel per step instead of a dozen launches: the hash-field
     step is host-bound) when every parameter is a floating CUDA tensor; PyTorch's default
     implementation otherwise (CPU runs). Both compute the same update and share the state dict
-    layout, so a checkpoint resumes on either."""
+    layout, so a checkpoint resumes on either. ``capturable`` (CUDA): the step can be captured in
+    a CUDA graph; its learning rate is then a device tensor (:func:`set_lr` writes into it)."""
     params = list(params)
     tensors = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     fused = bool(tensors) and all(p.is_cuda and p.is_floating_point() for p in tensors)
+    if capturable and fused:
+        kw["lr"] = torch.tensor(float(kw.get("lr", 1e-3)), device=tensors[0].device)
+        return torch.optim.Adam(params, fused=True, capturable=True, **kw)
     return torch.optim.Adam(params, fused=fused or None, **kw)
 
 
-def bare_step(task: Task, opt, step: int, lr: float | None = None) -> torch.Tensor:
-    """One optimisation step of ``task`` without the loop's bookkeeping (no history, checks,
-    files or syncs): what the profiling and measuring tools time. Returns the loss tensor."""
+def bare_step(task: Task, opt, step: int, lr: float | None = None,
+              history: dict | None = None) -> torch.Tensor:  # fmt: skip
+    """One optimisation step of ``task`` without the loop's bookkeeping (no checks, files or
+    syncs): what the profiling and measuring tools time. Returns the loss tensor. ``history``
+    (a dict): the step's terms are read (the loop's one sync a step) and recorded there, as the
+    loop records them (tasks that size the next step from this one's counts need it)."""
     if lr is not None:
         set_lr(opt, lr)
-    loss, _ = task.loss(step)
-    opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
+    params = task.parameters()
+    whole = task.train_step(step, opt, params)
+    if whole is not None:
+        loss, terms, _ = whole
+    else:
+        loss, terms = task.loss(step)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    if history is not None:
+        _, values, _ = _read_terms(loss, terms, loss.new_zeros(2))
+        task.record(history, values)
     return loss
 
 

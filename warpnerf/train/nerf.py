@@ -237,7 +237,7 @@ def _psnr(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def _optimizer(cfg, params, poses=None):
+def _optimizer(cfg, params, poses=None, capturable=False):
     """Adam over ``params``; with pose corrections (``poses``, whose parameters are among
     ``params``) a second group for them at ``pose_lr`` (``lr_scale``: the loop's schedule
     scales it with the main learning rate)."""
@@ -248,8 +248,8 @@ def _optimizer(cfg, params, poses=None):
         scale = cfg.pose_lr / cfg.lr
         groups = [{"params": rest}, {"params": list(poses.parameters()), "lr_scale": scale}]
     if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
-        return adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
-    return adam(groups, lr=cfg.lr)
+        return adam(groups, capturable, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    return adam(groups, capturable, lr=cfg.lr)
 
 
 def load_run(run, device: str | None = None, snapshot: float | None = None):
@@ -413,6 +413,7 @@ class NeRFTask(Task):
 
     def __init__(self, cfg, model: RadianceModel, train, val, log=print, dist=None):
         self.cfg, self.model, self.train, self.val = cfg, model, train, val
+        self.log = log
         self.dist = dist  # data-parallel: this rank renders its share of each global batch
         self.n_img, self.h, self.w = train.images.shape[:3]
         self.flat = train.images.reshape(-1, 3)
@@ -437,10 +438,30 @@ class NeRFTask(Task):
                     + ("NDC rays (forward-facing)" if kp is not None else "no point observations")
                 )  # fmt: skip
             self.keypoints = {k: v.to(cfg.device) for k, v in kp.items()}
+        self.graph = self._graph_step(log)
+
+    def _graph_step(self, log):
+        """The static-shape step (:mod:`~warpnerf.train.graph_step`) when ``--cuda-graph``
+        and the run allow it, else None."""
+        from .graph_step import GraphStep, unsupported
+
+        mode = getattr(self.cfg, "cuda_graph", "auto")
+        if mode == "on" and not self.cfg.device.startswith("cuda"):
+            raise UserError("--cuda-graph on needs --device cuda (CPU runs use the eager step)")
+        if mode == "off" or not self.cfg.device.startswith("cuda"):
+            return None
+        why = unsupported(self.cfg, self.model, self)
+        if why is not None:
+            if mode == "on":
+                raise UserError(f"--cuda-graph on: this run cannot be captured ({why})")
+            return None
+        return GraphStep(self, capture=True)
 
     def resume(self, ckpt, run, log):
         self.gen.set_state(ckpt["generator"].cpu())  # map_location may have moved it
         self.batch = ckpt.get("batch", self.cfg.batch)
+        if self.graph is not None:  # the static-shape step's sizes, when the run had them
+            self.graph.restore(ckpt.get("static_shape"))
         if self.grid_gen is not None:
             if ckpt.get("grid_generator_device") == self.grid_gen.device.type:
                 self.grid_gen.set_state(ckpt.get("grid_generator").cpu())
@@ -452,7 +473,36 @@ class NeRFTask(Task):
         return list(self.model.parameters())
 
     def optimizer(self, params, lr):
-        return _optimizer(self.cfg, params, self.model.poses)
+        return _optimizer(self.cfg, params, self.model.poses, capturable=self.graph is not None)
+
+    def train_step(self, step, opt, params):
+        """The static-shape step captured in a CUDA graph (None: the eager one, as for the
+        first step, whose counts size the buffers)."""
+        if self.graph is None or self.graph.last is None:
+            return None
+        self._grid_update(step)
+        whole = self.graph.run(step, opt, params)
+        if whole is None:  # the capture failed: the eager step from now on (said once)
+            self.log(f"CUDA graph capture failed ({self.graph.failed}); training goes on with "
+                     "the eager step (--cuda-graph off)")  # fmt: skip
+            self.graph = None
+            return self._eager_once(step, opt, params)
+        return whole
+
+    def _eager_once(self, step, opt, params):
+        """This step the eager way (its grid update is done), for a failed capture."""
+        every, self.cfg.grid_every = self.cfg.grid_every, 1 << 30
+        try:
+            loss, terms = self.loss(step)
+        finally:
+            self.cfg.grid_every = every
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        from ._signals import nonfinite_flags
+
+        flags = nonfinite_flags(loss, params)
+        opt.step()
+        return loss, terms, flags
 
     def _next_batch(self, n_kept: int) -> None:
         """The next step's rays, aiming at ``target_samples`` samples from this step's
@@ -473,16 +523,7 @@ class NeRFTask(Task):
     def loss(self, step):
         self._settle_batch()
         cfg, model, grid = self.cfg, self.model, self.grid
-        field = model.coarse
-        if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
-            field.set_step(step)
-        if grid is not None and step % cfg.grid_every == 0:
-            if hasattr(field, "grid_density"):  # an SDF: the densest point of each cell
-                lo, hi = grid.box[:3], grid.box[3:]
-                r = 0.5 * math.sqrt(sum(((b - a) / grid.res) ** 2 for a, b in zip(lo, hi)))
-                grid.update(lambda x: field.grid_density(x, r), self.grid_gen)
-            else:
-                grid.update(lambda x: field.density(x)[0], self.grid_gen)
+        self._grid_update(step)
         cam, px, py, idx = random_pixels(
             self.n_img, self.w, self.h, self.batch, generator=self.gen, device=cfg.device,
             host_index=self.host_images,
@@ -526,6 +567,9 @@ class NeRFTask(Task):
                 terms["samples_per_ray"] = (self._kept / self.batch).reshape(())
             else:
                 terms["samples_per_ray"] = n_kept / self.batch
+                if self.graph is not None:  # the static-shape step sizes its buffers from these
+                    self.graph.last = (self.batch, out["n_marched"], n_kept)
+                    terms["dropped_samples"] = 0
                 self._next_batch(n_kept)
         if not self.host_images:
             target = self.flat[idx]
@@ -534,7 +578,7 @@ class NeRFTask(Task):
         loss_fine = torch.mean((out["rgb"] - target) ** 2)
         if scale != 1.0:
             loss_fine = loss_fine * scale
-        terms["psnr"] = loss_fine
+        terms["psnr"] = loss_fine.detach()
         loss = loss_fine
         if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
             dist_loss = out["distortion"].mean() * scale
@@ -559,6 +603,29 @@ class NeRFTask(Task):
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
+
+    def batch_rays(self, cam, px, py):
+        """Rays of a training batch's pixels (indices the task drew itself: no range check)."""
+        return dataset_rays(self.cfg, self.train, cam, px, py, check=False,
+                            poses=self.model.poses)  # fmt: skip
+
+    def distortion_map(self):
+        """The ray coordinate of the distortion loss, or None without the loss."""
+        return distortion_coordinate(self.cfg) if self.cfg.distortion_loss > 0 else None
+
+    def _grid_update(self, step: int) -> None:
+        """The field's schedules for ``step`` and, every ``grid_every`` steps, the occupancy
+        grid's update (in place: a captured step reads the grid's own buffers)."""
+        cfg, grid, field = self.cfg, self.grid, self.model.coarse
+        if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
+            field.set_step(step)
+        if grid is not None and step % cfg.grid_every == 0:
+            if hasattr(field, "grid_density"):  # an SDF: the densest point of each cell
+                lo, hi = grid.box[:3], grid.box[3:]
+                r = 0.5 * math.sqrt(sum(((b - a) / grid.res) ** 2 for a, b in zip(lo, hi)))
+                grid.update(lambda x: field.grid_density(x, r), self.grid_gen)
+            else:
+                grid.update(lambda x: field.density(x)[0], self.grid_gen)
 
     def _depth_term(self, seed: int):
         """--depth-loss: ``depth_rays`` observations of sparse points drawn from the training
@@ -606,6 +673,10 @@ class NeRFTask(Task):
 
     def record(self, history, terms):
         terms = dict(terms, psnr=_psnr(terms["psnr"]))  # the fine pass's MSE, as PSNR
+        if "_marched" in terms:  # a static-shape step: its counts size the next one
+            marched, live = int(terms.pop("_marched")), int(terms.pop("_live"))
+            self.graph.last = (terms["batch"], marched, live)
+            self._next_batch(live)
         super().record(history, terms)
 
     def validate(self, step):
@@ -645,6 +716,9 @@ class NeRFTask(Task):
         if self.grid_gen is not None:
             state["grid_generator"] = self.grid_gen.get_state()
             state["grid_generator_device"] = self.grid_gen.device.type
+        if self.graph is not None and self.graph.last is not None:  # a resume keeps the shapes
+            state["static_shape"] = {"last": list(self.graph.last),
+                                     "current": list(self.graph.current or ())}  # fmt: skip
         return state
 
 

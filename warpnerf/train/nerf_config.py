@@ -180,6 +180,12 @@ class NeRFConfig:
         0, "with a grid: adapt rays per step to composite about this many samples (0: fixed "
         "--batch)", check="nonnegative", groups=GRID,
     )  # fmt: skip
+    cuda_graph: str = option(
+        "auto", "with a grid on CUDA: run each training step with static shapes, captured once "
+        "in a CUDA graph and replayed (auto: when the run allows it; off: the eager step, "
+        "for debugging; on: refuse a run that does not allow it)",
+        choices=("auto", "on", "off"), groups=GRID,
+    )  # fmt: skip
     aabb: float = option(
         0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
         "built-in scene's own for builtin; with --contract on: of the inner cube, default the "

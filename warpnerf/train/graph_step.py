@@ -1,0 +1,272 @@
+"""A NeRF training step with static shapes, captured once in a CUDA graph and replayed.
+
+The eager step (:meth:`warpnerf.train.nerf.NeRFTask.loss`) sizes its buffers by what it marched:
+two host reads of device counts per step, and about two hundred launches issued one by one from
+Python, so the GPU waits for the host. Here every buffer of the step has a fixed size:
+
+- ``rays`` ray slots, of which the step's ``batch`` are used (the others get no samples and no
+  weight in the loss: a ray batch that changes from step to step needs no new graph);
+- ``marched`` slots for the grid's samples and ``kept`` slots for those before each ray's
+  transmittance drops below the threshold (:func:`warpnerf.render.render_marched_fixed`).
+
+The capacities come from the previous step's counts (read by the loop at its one sync a step,
+with the loss) times ``HEADROOM``, rounded up to one of eight sizes per octave. A set of sizes
+is a *shape*, kept while it fits and is not far too large. Each shape is run eagerly ``WARM``
+times (on a side stream: warm-up for the capture), then captured once: forward (rays,
+marching, the field's two passes, compositing, the loss), backward, the divergence flags and
+fused Adam. Later steps of that shape replay it: the host draws the batch's pixels (the same
+generator calls as the eager step), copies them in, sets the learning rate and launches one
+graph. At most ``MAX_GRAPHS`` shapes are kept (least recently used dropped). Samples that do
+not fit are dropped deterministically (by ray order) and counted in the history
+(``dropped_samples``); the next step's capacities grow.
+
+The occupancy grid's update (every ``--grid-every`` steps) stays eager, before the step.
+The same body runs without capture on CPU (``capture=False``), which is what the tests compare
+with the eager step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+
+import torch
+
+from ..render import render_marched_fixed
+from ._signals import nonfinite_flags
+
+__all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
+
+# capacity over the previous step's count, scaled to this step's batch: (marched, kept). The
+# kept samples stay near --target-samples (the batch adapts to them), the marched ones move
+# with the grid's updates; every slot costs field work (forward only for the marched ones)
+HEADROOM = (1.15, 1.06)
+MAX_GRAPHS = 6  # captured shapes kept at once (each holds its own memory pool)
+WARM = 2  # eager runs of a shape before it is captured
+QUANTUM = 256  # capacities are multiples of this
+PER_OCTAVE = 8  # capacity sizes per doubling (2^(1/8) = 1.09 apart)
+SLACK = 1  # a new shape is this many sizes above what the step needs (room to grow)
+KEEP = 3  # a shape stays in use while it is at most this many sizes above the need
+
+
+def tier(n: int, up: int = 0) -> int:
+    """The smallest capacity >= n of the form 256 * 2^(k/8), ``up`` sizes more, rounded up to a
+    multiple of 256."""
+    size = QUANTUM * 2 ** ((_tier_index(n) + up) / PER_OCTAVE)
+    return int(math.ceil(size / QUANTUM - 1e-9) * QUANTUM)
+
+
+def _tier_index(n: int) -> int:
+    return math.ceil(PER_OCTAVE * math.log2(max(max(int(n), 1) / QUANTUM, 1.0)) - 1e-9)
+
+
+def unsupported(cfg, model, task) -> str | None:
+    """Why this run's step cannot have static shapes (None: it can)."""
+    if model.grid is None:
+        return "it needs an occupancy grid"
+    if model.kind != "density" or model.fine is not None:
+        return "it needs a density field without a fine pass (--field hash)"
+    if task.dist is not None:
+        return "data-parallel training is not captured yet"
+    if task.host_images:
+        return "images kept in host memory (--images-on host) are not captured yet"
+    if task.keypoints is not None:
+        return "--depth-loss is not captured yet"
+    if model.poses is not None:
+        return "--pose-refine is not captured yet"
+    if task.train.distortion is not None:
+        return "lens distortion (a COLMAP/LLFF camera model with k1..p2) is not captured yet"
+    return None
+
+
+class _Shape:
+    """One set of capacities: its static input buffers, and its graph once captured."""
+
+    def __init__(self, key: tuple, device, contract: bool):
+        rays = key[0]
+        self.key, self.runs, self.graph, self.out = key, 0, None, None
+        # the batch's flat pixel indices (unused slots: 0), then the number of rays used
+        self.inputs = torch.zeros(rays + 1, device=device, dtype=torch.int64)
+        self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
+        self.jitter = torch.zeros(rays, device=device, dtype=torch.float32)
+        self.bg = torch.zeros(rays, 3, device=device) if contract else None
+
+
+class GraphStep:
+    """The static-shape step of a :class:`~warpnerf.train.nerf.NeRFTask` (see the module's
+    text). ``capture``: use CUDA graphs (CUDA only); False runs the same body eagerly."""
+
+    def __init__(self, task, capture: bool):
+        self.task, self.capture = task, bool(capture)
+        self.shapes: OrderedDict = OrderedDict()
+        self.last = None  # (batch, samples marched, live samples) of the previous step
+        self.current = None  # the key of the shape in use
+        self.captures = self.replays = 0  # graphs captured and replayed so far (tests, tools)
+        self.force = None  # tests: a fixed key (rays, marched, kept) instead of the sizing rule
+        self.failed = None  # why a capture failed (the task then goes on eagerly)
+        dev = torch.device(task.cfg.device)
+        self.device = dev
+        self._staging = None  # pinned host buffer of the batch's pixel indices (CUDA)
+        self._copied = None  # the event after the last copy out of it
+        self.stream = torch.cuda.Stream(dev) if self.capture else None
+
+    def restore(self, saved) -> None:
+        """The sizes a checkpoint saved (``state()["static_shape"]``), so that a resumed run
+        continues with the shapes it had; anything malformed is ignored (the first step then
+        runs eagerly and measures them again)."""
+        if not isinstance(saved, dict):
+            return
+        last, cur = saved.get("last"), saved.get("current")
+
+        def ints(v, n):
+            ok = isinstance(v, (list, tuple)) and len(v) == n
+            return ok and all(isinstance(x, int) and 0 <= x < 2**31 for x in v)
+
+        if ints(last, 3):
+            self.last = tuple(last)
+            self.current = tuple(cur) if ints(cur, 3) and all(x > 0 for x in cur) else None
+
+    # --- sizes -----------------------------------------------------------------------------
+
+    def key(self, batch: int) -> tuple:
+        """(rays, marched, kept) for a step of ``batch`` rays, from the previous step's counts;
+        the shape in use is kept while it fits and is at most two sizes too large."""
+        if self.force is not None:
+            return self.force
+        b0, marched0, live0 = self.last
+        scale = batch / max(b0, 1)
+        need = (batch, int(marched0 * scale * HEADROOM[0]) + 1,
+                int(live0 * scale * HEADROOM[1]) + 1)  # fmt: skip
+        cur = self.current
+        if cur is not None and all(
+            c >= n and _tier_index(c) - _tier_index(n) <= KEEP for c, n in zip(cur, need)
+        ):
+            return cur
+        return (tier(batch, SLACK), tier(need[1], SLACK), tier(need[2]))
+
+    def _shape(self, key) -> _Shape:
+        shape = self.shapes.pop(key, None)
+        if shape is None:
+            shape = _Shape(key, self.device, self.task.cfg.contract == "on")
+            while len(self.shapes) >= MAX_GRAPHS:
+                self.shapes.popitem(last=False)  # least recently used (its graph and pool go)
+        self.shapes[key] = shape
+        self.current = key
+        return shape
+
+    # --- one step --------------------------------------------------------------------------
+
+    def run(self, step: int, opt, params) -> tuple | None:
+        """Loss, terms and divergence flags of one step (the optimiser has stepped); None when
+        a capture failed (``failed`` says why; the step's random draws are made, nothing else)."""
+        task = self.task
+        batch = task.batch
+        shape = self._shape(self.key(batch))
+        if batch > shape.key[0]:
+            raise RuntimeError(f"a batch of {batch} rays in a shape of {shape.key[0]} slots")
+        self._inputs(shape, batch)
+        if not self.capture:
+            out = self._body(shape, opt, params)
+        elif shape.runs < WARM:  # eager, on the side stream the capture will use
+            self.stream.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(self.stream):
+                out = self._body(shape, opt, params)
+            torch.cuda.current_stream(self.device).wait_stream(self.stream)
+        else:
+            if shape.graph is None:
+                try:
+                    self._capture(shape, opt, params)
+                except RuntimeError as e:  # (torch's AcceleratorError is one)
+                    self.failed = " ".join(str(e).split())[:200]
+                    self.shapes.clear()
+                    torch.cuda.synchronize(self.device)
+                    return None
+            shape.graph.replay()
+            self.replays += 1
+            out = shape.out
+        shape.runs += 1
+        loss, terms, flags = out
+        return loss, dict(terms, batch=batch), flags
+
+    def _inputs(self, shape: _Shape, batch: int) -> None:
+        """The step's random draws, as the eager step makes them, into the shape's buffers."""
+        task, dev = self.task, self.device
+        n_pix = task.n_img * task.w * task.h
+        host = torch.randint(0, n_pix, (batch,), generator=task.gen, device="cpu")
+        rays = shape.key[0]
+        if dev.type == "cuda":
+            if self._staging is None or self._staging.numel() < rays + 1:
+                self._staging = torch.zeros(max(rays + 1, 1 << 16), dtype=torch.int64,
+                                            pin_memory=True)  # fmt: skip
+            elif self._copied is not None:
+                self._copied.synchronize()  # (the previous copy has long finished)
+            stage = self._staging[: rays + 1]
+            stage[:batch] = host
+            stage[batch:rays] = 0
+            stage[rays] = batch
+            shape.inputs.copy_(stage, non_blocking=True)
+            self._copied = torch.cuda.Event()
+            self._copied.record()
+        else:
+            shape.inputs.zero_()
+            shape.inputs[:batch] = host
+            shape.inputs[rays] = batch
+        if task.grid is not None:  # the lattice jitter (and backgrounds): the eager step's draws
+            torch.rand(batch, device=dev, generator=task.grid_gen, out=shape.jitter[:batch])
+            if shape.bg is not None:
+                torch.rand(batch, 3, device=dev, generator=task.grid_gen, out=shape.bg[:batch])
+
+    def _capture(self, shape: _Shape, opt, params) -> None:
+        opt.zero_grad(set_to_none=True)  # (the graph allocates its own gradients)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, stream=self.stream, capture_error_mode="thread_local"):
+            shape.out = self._body(shape, opt, params)
+        shape.graph = graph
+        self.captures += 1
+
+    def _body(self, shape: _Shape, opt, params) -> tuple:
+        """Everything of a step after the draws, with no host sync: what the graph holds."""
+        task = self.task
+        cfg, model = task.cfg, task.model
+        rays, marched, kept = shape.key
+        flat, w = shape.flat, task.w
+        cam = flat // (w * task.h)
+        rem = flat % (w * task.h)
+        py = (rem // w).to(torch.float32) + 0.5
+        px = (rem % w).to(torch.float32) + 0.5
+        o, d = task.batch_rays(cam, px, py)
+        active = torch.arange(rays, device=flat.device) < shape.n_active
+        near = torch.full((rays,), float(cfg.near), device=flat.device)
+        far = torch.where(active, torch.full_like(near, float(cfg.far)), near)  # unused: none
+        opt.zero_grad(set_to_none=True)
+        out = render_marched_fixed(
+            task.grid, model.coarse, o, d, near, far, marched=marched, kept=kept,
+            jitter=shape.jitter, background=cfg.background if shape.bg is None else shape.bg,
+            t_threshold=cfg.t_threshold, max_samples=cfg.max_samples,
+            ray_images=cam if cfg.appearance_dim else None,
+            distortion_s=task.distortion_map(),
+        )  # fmt: skip
+        target = task.flat[flat]
+        if target.dtype == torch.uint8:
+            target = target.to(torch.float32).div_(255.0)
+        weight = active.to(out["rgb"].dtype)
+        n_active = shape.n_active.to(out["rgb"].dtype)
+        mse = (((out["rgb"] - target) ** 2).sum(-1) * weight).sum() / (3.0 * n_active)
+        loss = mse
+        stats = out["stats"]
+        terms = {
+            "psnr": mse.detach(),
+            "samples_per_ray": stats[3].to(torch.float64) / shape.n_active.to(torch.float64),
+            "dropped_samples": stats[1] + stats[4],
+            "_marched": stats[0],
+            "_live": stats[3],
+        }
+        if "distortion" in out:
+            dist_loss = (out["distortion"] * weight).sum() / n_active
+            terms["distortion"] = dist_loss.detach()
+            loss = loss + cfg.distortion_loss * dist_loss
+        loss.backward()
+        flags = nonfinite_flags(loss, params)
+        flags = torch.stack([flags[0] | (stats[2] > 0), flags[1]])  # a refused ray: loudly
+        opt.step()
+        return loss, terms, flags
