@@ -14,8 +14,12 @@ for stage in ${STAGES:-tests profile speed}; do
   echo "=== $stage $(date -u +%H:%M:%S)"
   case $stage in
   tests)
-    python3 -m pytest tests/test_graph_step.py tests/test_sync_budget.py -q -x -k cuda \
+    python3 -m pytest tests/test_graph_step.py tests/test_sync_budget.py tests/test_encoding.py \
+      -q -x -k cuda \
       > "$OUT/tests.txt" 2>&1; tail -15 "$OUT/tests.txt" ;;
+  bench)
+    python3 -m warpnerf.cli bench encoding --device cuda --json "$OUT/bench_encoding.json" \
+      > "$OUT/bench_encoding.txt" 2>&1; tail -8 "$OUT/bench_encoding.txt" ;;
   alltests)
     python3 -m pytest tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
     tail -15 "$OUT/alltests.txt" ;;

@@ -227,3 +227,49 @@ def test_hash_field_zero_outside_box_and_finite_gradients(device):
     (sigma.sum() + rgb.sum()).backward()
     assert all(torch.isfinite(q.grad).all() for q in field.parameters())
     assert field.encoding.table.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("n_features", [2, 4])
+def test_paired_atomics_sum_as_single_atomics(device, n_features):
+    """The float32 table gradient with two features per atomic (sm_90; one by one elsewhere)
+    equals the one-atomic-per-feature kernel's: bitwise on the CPU, within float32 summation
+    order on CUDA; points crowded onto a thin shell (many per cell, as a training step's)."""
+    from warpnerf.ops.encoding import encoding_kernels
+
+    grid = HashGrid(n_levels=6, n_features=n_features, log2_size=12, base_res=4, max_res=128)
+    u = torch.nn.functional.normalize(torch.randn(20_000, 3), dim=-1)
+    x = (0.5 + 0.3 * u).to(device)
+    table = _table(grid, F32, device).requires_grad_()
+    v = torch.randn(x.shape[0], grid.out_dim).to(device)
+    v[::7] = 0.0  # rows of zero gradient (a fixed-capacity buffer's unused slots) add nothing
+    grads = []
+    for pairs in (True, False):
+        with encoding_kernels(pairs=pairs):
+            (g,) = torch.autograd.grad(hash_encode(x, table, grid), table, v)
+        grads.append(g)
+    if device.type == "cpu":
+        assert torch.equal(grads[0], grads[1])
+    else:
+        torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-5)
+
+
+def test_given_features_carry_the_encodings_gradients(device):
+    """hash_encode_given (a renderer's second pass reusing its first pass's features) returns
+    those features and the same table and position gradients as hash_encode."""
+    from warpnerf.ops.encoding import hash_encode_given
+
+    grid = GRIDS["dense+hashed"]
+    x = _points(500, F32, device).requires_grad_()
+    table = _table(grid, F32, device).requires_grad_()
+    v = torch.randn(500, grid.out_dim).to(device)
+    out = hash_encode(x, table, grid)
+    want = torch.autograd.grad(out, (x, table), v)
+    with torch.no_grad():
+        first = hash_encode(x, table, grid)
+    again = hash_encode_given(x, table, grid, first)
+    assert torch.equal(again.detach(), out.detach())
+    got = torch.autograd.grad(again, (x, table), v)
+    for a, b in zip(got, want):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)  # (CUDA: atomics order)
+    with pytest.raises(ValueError, match="features"):
+        hash_encode_given(x, table, grid, first[:10])

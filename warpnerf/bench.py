@@ -148,12 +148,16 @@ def encoding_bytes(n: int, grid, backward: bool) -> int:
     return fwd + (bwd if backward else 0)
 
 
-def _encoding_case(n: int, grid, dev, repeats: int):
-    from .ops.encoding import hash_encode
+def _encoding_case(n: int, grid, dev, repeats: int, points: str = "uniform"):
+    from .ops.encoding import encoding_kernels, hash_encode
     from .reference.encoding import hash_encode as ref_encode
 
     g = torch.Generator(device="cpu").manual_seed(0)
-    x = torch.rand(n, 3, generator=g).to(dev)
+    x = torch.rand(n, 3, generator=g)
+    if points == "surface":  # as a training step's samples: near a surface, many per cell
+        u = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+        x = 0.5 + u * (0.3 + 0.01 * torch.rand(n, 1, generator=g))
+    x = x.to(dev)
     table = (torch.rand(grid.n_rows, grid.n_features, generator=g) * 2 - 1).to(dev)
     table.requires_grad_()
     v_out = torch.randn(n, grid.out_dim, generator=g).to(dev)
@@ -167,8 +171,11 @@ def _encoding_case(n: int, grid, dev, repeats: int):
 
         return go
 
-    row = {"kernel": "hash_encode", "n_points": n, "levels": grid.n_levels, "rows": grid.n_rows}
+    row = {"kernel": "hash_encode", "n_points": n, "levels": grid.n_levels, "rows": grid.n_rows,
+           "points": points}  # fmt: skip
     _warp_vs_torch(row, run, hash_encode, ref_encode, dev, repeats)
+    with encoding_kernels(pairs=False):  # the table's backward with one atomic per feature
+        row["warp_fwdbwd_ms_single_atomics"] = 1e3 * _time(run(hash_encode, True), dev, repeats)
     row["points_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
     row["bytes_fwd"] = encoding_bytes(n, grid, False)
     row["bytes_fwdbwd"] = encoding_bytes(n, grid, True)
@@ -186,11 +193,17 @@ def _encoding_grids(dev, quick: bool):
     from .ops.encoding import HashGrid
 
     if dev.type == "cuda":
-        cases = [(1 << 18, HashGrid()), (1 << 20, HashGrid()), (1 << 20, HashGrid(log2_size=21))]
+        cases = [
+            (1 << 18, HashGrid(), "uniform"),
+            (1 << 20, HashGrid(), "uniform"),
+            (1 << 20, HashGrid(log2_size=21), "uniform"),
+            (1 << 19, HashGrid(), "surface"),
+        ]
     else:
         cases = [
-            (1 << 12, HashGrid(log2_size=14, max_res=256)),
-            (1 << 14, HashGrid(log2_size=14, max_res=256)),
+            (1 << 12, HashGrid(log2_size=14, max_res=256), "uniform"),
+            (1 << 14, HashGrid(log2_size=14, max_res=256), "uniform"),
+            (1 << 14, HashGrid(log2_size=14, max_res=256), "surface"),
         ]
     return cases[:1] if quick else cases
 
@@ -353,8 +366,8 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
             row["bw_pct"] = 100 * row["bytes"] / (row["warp_ms"] / 1e3) / bw
             rows.append(row)
     if kernel in ("encoding", "all"):
-        for n, grid in _encoding_grids(dev, quick):
-            row = _encoding_case(n, grid, dev, repeats)
+        for n, grid, points in _encoding_grids(dev, quick):
+            row = _encoding_case(n, grid, dev, repeats, points)
             row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
             row["bw_pct_fwdbwd"] = 100 * row["bytes_fwdbwd"] / (row["warp_fwdbwd_ms"] / 1e3) / bw
             rows.append(row)
@@ -398,11 +411,19 @@ _TABLES = {
         ("count diff (sum over rays) / max t err (vs f64)", "{count_mismatch} / {max_err_t:.1e}"),
     ],
     "encoding": [
-        ("points", "{n_points}"),
+        ("points", lambda r: f"{r['n_points']} {r.get('points', 'uniform')}"),
         ("levels x rows", "{levels} x {rows}"),
         ("warp fwd ms", "{warp_fwd_ms:.3f}"),
         ("torch fwd ms", "{torch_fwd_ms:.3f}"),
         ("warp fwd+bwd ms", "{warp_fwdbwd_ms:.3f}"),
+        (
+            "same, one atomic per feature",
+            lambda r: (
+                f"{r['warp_fwdbwd_ms_single_atomics']:.3f}"
+                if "warp_fwdbwd_ms_single_atomics" in r
+                else "-"
+            ),
+        ),
         ("torch fwd+bwd ms", "{torch_fwdbwd_ms:.3f}"),
         ("speedup fwd / fwd+bwd", "{speedup_fwd:.1f}x / {speedup_fwdbwd:.1f}x"),
         ("Mpoints/s fwd+bwd", lambda r: f"{r['points_per_s_fwdbwd'] / 1e6:.1f}"),

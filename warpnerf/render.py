@@ -282,14 +282,14 @@ def render_marched(
     ri = smp.ray_indices
     positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
     with torch.no_grad():
-        sigmas, _ = field.density(positions)
+        enc, sigmas = _first_pass(field, positions)
     keep, n_live = live_samples(smp, sigmas, t_threshold, check=False)
     idx = torch.nonzero(keep).squeeze(1)
     counts = n_live.to(torch.int64)
     info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
     dirs = directions[kept.ray_indices]
-    sigmas, feats = field.density(positions[idx])
+    sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx])
     if ray_images is None:
         rgbs = field.color(feats, dirs)
     else:
@@ -322,6 +322,20 @@ def render_marched(
             n_rays, packed_info=kept.packed_info, check=False,
         )  # fmt: skip
     return out
+
+
+def _first_pass(field, positions):
+    """(encoding or None, sigmas) of a marcher's first, gradient-free pass: a field that can
+    hand over its encoding (``encode``) keeps it for the second pass."""
+    if getattr(field, "encode", None) is None:
+        return None, field.density(positions)[0]
+    enc = field.encode(positions)
+    return enc, field.density(positions, encoded=enc)[0]
+
+
+def _second_pass(field, positions, enc):
+    """(sigmas, features) of the kept samples, with gradients (the encoding reused)."""
+    return field.density(positions) if enc is None else field.density(positions, encoded=enc)
 
 
 def render_marched_fixed(
@@ -361,9 +375,9 @@ def render_marched_fixed(
     ri = smp.ray_indices
     positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
     with torch.no_grad():
-        sigmas, _ = field.density(positions)
+        enc, sigmas = _first_pass(field, positions)
     live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
-    sigmas, feats = field.density(positions[src])
+    sigmas, feats = _second_pass(field, positions[src], None if enc is None else enc[src])
     dirs = directions[live.ray_indices]
     if ray_images is None:
         rgbs = field.color(feats, dirs)

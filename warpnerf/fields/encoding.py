@@ -54,9 +54,13 @@ class HashEncoding(nn.Module):
         )
         self.out_dim = self.grid.out_dim
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        from ..ops.encoding import hash_encode
+    def forward(self, x: torch.Tensor, given: torch.Tensor | None = None) -> torch.Tensor:
+        """``given``: this encoding of ``x`` computed before without gradients (returned with
+        the gradient attached, see :func:`warpnerf.ops.encoding.hash_encode_given`)."""
+        from ..ops.encoding import hash_encode, hash_encode_given
 
+        if given is not None:
+            return hash_encode_given(x, self.table.to(x.dtype), self.grid, given)
         return hash_encode(x, self.table.to(x.dtype), self.grid)
 
 

@@ -85,15 +85,25 @@ class HashNeRFField(nn.Module):
             nn.Linear(hidden, 3),
         )
 
-    def density(self, positions: torch.Tensor):
-        """sigmas [n] and the density MLP's outputs [n, 16]."""
+    def _unit(self, positions: torch.Tensor) -> torch.Tensor:
+        """Positions in the grid's unit cube (contracted first in an unbounded scene)."""
         lo, hi = self.aabb[:3].to(positions.dtype), self.aabb[3:].to(positions.dtype)
         x = positions  # (a gradient reaches the positions only when they need one: poses)
         if self.contract:
             x = contract_points(x, self.contract)
-        x = (x - lo) / (hi - lo)
+        return (x - lo) / (hi - lo)
+
+    def encode(self, positions: torch.Tensor) -> torch.Tensor:
+        """The hash encoding of positions [n, L * F] (for :meth:`density`'s ``encoded``)."""
+        return self.encoding(self._unit(positions))
+
+    def density(self, positions: torch.Tensor, encoded: torch.Tensor | None = None):
+        """sigmas [n] and the density MLP's outputs [n, 16]. ``encoded``: :meth:`encode` of
+        these positions, computed before without gradients (a renderer's first pass): the
+        encoding's forward does not run again, its gradient does."""
+        x = self._unit(positions)
         inside = ((x >= 0) & (x <= 1)).all(-1)
-        h = self.density_mlp(self.encoding(x))
+        h = self.density_mlp(self.encoding(x, given=encoded))
         sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 

@@ -7,6 +7,7 @@ the positions ``x`` (pose refinement; a second kernel, launched only then).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -15,7 +16,7 @@ import torch
 
 from . import _bridge
 
-__all__ = ["HashGrid", "hash_encode"]
+__all__ = ["HashGrid", "hash_encode", "hash_encode_given"]
 
 
 @dataclass(frozen=True)
@@ -88,6 +89,25 @@ class HashGrid:
         return cache[key]
 
 
+# The table's backward for float32 tables of an even number of features: "pairs" adds two
+# features per atomic on sm_90 (kernels/encoding.py, hash_encode_bwd_pairs; the same sums one by
+# one elsewhere), False: one atomic per feature. Switched only through encoding_kernels().
+_IMPL = {"pairs": True}
+
+
+@contextlib.contextmanager
+def encoding_kernels(pairs: bool = True):
+    """Within the block the hash encoding's table gradient uses paired atomics (``pairs``, the
+    default) or one atomic per feature; restored on exit (tests and benchmarks compare them)."""
+    saved = dict(_IMPL)
+    _IMPL["pairs"] = bool(pairs)
+    try:
+        yield
+    finally:
+        _IMPL.clear()
+        _IMPL.update(saved)
+
+
 class _HashEncode(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, table, grid):
@@ -119,8 +139,9 @@ class _HashEncode(torch.autograd.Function):
         v_table = v_x = None
         if ctx.needs_input_grad[1]:
             v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
+            pairs = _IMPL["pairs"] and x.dtype == torch.float32 and grid.n_features % 2 == 0
             _bridge.launch(
-                K.hash_encode_bwd,
+                K.hash_encode_bwd_pairs if pairs else K.hash_encode_bwd,
                 x.shape[0] * grid.n_levels,
                 [a(x), a(v_out), *lv, grid.n_levels, a(v_table)],
                 x.device,
@@ -134,6 +155,37 @@ class _HashEncode(torch.autograd.Function):
                 x.device,
             )
         return v_x, v_table, None
+
+
+class _HashEncodeGiven(_HashEncode):
+    """:class:`_HashEncode` whose forward returns features already computed for these points
+    (by the same kernel, without gradients); the backward is the same."""
+
+    @staticmethod
+    def forward(ctx, x, table, grid, features):
+        ctx.save_for_backward(x, table if ctx.needs_input_grad[0] else None)
+        ctx.grid, ctx.table_shape = grid, table.shape
+        return features.view_as(features)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, v_out):
+        return (*_HashEncode.backward(ctx, v_out), None)
+
+
+def hash_encode_given(x: torch.Tensor, table: torch.Tensor, grid, features: torch.Tensor):
+    """:func:`hash_encode` of ``x`` when its result is already known: ``features`` [n, L * F],
+    computed by :func:`hash_encode` of the same points and table without gradients (a
+    renderer's first pass over samples it evaluates again with gradients). Returns them with
+    the encoding's gradient attached (the forward kernel does not run again)."""
+    if not isinstance(grid, HashGrid):
+        raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
+    _bridge.check_float("x", x, (None, 3))
+    _bridge.check_float(
+        "table", table, (grid.n_rows, grid.n_features), dtype=x.dtype, device=x.device
+    )
+    _bridge.check_float("features", features, (x.shape[0], grid.out_dim), x.dtype, x.device)
+    return _HashEncodeGiven.apply(x.contiguous(), table.contiguous(), grid, features)
 
 
 def hash_encode(
