@@ -19,6 +19,7 @@ from torch import nn
 from ..ops.encoding import HashGrid
 from ..ops.occupancy import contract_points, is_contracted_box
 from .encoding import HashEncoding, SphericalHarmonics
+from .mlp import run_mlp
 
 __all__ = ["HashNeRFField"]
 
@@ -103,7 +104,7 @@ class HashNeRFField(nn.Module):
         encoding's forward does not run again, its gradient does."""
         x = self._unit(positions)
         inside = ((x >= 0) & (x <= 1)).all(-1)
-        h = self.density_mlp(self.encoding(x, given=encoded))
+        h = run_mlp(self.density_mlp, self.encoding(x, given=encoded))
         sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 
@@ -122,7 +123,7 @@ class HashNeRFField(nn.Module):
             else:
                 code = self.appearance(image_ids.to(h.device, torch.int64)).to(h.dtype)
             feat.append(code)
-        return torch.sigmoid(self.color_mlp(torch.cat(feat, -1) if len(feat) > 1 else h))
+        return torch.sigmoid(run_mlp(self.color_mlp, torch.cat(feat, -1) if len(feat) > 1 else h))
 
     kind = "density"  # the field protocol (see VolSDFField for an "sdf" field)
 
