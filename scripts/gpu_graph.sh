@@ -20,12 +20,28 @@ for stage in ${STAGES:-tests profile speed}; do
   bench)
     python3 -m warpnerf.cli bench encoding --device cuda --json "$OUT/bench_encoding.json" \
       > "$OUT/bench_encoding.txt" 2>&1; tail -8 "$OUT/bench_encoding.txt" ;;
+  base)  # today's main before this issue (.gpu/base: its warpnerf/ with kernels/ inside), same run
+    rm -rf /tmp/sp_base
+    (B=$PWD/.gpu/base; cd .gpu/base && PYTHONPATH=${PYTHONPATH:-}:$B python3 -m warpnerf.cli \
+      $common --iters 1000000 --max-seconds $SECS --val-images 0 --quiet --no-tensorboard \
+      --out /tmp/sp_base > "$OUT/speed_base.txt" 2>&1 && PYTHONPATH=${PYTHONPATH:-}:$B \
+      python3 -m warpnerf.cli eval /tmp/sp_base --split val --chunk 400000 \
+      --out /tmp/sp_base_eval > /dev/null 2>> "$OUT/speed_base.txt") || tail -5 "$OUT/speed_base.txt" ;;
+  sdfprofile)  # the surface field's step (not captured yet: the eager step)
+    python3 scripts/profile_train_step.py --warm 600 --steps 30 --cprofile 0 \
+      --json "$OUT/prof_sdf.json" -- train volsdf --data $DATA --field hash_sdf --device cuda \
+      --tf32 --batch 4096 --target-samples 262144 > "$OUT/prof_sdf.txt" 2>&1 \
+      || tail -20 "$OUT/prof_sdf.txt"
+    python3 -c "
+import json; r = json.load(open('$OUT/prof_sdf.json'))
+print('hash_sdf', {k: r.get(k) for k in ('step_ms_median', 'device_busy_ms_per_step', 'host_syncs_per_step', 'launches_issued_per_step', 'rays_per_step')})
+print(list(r['top_device_ops_ms_per_step'].items())[:8])" ;;
   alltests)
     python3 -m pytest tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
     tail -15 "$OUT/alltests.txt" ;;
   profile)
     for g in ${GRAPHS:-off auto}; do
-      python3 scripts/profile_train_step.py --warm 300 --steps 50 --cprofile 0 \
+      python3 scripts/profile_train_step.py --warm ${WARM:-1500} --steps 50 --cprofile 0 \
         --json "$OUT/prof_$g.json" -- $common --cuda-graph $g > "$OUT/prof_$g.txt" 2>&1 \
         || tail -20 "$OUT/prof_$g.txt"
     done ;;
@@ -42,7 +58,7 @@ for stage in ${STAGES:-tests profile speed}; do
 import json, statistics, sys
 out = sys.argv[1]
 rows = {}
-for g in ("off", "auto"):
+for g in ("base", "off", "auto"):
     try:
         h = json.load(open(f"/tmp/sp_{g}/history.json"))
     except OSError:

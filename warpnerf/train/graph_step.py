@@ -40,13 +40,13 @@ __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
 # capacity over the previous step's count, scaled to this step's batch: (marched, kept). The
 # kept samples stay near --target-samples (the batch adapts to them), the marched ones move
 # with the grid's updates; every slot costs field work (forward only for the marched ones)
-HEADROOM = (1.15, 1.06)
+HEADROOM = (1.1, 1.06)
 MAX_GRAPHS = 6  # captured shapes kept at once (each holds its own memory pool)
 WARM = 2  # eager runs of a shape before it is captured
 QUANTUM = 256  # capacities are multiples of this
 PER_OCTAVE = 8  # capacity sizes per doubling (2^(1/8) = 1.09 apart)
 SLACK = 1  # a new shape is this many sizes above what the step needs (room to grow)
-KEEP = 3  # a shape stays in use while it is at most this many sizes above the need
+KEEP = 2  # a shape stays in use while it is at most this many sizes above the need
 
 
 def tier(n: int, up: int = 0) -> int:
