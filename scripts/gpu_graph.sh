@@ -9,6 +9,7 @@ OUT=${OUT:-/tmp/gpu_graph_out}; mkdir -p "$OUT"
 DATA=${DATA:-/root/stage/lego}
 SECS=${SECS:-30}
 common="train nerf --data $DATA --field hash --device cuda --tf32 --batch 4096 --target-samples 524288"
+sdf="train volsdf --data $DATA --field hash_sdf --device cuda --tf32 --batch 4096 --target-samples 262144"
 export PYTHONUNBUFFERED=1
 for stage in ${STAGES:-tests profile speed}; do
   echo "=== $stage $(date -u +%H:%M:%S)"
@@ -27,15 +28,44 @@ for stage in ${STAGES:-tests profile speed}; do
       --out /tmp/sp_base > "$OUT/speed_base.txt" 2>&1 && PYTHONPATH=${PYTHONPATH:-}:$B \
       python3 -m warpnerf.cli eval /tmp/sp_base --split val --chunk 400000 \
       --out /tmp/sp_base_eval > /dev/null 2>> "$OUT/speed_base.txt") || tail -5 "$OUT/speed_base.txt" ;;
-  sdfprofile)  # the surface field's step (not captured yet: the eager step)
-    python3 scripts/profile_train_step.py --warm 600 --steps 30 --cprofile 0 \
-      --json "$OUT/prof_sdf.json" -- train volsdf --data $DATA --field hash_sdf --device cuda \
-      --tf32 --batch 4096 --target-samples 262144 > "$OUT/prof_sdf.txt" 2>&1 \
-      || tail -20 "$OUT/prof_sdf.txt"
-    python3 -c "
-import json; r = json.load(open('$OUT/prof_sdf.json'))
-print('hash_sdf', {k: r.get(k) for k in ('step_ms_median', 'device_busy_ms_per_step', 'host_syncs_per_step', 'launches_issued_per_step', 'rays_per_step')})
-print(list(r['top_device_ops_ms_per_step'].items())[:8])" ;;
+  sdfprofile)  # the surface field's step (hash_sdf on lego, 2^18 samples)
+    for g in ${GRAPHS:-off auto}; do
+      python3 scripts/profile_train_step.py --warm 600 --steps 30 --cprofile 0 \
+        --json "$OUT/prof_sdf_$g.json" -- $sdf --cuda-graph $g > "$OUT/prof_sdf_$g.txt" 2>&1 \
+        || tail -20 "$OUT/prof_sdf_$g.txt"
+      python3 -c "
+import json; r = json.load(open('$OUT/prof_sdf_$g.json'))
+print('hash_sdf $g', {k: r.get(k) for k in ('step_ms_median', 'device_busy_ms_per_step', 'host_syncs_per_step', 'launches_issued_per_step', 'rays_per_step', 'graphs_captured')})
+print(list(r['top_device_ops_ms_per_step'].items())[:6])"
+    done ;;
+  sdfspeed)  # hash_sdf trained SECS seconds each way, then every val image
+    for g in ${GRAPHS:-off auto}; do
+      rm -rf /tmp/sdf_$g
+      python3 -m warpnerf.cli $sdf --cuda-graph $g --iters 1000000 --max-seconds $SECS \
+        --val-images 0 --quiet --no-tensorboard --out /tmp/sdf_$g > "$OUT/sdf_$g.txt" 2>&1 \
+        || tail -20 "$OUT/sdf_$g.txt"
+      python3 -m warpnerf.cli eval /tmp/sdf_$g --split val --chunk 400000 \
+        --out /tmp/sdf_${g}_eval > /dev/null 2>> "$OUT/sdf_$g.txt" || tail -5 "$OUT/sdf_$g.txt"
+    done
+    python3 - "$OUT" <<'PY'
+import json, statistics, sys
+rows = {}
+for g in ("off", "auto"):
+    try:
+        h = json.load(open(f"/tmp/sdf_{g}/history.json"))
+        m = json.load(open(f"/tmp/sdf_{g}_eval/metrics.json"))
+    except OSError:
+        continue
+    s, n = h["seconds"], len(h["seconds"])
+    half = [1e3 * (b - a) for a, b in zip(s[n // 2:], s[n // 2 + 1:])]
+    rows[g] = dict(steps=h["step"][-1], seconds=s[-1], median_step_ms_second_half=statistics.median(half),
+                   rays_last=h["batch"][-1], dropped_total=sum(h.get("dropped_samples", [])),
+                   val_psnr=m.get("psnr"), val_ssim=m.get("ssim"), frame_ms_median=m.get("render_ms_median"),
+                   n_images=m.get("n_images"), beta_last=h["beta"][-1])
+json.dump(rows, open(f"{sys.argv[1]}/sdf_speed.json", "w"), indent=1)
+print(json.dumps(rows, indent=1))
+PY
+    ;;
   alltests)
     python3 -m pytest tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
     tail -15 "$OUT/alltests.txt" ;;

@@ -76,6 +76,20 @@ def test_static_step_trains_as_the_eager_step_on_cpu():
     assert static.graph.shapes  # the static step did run (step 0 is eager: it sizes the buffers)
 
 
+def test_static_step_trains_the_surface_field_as_the_eager_step_on_cpu():
+    """hash_sdf (an SDF field: eikonal term on the live samples, masked to the used slots, and
+    on box points drawn as the eager step draws them; annealed beta): the static-shape step
+    gives the eager step's losses and parameters."""
+    sdf = dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=8)
+    eager, static = _task("cpu", **sdf), _task("cpu", **sdf)
+    la, ha, _ = _train(eager, 10)
+    lb, hb, _ = _train(static, 10, static=True, force=(4096, 1 << 16, 1 << 15))
+    assert lb == pytest.approx(la, rel=1e-5)
+    assert hb["beta"] == pytest.approx(ha["beta"], rel=1e-6)
+    # (the eikonal means sum in another order; Adam's steps are 1e-2: far above this)
+    assert (_params(eager) - _params(static)).abs().max() < 1e-4
+
+
 def test_overflow_is_deterministic_counted_and_finite():
     """Buffers far too small drop samples by ray order: the same losses twice, every dropped
     sample counted in the history, nothing non-finite."""
@@ -143,6 +157,19 @@ def test_graph_step_has_no_host_sync_cuda():
     inside = ("graph_step", "render", "ops/", "nerf.py", "occupancy", "fields/")
     assert not any(m in k for k in sites for m in inside), sites
     assert sum(sites.values()) <= 1, sites
+
+
+def test_graph_step_trains_the_surface_field_as_the_eager_step_cuda():
+    """hash_sdf captured on CUDA (eikonal terms and an annealed beta inside the graph) gives the
+    eager step's losses and parameters."""
+    _cuda()
+    sdf = dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=20)
+    graph, eager = _task("cuda", **sdf), _task("cuda", cuda_graph="off", **sdf)
+    lg, hg, _ = _train(graph, 20, force=(4096, 1 << 16, 1 << 15))
+    le, he, _ = _train(eager, 20)
+    assert graph.graph.replays >= 10
+    assert lg == pytest.approx(le, rel=1e-3) and hg["beta"] == pytest.approx(he["beta"])
+    assert (_params(graph) - _params(eager)).abs().max() < 1e-3
 
 
 def test_graph_resume_continues_the_run_cuda(tmp_path):

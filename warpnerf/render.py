@@ -379,7 +379,10 @@ def render_marched_fixed(
     live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
     sigmas, feats = _second_pass(field, positions[src], None if enc is None else enc[src])
     dirs = directions[live.ray_indices]
-    if ray_images is None:
+    if getattr(field, "kind", "density") == "sdf":  # its eikonal term: the live slots only
+        n_live = live_stats[0].clamp_max(kept)
+        rgbs = field.color(feats, dirs, valid=torch.arange(kept, device=dirs.device) < n_live)
+    elif ray_images is None:
         rgbs = field.color(feats, dirs)
     else:
         rgbs = field.color(feats, dirs, image_ids=ray_images[live.ray_indices])

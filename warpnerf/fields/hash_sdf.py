@@ -90,6 +90,15 @@ def sdf_density(kind: str, d: torch.Tensor, beta) -> torch.Tensor:
 
 
 _AXES = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+_AXES_ON: dict = {}  # (device, dtype) -> _AXES as a tensor (made once: a host-to-device copy
+# synchronises, and is not allowed inside a captured CUDA graph)
+
+
+def _axes(device, dtype) -> torch.Tensor:
+    key = (str(device), dtype)
+    if key not in _AXES_ON:
+        _AXES_ON[key] = torch.tensor(_AXES, dtype=dtype).to(device)
+    return _AXES_ON[key]
 
 
 class HashSDFField(nn.Module):
@@ -216,7 +225,7 @@ class HashSDFField(nn.Module):
         h = self.fd_step
         x = positions.detach()
         x = x if x.dtype == torch.float64 else x.float()
-        e = torch.tensor(_AXES, device=x.device, dtype=x.dtype) * h  # [3, 3]
+        e = _axes(x.device, x.dtype) * h  # [3, 3]
         v = torch.cat([e, -e]).unsqueeze(1)  # [6, 1, 3]
         with torch.autocast(x.device.type, enabled=False):
             d = self.sdf((x.unsqueeze(0) + v).reshape(-1, 3)).to(x.dtype).reshape(6, -1)
@@ -244,11 +253,18 @@ class HashSDFField(nn.Module):
         d = self.sdf(positions)
         return sdf_density(self.density_kind, d - radius, self.beta.to(d.dtype))
 
-    def color(self, h: torch.Tensor, directions: torch.Tensor | None = None):
+    def color(self, h: torch.Tensor, directions: torch.Tensor | None = None, valid=None):
         """rgbs [n, 3] from :meth:`density`'s features (positions + geometry features); records
-        the eikonal term of these samples when gradients are enabled."""
+        the eikonal term of these samples when gradients are enabled. ``valid`` [n] bool: only
+        those rows are samples (a fixed-capacity buffer's unused slots are not): the term is
+        their mean, and recorded with ``aux_count`` (a device tensor) instead of a host count."""
         g = self.gradient(h[:, :3])
-        if torch.is_grad_enabled():  # (no samples: no term, not the NaN of an empty mean)
+        if torch.is_grad_enabled() and valid is not None:
+            w = valid.to(g.dtype)
+            count = w.sum()
+            e = ((g.norm(dim=-1) - 1.0) ** 2 * w).sum() / count.clamp_min(1.0)
+            self._aux, self._aux_n = {"eikonal": e}, {"eikonal": count}
+        elif torch.is_grad_enabled():  # (no samples: no term, not the NaN of an empty mean)
             self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()} if len(g) else {}
             self._aux_n = {"eikonal": int(g.shape[0])}  # (its sample count: data parallelism)
         n = torch.nn.functional.normalize(g, dim=-1).to(h.dtype)

@@ -64,8 +64,10 @@ def unsupported(cfg, model, task) -> str | None:
     """Why this run's step cannot have static shapes (None: it can)."""
     if model.grid is None:
         return "it needs an occupancy grid"
-    if model.kind != "density" or model.fine is not None:
-        return "it needs a density field without a fine pass (--field hash)"
+    if model.fine is not None:
+        return "it needs one field without a fine pass (--field hash or hash_sdf)"
+    if model.kind == "sdf" and not hasattr(model.coarse, "eikonal"):
+        return "the SDF field has no eikonal term (--field hash_sdf)"
     if task.dist is not None:
         return "data-parallel training is not captured yet"
     if task.host_images:
@@ -90,6 +92,7 @@ class _Shape:
         self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
         self.jitter = torch.zeros(rays, device=device, dtype=torch.float32)
         self.bg = torch.zeros(rays, 3, device=device) if contract else None
+        self.box = None  # an SDF field's eikonal points in [0, 1)^3 [batch, 3] (drawn per step)
 
 
 class GraphStep:
@@ -107,6 +110,8 @@ class GraphStep:
         dev = torch.device(task.cfg.device)
         self.device = dev
         self._staging = None  # pinned host buffer of the batch's pixel indices (CUDA)
+        self._box_staging = None  # the same for an SDF field's eikonal points
+        self._field_state = None  # what of the field's schedule a graph holds (open levels)
         self._copied = None  # the event after the last copy out of it
         self.stream = torch.cuda.Stream(dev) if self.capture else None
 
@@ -161,6 +166,10 @@ class GraphStep:
         a capture failed (``failed`` says why; the step's random draws are made, nothing else)."""
         task = self.task
         batch = task.batch
+        state = getattr(task.model.coarse, "open_levels", None)  # (an SDF's finite-difference
+        if state != self._field_state:  # step follows its open levels: a host number that a
+            self.shapes.clear()  # graph holds as a constant)
+            self._field_state = state
         shape = self._shape(self.key(batch))
         if batch > shape.key[0]:
             raise RuntimeError(f"a batch of {batch} rays in a shape of {shape.key[0]} slots")
@@ -194,19 +203,17 @@ class GraphStep:
         n_pix = task.n_img * task.w * task.h
         host = torch.randint(0, n_pix, (batch,), generator=task.gen, device="cpu")
         rays = shape.key[0]
+        if self._copied is not None:  # the last step's copies out of the pinned buffers (long
+            self._copied.synchronize()  # finished: the loop read that step's loss since)
         if dev.type == "cuda":
             if self._staging is None or self._staging.numel() < rays + 1:
                 self._staging = torch.zeros(max(rays + 1, 1 << 16), dtype=torch.int64,
                                             pin_memory=True)  # fmt: skip
-            elif self._copied is not None:
-                self._copied.synchronize()  # (the previous copy has long finished)
             stage = self._staging[: rays + 1]
             stage[:batch] = host
             stage[batch:rays] = 0
             stage[rays] = batch
             shape.inputs.copy_(stage, non_blocking=True)
-            self._copied = torch.cuda.Event()
-            self._copied.record()
         else:
             shape.inputs.zero_()
             shape.inputs[:batch] = host
@@ -215,6 +222,20 @@ class GraphStep:
             torch.rand(batch, device=dev, generator=task.grid_gen, out=shape.jitter[:batch])
             if shape.bg is not None:
                 torch.rand(batch, 3, device=dev, generator=task.grid_gen, out=shape.bg[:batch])
+        if task.model.kind == "sdf":  # the eikonal term's box points, as the eager step draws
+            box = torch.rand(task.cfg.batch, 3, generator=task.gen)
+            if shape.box is None:
+                shape.box = torch.zeros(box.shape, device=dev)
+            if dev.type == "cuda":
+                if self._box_staging is None:
+                    self._box_staging = torch.empty(box.shape, pin_memory=True)
+                self._box_staging.copy_(box)
+                shape.box.copy_(self._box_staging, non_blocking=True)
+            else:
+                shape.box.copy_(box)
+        if dev.type == "cuda":
+            self._copied = torch.cuda.Event()
+            self._copied.record()
 
     def _capture(self, shape: _Shape, opt, params) -> None:
         opt.zero_grad(set_to_none=True)  # (the graph allocates its own gradients)
@@ -265,6 +286,17 @@ class GraphStep:
             dist_loss = (out["distortion"] * weight).sum() / n_active
             terms["distortion"] = dist_loss.detach()
             loss = loss + cfg.distortion_loss * dist_loss
+        if model.kind == "sdf":  # eikonal on the live samples and on random box points
+            f = model.coarse
+            box_term = f.eikonal((shape.box * 2 - 1) * cfg.aabb)
+            aux = f.aux_losses().get("eikonal")
+            if aux is None:
+                eik = box_term
+            else:  # (no live sample anywhere: the box points' term alone, as the eager step)
+                n = f._aux_n["eikonal"]
+                eik = torch.where(n > 0, 0.5 * (aux + box_term), box_term)
+            loss = loss + cfg.eikonal_weight * eik
+            terms["beta"] = f.beta.detach()
         loss.backward()
         flags = nonfinite_flags(loss, params)
         flags = torch.stack([flags[0] | (stats[2] > 0), flags[1]])  # a refused ray: loudly
