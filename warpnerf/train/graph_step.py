@@ -45,8 +45,11 @@ MAX_GRAPHS = 6  # captured shapes kept at once (each holds its own memory pool)
 WARM = 2  # eager runs of a shape before it is captured
 QUANTUM = 256  # capacities are multiples of this
 PER_OCTAVE = 8  # capacity sizes per doubling (2^(1/8) = 1.09 apart)
-SLACK = 1  # a new shape is this many sizes above what the step needs (room to grow)
-KEEP = 2  # a shape stays in use while it is at most this many sizes above the need
+# (rays, marched, kept): a new shape is SLACK sizes above what the step needs (room to grow),
+# and stays in use while it is at most KEEP sizes above the need. Ray slots are cheap (per-ray
+# work only), sample slots cost field work
+SLACK = (3, 1, 0)
+KEEP = (6, 2, 2)
 
 
 def tier(n: int, up: int = 0) -> int:
@@ -144,10 +147,10 @@ class GraphStep:
                 int(live0 * scale * HEADROOM[1]) + 1)  # fmt: skip
         cur = self.current
         if cur is not None and all(
-            c >= n and _tier_index(c) - _tier_index(n) <= KEEP for c, n in zip(cur, need)
+            c >= n and _tier_index(c) - _tier_index(n) <= k for c, n, k in zip(cur, need, KEEP)
         ):
             return cur
-        return (tier(batch, SLACK), tier(need[1], SLACK), tier(need[2]))
+        return tuple(tier(n, up) for n, up in zip(need, SLACK))
 
     def _shape(self, key) -> _Shape:
         shape = self.shapes.pop(key, None)
