@@ -186,3 +186,43 @@ def test_graph_resume_continues_the_run_cuda(tmp_path):
                          progress=False, log=lambda *a: None)  # fmt: skip
     assert straight["batch"] == resumed["batch"]
     assert resumed["loss"] == pytest.approx(straight["loss"], rel=2e-3)
+
+
+def test_compact_mask_is_a_static_nonzero(device):
+    from warpnerf.ops.occupancy import compact_mask
+
+    mask = torch.rand(1000, generator=torch.Generator().manual_seed(3)) < 0.3
+    mask = mask.to(device)
+    want = torch.nonzero(mask).squeeze(1)
+    src, n = compact_mask(mask, 512)
+    assert int(n) == want.numel() and torch.equal(src[: want.numel()], want)
+    assert (src[want.numel() :] == 0).all()
+    src, n = compact_mask(mask, 100)  # too small: the first 100, the count says how many more
+    assert int(n) == want.numel() and torch.equal(src, want[:100])
+
+
+def test_captured_frames_render_as_the_eager_path_cuda():
+    """Frames of a grid run rendered with static shapes in a CUDA graph are the eager renderer's
+    images (float32 round-off; colours are summed with atomics either way); a chunk whose
+    buffers are too small falls back to the eager renderer and gives the same image."""
+    _cuda()
+    from warpnerf.frame_graph import FrameGraphs
+    from warpnerf.train.nerf import dataset_rays, render_rays_of
+
+    task = _task("cuda")
+    _train(task, 30)
+    cfg, model = task.cfg, task.model
+    o, d = dataset_rays(cfg, task.train, image=0)
+    with torch.no_grad():
+        want = render_rays_of(model, cfg, o, d, chunk=128)
+        frames = FrameGraphs.of(model.grid)
+        for _ in range(4):  # the first chunks measure, then two eager runs, then replays
+            got = render_rays_of(model, cfg, o, d, chunk=128, graph=True)
+        assert frames.replays > 0
+        for k in ("rgb", "depth", "opacity"):
+            torch.testing.assert_close(got[k], want[k], rtol=1e-5, atol=1e-5)
+        frames.rates = (frames.rates[0] / 50, frames.rates[1] / 50)  # far too small
+        before = frames.fallbacks
+        got = render_rays_of(model, cfg, o, d, chunk=128, graph=True)
+        assert frames.fallbacks > before
+        torch.testing.assert_close(got["rgb"], want["rgb"], rtol=1e-5, atol=1e-5)
