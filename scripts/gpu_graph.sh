@@ -66,37 +66,6 @@ json.dump(rows, open(f"{sys.argv[1]}/sdf_speed.json", "w"), indent=1)
 print(json.dumps(rows, indent=1))
 PY
     ;;
-  frames)  # a 400x400 frame captured in a CUDA graph against the eager renderer, same run
-    rm -rf /tmp/fr /tmp/fr_off /tmp/fr_eval_graph /tmp/fr_eval_off
-    python3 -m warpnerf.cli $common --iters 1000000 --max-seconds $SECS --val-images 0 --quiet \
-      --no-tensorboard --out /tmp/fr > "$OUT/frames.txt" 2>&1 || tail -5 "$OUT/frames.txt"
-    cp -r /tmp/fr /tmp/fr_off
-    python3 - <<'PY'
-import json
-p = "/tmp/fr_off/config.json"
-c = json.load(open(p)); c["cuda_graph"] = "off"; json.dump(c, open(p, "w"))
-PY
-    for v in graph off graph off; do
-      run=/tmp/fr; [ $v = off ] && run=/tmp/fr_off
-      rm -rf /tmp/fr_eval_$v
-      python3 -m warpnerf.cli eval $run --split val --chunk 400000 --out /tmp/fr_eval_$v \
-        >> "$OUT/frames.txt" 2>&1 || tail -5 "$OUT/frames.txt"
-      python3 - "$v" "$OUT" <<'PY'
-import json, sys
-v, out = sys.argv[1], sys.argv[2]
-m = json.load(open(f"/tmp/fr_eval_{v}/metrics.json"))
-print(v, {k: m.get(k) for k in ("n_images", "psnr", "ssim", "render_ms_median", "seconds_per_image")})
-json.dump(m, open(f"{out}/frames_{v}.json", "w"))
-PY
-    done
-    python3 - "$OUT" <<'PY'
-import json, sys
-a = json.load(open(f"{sys.argv[1]}/frames_graph.json"))["per_image"]
-b = json.load(open(f"{sys.argv[1]}/frames_off.json"))["per_image"]
-d = [abs(x["psnr"] - y["psnr"]) for x, y in zip(a, b)]
-print("per-image PSNR difference graph - eager: max", max(d), "images", len(d))
-PY
-    ;;
   alltests)
     python3 -m pytest tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
     tail -15 "$OUT/alltests.txt" ;;

@@ -227,7 +227,6 @@ def render_marched(
     jitter: torch.Tensor | None = None,
     ray_images: torch.Tensor | None = None,
     distortion_s=None,
-    graph: bool = False,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -262,11 +261,6 @@ def render_marched(
     distances t to a normalised coordinate s, increasing) also ``distortion`` [n_rays], each
     ray's distortion loss (:func:`warpnerf.ops.distortion_loss`) of its kept samples' weights.
 
-    ``graph`` (rendering on CUDA in one round): the chunk is rendered with static shapes,
-    captured once in a CUDA graph and replayed (:mod:`warpnerf.frame_graph`); a chunk whose
-    static render is not exact (a buffer too small, a ray unfinished) is rendered the usual
-    way, so the image is the same.
-
     The packed samples are the grid's own: they are composited without re-checking their indices
     (``render_packed(check=False)``), so no host sync is added to the marching's own.
     """
@@ -277,23 +271,10 @@ def render_marched(
     round_samples = check_int("round_samples", round_samples)
     sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
     if not torch.is_grad_enabled():
-        per_round = round_samples or max_samples
-        frames = None
-        if graph and origins.is_cuda and per_round >= max_samples:  # one round: captured
-            from .frame_graph import FrameGraphs
-
-            frames = FrameGraphs.of(grid)
-            out = frames.render(grid, field, origins, directions, near, far, background,
-                                t_threshold, max_samples, half, sample_budget)  # fmt: skip
-            if out is not None:
-                return out
-        out = _render_rounds(
+        return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
-            per_round, max_samples, half, sample_budget,
+            round_samples or max_samples, max_samples, half, sample_budget,
         )  # fmt: skip
-        if frames is not None:
-            frames.observe(origins.shape[0], out["n_marched"], out["n_seen"])
-        return out
     n_rays, dev = origins.shape[0], origins.device
     if jitter is None and perturb:
         jitter = torch.rand(n_rays, device=dev, generator=generator)
@@ -438,7 +419,7 @@ def _render_rounds(
     far = torch.as_tensor(far, device=dev, dtype=dt).expand(n_rays)
     alive = torch.arange(n_rays, device=dev)
     k = torch.zeros(n_rays, device=dev, dtype=torch.int32)
-    n_marched, n_seen, budget = 0, 0, round_samples * n_rays
+    n_marched, budget = 0, round_samples * n_rays
     while alive.numel():
         per_ray = min(max(round_samples, budget // alive.numel()), cap)
         oa, da = o[alive], d[alive]
@@ -472,7 +453,6 @@ def _render_rounds(
         )
         t_a = trans[alive]
         seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
-        n_seen += seen.shape[0]
         rs = ri[seen]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
@@ -499,7 +479,6 @@ def _render_rounds(
         "opacity": 1.0 - trans,
         "n_marched": n_marched,
         "n_kept": n_marched,
-        "n_seen": n_seen,
     }
 
 

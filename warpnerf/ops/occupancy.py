@@ -23,7 +23,6 @@ __all__ = [
     "grid_pack_bits",
     "live_samples",
     "live_samples_fixed",
-    "compact_mask",
     "unpack_bits",
 ]
 
@@ -493,20 +492,6 @@ def live_samples_fixed(samples: Samples, sigmas: torch.Tensor, t_threshold: floa
     packed = torch.stack([first.clamp_max(capacity), kept_n], -1).to(torch.int32)
     kept = Samples(ts[src], te[src], samples.ray_indices[src], packed)
     return kept, src, stats
-
-
-def compact_mask(mask: torch.Tensor, capacity: int) -> tuple:
-    """Static-shape ``nonzero``: (src [capacity] int64, the indices of ``mask`` [n]'s True
-    entries in order, then 0 in the slots past them; their number, an int64 device tensor, which
-    may exceed ``capacity``: the entries past it are left out). No host sync."""
-    capacity = _bridge.check_int("capacity", capacity, lo=1)
-    n = mask.shape[0]
-    csum = torch.cumsum(mask.to(torch.int64), 0)
-    dest = torch.where(mask & (csum <= capacity), csum - 1, torch.full_like(csum, capacity))
-    src = torch.zeros(capacity + 1, device=mask.device, dtype=torch.int64)
-    src.scatter_(0, dest, torch.arange(n, device=mask.device))
-    total = csum[-1] if n else torch.zeros((), device=mask.device, dtype=torch.int64)
-    return src[:capacity], total
 
 
 def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, check=True):

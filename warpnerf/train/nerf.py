@@ -141,7 +141,7 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False, graph=False,
+    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
@@ -172,7 +172,6 @@ def render_rays_of(
                 jitter=None if jitter is None else jitter[sl],
                 ray_images=None if ray_images is None else ray_images[sl],
                 distortion_s=s_of_t,
-                graph=graph,
             ),
         )
     return render_nerf(
@@ -230,9 +229,7 @@ def render_dataset_image(model, cfg, ds, i):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
     h, w = ds.height, ds.width
     o, d = dataset_rays(cfg, ds, image=i)
-    # (a frame on CUDA: captured in a CUDA graph unless the run says --cuda-graph off)
-    graph = getattr(cfg, "cuda_graph", "auto") != "off"
-    out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk, graph=graph)
+    out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
     return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
 
 

@@ -316,9 +316,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
         if renderer == "sphere":
             out = sphere_traced_rays_of(model, fc, o, d)
         else:
-            out = render_rays_of(
-                model, fc, o, d, chunk=cfg.chunk, graph=getattr(cfg, "cuda_graph", "auto") != "off"
-            )
+            out = render_rays_of(model, fc, o, d, chunk=cfg.chunk)
         rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
         dep, opa = out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu()
         if scale is None:  # the first frame that shows a surface sets it for the video
