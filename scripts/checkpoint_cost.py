@@ -28,7 +28,7 @@ def main():
     import torch
 
     from warpnerf.io import save_checkpoint
-    from warpnerf.train.loop import _BackgroundWriter, _to_host
+    from warpnerf.train.loop import BackgroundWriter, to_host
 
     sync = torch.cuda.synchronize if a.device.startswith("cuda") else (lambda: None)
     state = {
@@ -38,7 +38,7 @@ def main():
     with tempfile.TemporaryDirectory(dir=a.dir) as tmp:
         path = Path(tmp) / "checkpoint.pt"
         blocking_sync, blocking_bg, write_bg = [], [], []
-        with _BackgroundWriter() as writer:
+        with BackgroundWriter() as writer:
             for _ in range(a.repeats):
                 sync()
                 t = time.perf_counter()
@@ -46,7 +46,7 @@ def main():
                 blocking_sync.append(time.perf_counter() - t)
                 sync()
                 t = time.perf_counter()
-                host = _to_host(state)
+                host = to_host(state)
                 writer.submit(save_checkpoint, path, host)
                 blocking_bg.append(time.perf_counter() - t)
                 writer.wait()  # (what the thread took, overlapping training in a real run)

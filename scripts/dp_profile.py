@@ -44,9 +44,8 @@ def main():
 
     from warpnerf.cli.parser import build_parser, nerf_task_from_argv
     from warpnerf.cli.train import nerf_config_from_args
-    from warpnerf.train._signals import nonfinite_flags
     from warpnerf.train.distributed import from_env
-    from warpnerf.train.loop import LoopSettings, _read_terms, lr_at, set_lr
+    from warpnerf.train.loop import LoopSettings, lr_at, nonfinite_flags, read_terms, set_lr
 
     want = nerf_config_from_args(build_parser().parse_args([*train_argv, "--out", "x"])).device
     dist, device = from_env(want)
@@ -79,7 +78,7 @@ def main():
         flags = nonfinite_flags(loss, params)
         opt.step()
         mark()
-        _read_terms(loss, terms, flags, dist)
+        read_terms(loss, terms, flags, dist)
         if cuda:
             sync()
         if dist is not None:

@@ -3,7 +3,7 @@
 # 18: host cost of a launch" and "Issue 19"), one device call per STAGE (each well under 10 min):
 #   STAGE=cuda      CUDA variants of every test (the array-descriptor bridge on CUDA first: its
 #                   launches and generic overloads ran on CPU only), then the launch host cost on
-#                   CUDA: scripts/launch_overhead.py --device cuda
+#                   CUDA: experiments/launch_overhead.py --device cuda
 #   STAGE=step      the hash-field training step on materials after the bridge change
 #                   (scripts/profile_train_step.py, as the "Issue 18" profile), and what watching
 #                   costs there (scripts/watch_overhead.py, TensorBoard + idle viewer)
@@ -26,7 +26,7 @@ git log -1 --format='commit %H' 2>/dev/null | tee "$OUT/commit.txt"
 case "${STAGE:-cuda}" in
   cuda)
     python3 -m pytest tests -q -k "cuda" -p no:cacheprovider 2>&1 | tail -25 | tee "$OUT/pytest_cuda.txt"
-    python3 scripts/launch_overhead.py --device cuda --repeats 6 --json "$OUT/launch_cuda.json" 2>&1 | tail -8
+    python3 experiments/launch_overhead.py --device cuda --repeats 6 --json "$OUT/launch_cuda.json" 2>&1 | tail -8
     ;;
   step)
     M=${DATA:-.gpu/materials}

@@ -9,7 +9,7 @@ import torch
 
 from warpnerf.errors import UserError
 from warpnerf.train.graph_step import GraphStep, tier
-from warpnerf.train.loop import _read_terms
+from warpnerf.train.loop import read_terms
 from warpnerf.train.nerf import NeRFConfig, NeRFTask, build_model, load_data, resolve_data
 
 SMALL = dict(data="builtin", builtin_size=16, field="hash", batch=64, hash_levels=4,
@@ -44,7 +44,7 @@ def _train(task, steps: int, static: bool | None = None, force=None, start=0, op
             opt.step()
         else:
             loss, terms, _ = whole
-        value, values, _ = _read_terms(loss, terms, loss.new_zeros(2))
+        value, values, _ = read_terms(loss, terms, loss.new_zeros(2))
         task.record(history, values)
         losses.append(value)
     return losses, history, opt

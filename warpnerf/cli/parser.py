@@ -20,6 +20,9 @@ from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 from .view import cmd_view, view_flags
 
+# the command line, and the helpers the tools in scripts/ may use
+__all__ = ["main", "build_parser", "split_command", "nerf_task_from_argv"]
+
 # the runs eval, render and export read (the NeRF runner: any --field), and the --device help of
 # the commands that read a run
 RADIANCE_RUNS = "train nerf or train volsdf"

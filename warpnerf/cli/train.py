@@ -33,6 +33,8 @@ from ._common import (
 )
 from .view import live_hooks, tensorboard_every, watch_flags
 
+__all__ = ["nerf_config_from_args"]  # (the helpers scripts/ may use)
+
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
 
 

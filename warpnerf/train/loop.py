@@ -56,7 +56,8 @@ from .provenance import RUN_INFO, finish_session, start_session
 
 __all__ = [
     "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
-    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr",
+    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr", "bare_step",
+    "read_terms", "nonfinite_flags", "to_host", "BackgroundWriter", "adam", "sync_sites",
 ]  # fmt: skip
 
 # checkpoint keys the loop writes and reads (a task's state adds its own)
@@ -207,7 +208,7 @@ class LoopHook:
         """When the loop ends, however it ends (also on errors)."""
 
 
-def _read_terms(loss, terms: dict, flags, dist=None):
+def read_terms(loss, terms: dict, flags, dist=None):
     """Host values of the loss, the tensor terms and the divergence flags, in one transfer (in a
     data-parallel run: the loss and terms averaged over the ranks, a flag set if any rank's
     is, in one all-reduce)."""
@@ -298,7 +299,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
 
         bar = tqdm(total=s.iters, initial=start, desc=s.desc, unit="step", disable=None)
 
-    writer = _BackgroundWriter()
+    writer = BackgroundWriter()
 
     def save(done, name=checkpoint, background=False):
         """The checkpoint (and history.json) of step ``done``; ``background``: a host copy
@@ -314,7 +315,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
                 write_json(Path(run) / "history.json", state["history"])
 
         if background:
-            writer.submit(write, _to_host(state))
+            writer.submit(write, to_host(state))
         else:
             writer.wait()
             write()
@@ -355,7 +356,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
             done = step + 1
             # the step's one host sync: the loss, the terms and the divergence flags (a step
             # that diverged is never saved: the run keeps its last good checkpoint)
-            loss_v, values, bad = _read_terms(loss, terms, flags, dist)
+            loss_v, values, bad = read_terms(loss, terms, flags, dist)
             raise_if_diverged(bad, done, loss_v, where, lr)
             if cuda:
                 torch.cuda.synchronize()
@@ -423,20 +424,20 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
     return history
 
 
-def _to_host(obj):
+def to_host(obj):
     """A copy of a checkpoint's state that training cannot change: tensors copied to the host,
     containers rebuilt (numbers and strings are immutable)."""
     if isinstance(obj, torch.Tensor):
         t = obj.detach()
         return t.clone() if t.device.type == "cpu" else t.to("cpu", copy=True)
     if isinstance(obj, dict):
-        return {k: _to_host(v) for k, v in obj.items()}
+        return {k: to_host(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return type(obj)(_to_host(v) for v in obj)
+        return type(obj)(to_host(v) for v in obj)
     return obj
 
 
-class _BackgroundWriter:
+class BackgroundWriter:
     """One checkpoint write at a time in a worker thread. ``submit`` waits for the previous one;
     ``wait`` re-raises a failed write's error; leaving the ``with`` block waits for the last
     (its error raised unless another exception is already on its way), so a run that returns,
@@ -533,7 +534,7 @@ def bare_step(task: Task, opt, step: int, lr: float | None = None,
         loss.backward()
         opt.step()
     if history is not None:
-        _, values, _ = _read_terms(loss, terms, loss.new_zeros(2))
+        _, values, _ = read_terms(loss, terms, loss.new_zeros(2))
         task.record(history, values)
     return loss
 

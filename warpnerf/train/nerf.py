@@ -26,7 +26,8 @@ from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
-    "resolve_data", "dataset_rays", "render_dataset_image", "with_refined_poses",
+    "resolve_data", "dataset_rays", "render_dataset_image", "with_refined_poses", "NeRFTask",
+    "validate", "distortion_coordinate",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"

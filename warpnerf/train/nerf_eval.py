@@ -36,6 +36,7 @@ from .nerf import (
 )
 
 __all__ = [
+    "sphere_traced_rays_of",
     "evaluate_run",
     "evaluate_geometry",
     "materials_reference",

@@ -1,7 +1,7 @@
 """Time to load a dataset split (issue 20): ``load_dataset(ROOT, SPLIT)`` with the image reading
 pool limited to each of THREADS threads (1 = the sequential baseline), median of REPEATS.
 
-    python scripts/load_time.py ../shared/data/lego ../shared/data/beer [--split train]
+    python experiments/load_time.py ../shared/data/lego ../shared/data/beer [--split train]
         [--threads 1,2,8] [--repeats 3]
 """
 

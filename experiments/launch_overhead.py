@@ -4,7 +4,7 @@ packing, launch) is nearly all of a call, and a tiny hash-field training step, w
 array descriptors (``from_torch(..., return_ctype=True)`` + cached generic overloads, the
 default) against ``wp.array`` views (the bridge before), alternating in one process.
 
-    python scripts/launch_overhead.py [--device cpu|cuda] [--repeats 5] [--json out.json]
+    python experiments/launch_overhead.py [--device cpu|cuda] [--repeats 5] [--json out.json]
 """
 
 from __future__ import annotations
