@@ -56,7 +56,7 @@ from .provenance import RUN_INFO, finish_session, start_session
 
 __all__ = [
     "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
-    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr", "bare_step",
+    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr", "bare_step", "one_step",
     "read_terms", "nonfinite_flags", "to_host", "BackgroundWriter", "adam", "sync_sites",
 ]  # fmt: skip
 
@@ -342,17 +342,7 @@ def _loop(task, s, run, checkpoint, resume_from, progress, log, where, hooks, pa
             # the last step's autograd graph must be gone before this step runs: a captured
             # step's gradients may not accumulate into nodes made on another stream
             loss = terms = flags = None
-            whole = task.train_step(step, opt, params)
-            if whole is not None:
-                loss, terms, flags = whole
-            else:
-                loss, terms = task.loss(step)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if dist is not None:
-                    dist.average_grads(params)
-                flags = nonfinite_flags(loss, params)
-                opt.step()
+            loss, terms, flags = one_step(task, opt, params, step, dist)
             done = step + 1
             # the step's one host sync: the loss, the terms and the divergence flags (a step
             # that diverged is never saved: the run keeps its last good checkpoint)
@@ -516,6 +506,23 @@ def adam(params, capturable: bool = False, **kw) -> torch.optim.Adam:
     return torch.optim.Adam(params, fused=fused or None, **kw)
 
 
+def one_step(task: Task, opt, params: list, step: int, dist=None) -> tuple:
+    """(loss, terms, divergence flags) of one optimisation step: the task's whole step
+    (:meth:`Task.train_step`, e.g. a replayed CUDA graph) or its loss, backward (gradients
+    averaged over the ranks of ``dist``), flags and the optimiser's step."""
+    whole = task.train_step(step, opt, params)
+    if whole is not None:
+        return whole
+    loss, terms = task.loss(step)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    if dist is not None:
+        dist.average_grads(params)
+    flags = nonfinite_flags(loss, params)
+    opt.step()
+    return loss, terms, flags
+
+
 def bare_step(task: Task, opt, step: int, lr: float | None = None,
               history: dict | None = None) -> torch.Tensor:  # fmt: skip
     """One optimisation step of ``task`` without the loop's bookkeeping (no checks, files or
@@ -524,15 +531,7 @@ def bare_step(task: Task, opt, step: int, lr: float | None = None,
     loop records them (tasks that size the next step from this one's counts need it)."""
     if lr is not None:
         set_lr(opt, lr)
-    params = task.parameters()
-    whole = task.train_step(step, opt, params)
-    if whole is not None:
-        loss, terms, _ = whole
-    else:
-        loss, terms = task.loss(step)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+    loss, terms, _ = one_step(task, opt, task.parameters(), step)
     if history is not None:
         _, values, _ = read_terms(loss, terms, loss.new_zeros(2))
         task.record(history, values)
