@@ -1,12 +1,12 @@
 """NeRF training: random ray batches across all training images, coarse/fine rendering through the
 Warp kernels, Adam with exponential learning-rate decay, periodic validation PSNR, atomic
 checkpoints and an exact ``resume`` (model, optimiser, learning-rate schedule and sampling RNG all
-restored)."""
+restored). Loading and rendering a saved run lives in :mod:`warpnerf.train.nerf_run` (its names
+are re-exported here for the callers that import them from this module)."""
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import math
 from pathlib import Path
 
@@ -14,23 +14,34 @@ import torch
 
 from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
-from ..io import (
-    load_checkpoint,
-    write_json,
-)
+from ..io import write_json
 from ..ops import random_pixels
-from ..render import render_chunks, render_marched, render_nerf
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
+from .nerf_run import (
+    CHECKPOINT,
+    dataset_rays,
+    depth_scale,
+    distortion_coordinate,
+    images_stay_on_host,
+    load_data,
+    load_run,
+    psnr_of_mse,
+    render_dataset_image,
+    render_rays_of,
+    surface_depth,
+    validate,
+    with_refined_poses,
+)
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
     "resolve_data", "dataset_rays", "render_dataset_image", "with_refined_poses", "NeRFTask",
-    "validate", "distortion_coordinate",
+    "validate", "distortion_coordinate", "images_stay_on_host", "depth_scale", "surface_depth",
+    "CHECKPOINT",
 ]  # fmt: skip
 
-CHECKPOINT = "checkpoint.pt"
 # the adaptive batch's rays per step and rank (a data-parallel run of N ranks: N times as many)
 MAX_RAYS_PER_RANK = 1 << 16
 OUTPUTS = ("config.json", CHECKPOINT, "history.json")  # what a NeRF run writes in its folder
@@ -42,200 +53,6 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     and checks the config (:meth:`NeRFConfig.validate`). A loaded run has them in its
     config.json already."""
     return cfg.validate(scene_settings(cfg))
-
-
-def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: bool = False):
-    """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
-    cfg.device (the built-in scene when cfg.data == "builtin"); ``images_on="host"`` keeps the
-    images in host memory (a training batch's pixels are gathered there into pinned memory and
-    copied, see :class:`NeRFTask`), "auto" does so when they would take more than
-    a quarter of the GPU's free memory (see :func:`images_stay_on_host`); None: the run's
-    ``cfg.images_on``. ``uint8`` (the training split): images kept in host memory are 8-bit (a
-    quarter of the memory; read so from the files with ``images_on="host"``, converted after
-    loading with "auto"), turned into float32 on the GPU per batch."""
-
-    images_on = cfg.images_on if images_on is None else images_on
-    direct = uint8 and images_on == "host" and cfg.device.startswith("cuda")
-    ds = _load_split(cfg, split, uint8=direct)
-    if direct or images_stay_on_host(cfg.device, ds.images, images_on):
-        images = ds.images.cpu()
-        if uint8 and images.dtype != torch.uint8:
-            images = (images.clamp_(0, 1) * 255).round_().to(torch.uint8)
-        return dataclasses.replace(ds, images=images).to(cfg.device, images=False)
-    return ds.to(cfg.device)
-
-
-def with_refined_poses(model: RadianceModel, ds, split: str):
-    """``ds`` with the run's refined training cameras (``--pose-refine``) when it is the training
-    split the corrections were learned for (the same cameras), else ``ds`` as it is: eval of
-    the train split, exports and the viewer's frustums show the cameras the model was fitted
-    to."""
-    poses = getattr(model, "poses", None)
-    if poses is None or split != "train" or ds.c2w.shape[0] != poses.n_cameras:
-        return ds
-    with torch.no_grad():
-        c2w = poses.corrected_c2w(ds.c2w.to(poses.rotation.device)).to(ds.c2w)
-    return dataclasses.replace(ds, c2w=c2w)
-
-
-def images_stay_on_host(device, images: torch.Tensor, images_on: str) -> bool:
-    """Whether a CUDA run keeps ``images`` in host memory: ``images_on`` is "host", or "auto"
-    and they would take more than a quarter of the GPU's free memory (CPU runs: never, they are
-    there already)."""
-    if images_on == "device" or not str(device).startswith("cuda"):
-        return False
-    if images_on == "host":
-        return True
-    free, _ = torch.cuda.mem_get_info(torch.device(device))
-    return images.numel() * images.element_size() > free // 4
-
-
-def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False):
-    from ..data import load_dataset
-
-    return load_dataset(
-        cfg.data,
-        split,
-        fmt="auto" if cfg.data == "builtin" else cfg.data_format,
-        background=(cfg.background,) * 3,
-        downscale=cfg.downscale,
-        max_images=cfg.max_images or None,
-        holdout=cfg.holdout,
-        builtin_size=cfg.builtin_size,
-        device=cfg.device,
-        uint8=uint8,
-        allow_outside=cfg.allow_outside_paths,
-    )
-
-
-def dataset_rays(
-    cfg: NeRFConfig, ds, cam_idx=None, px=None, py=None, image: int | None = None, check=True,
-    poses=None,
-):  # fmt: skip
-    """Rays of a batch of pixels (cam_idx, px, py) or of every pixel of ``image``: undistorted
-    when the dataset has distortion, in NDC when the run uses it (``check=False``: cam_idx drawn
-    by :func:`random_pixels`, no range check and no host sync). ``poses``: a
-    :class:`~warpnerf.fields.poses.CameraCorrection` of ``ds``'s cameras, applied to a batch's
-    rays before the NDC map (differentiable in the corrections)."""
-    from ..data.cameras import camera_rays, ndc_rays
-
-    if poses is not None and image is None:
-        o, d = camera_rays(
-            ds.c2w, ds.intrinsics, cam_idx=cam_idx, px=px, py=py, distortion=ds.distortion,
-            check=check,
-        )  # fmt: skip
-        o, d = poses(cam_idx, o, d)
-        ndc = cfg.ndc_camera()
-        return (o, d) if ndc is None else ndc_rays(o, d, ndc)
-    dist = ds.distortion
-    if image is not None:
-        sl = slice(image, image + 1)
-        return camera_rays(
-            ds.c2w[sl], ds.intrinsics[sl], ds.width, ds.height,
-            distortion=None if dist is None else dist[sl], ndc=cfg.ndc_camera(),
-        )  # fmt: skip
-    return camera_rays(
-        ds.c2w, ds.intrinsics, cam_idx=cam_idx, px=px, py=py, distortion=dist,
-        ndc=cfg.ndc_camera(), check=check,
-    )  # fmt: skip
-
-
-def render_rays_of(
-    model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False,
-):  # fmt: skip
-    """Renders rays with the run's model: grid marching when it has an occupancy grid
-    (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
-    are given as ``jitter`` [n_rays]), otherwise stratified (+ hierarchical) samples (their
-    jitter keyed by ``seed`` and the ray's index + ``ray_offset``). ``background``: None (the
-    run's colour) or per-ray colours [n_rays, 3] (grid runs). ``distortion`` (grid runs, with
-    gradients): add each ray's distortion loss as ``distortion`` [n_rays]
-    (:func:`distortion_coordinate` normalises the ray distances)."""
-    if model.grid is not None:
-        s_of_t = distortion_coordinate(cfg) if distortion else None
-        return render_chunks(
-            o.shape[0],
-            chunk,
-            lambda sl: render_marched(
-                model.grid,
-                model.coarse,
-                o[sl],
-                d[sl],
-                cfg.near,
-                cfg.far,
-                perturb=perturb,
-                generator=generator,
-                background=cfg.background if background is None else background[sl],
-                t_threshold=cfg.t_threshold,
-                max_samples=cfg.max_samples,
-                round_samples=cfg.round_samples,
-                half=cfg.render_half,
-                jitter=None if jitter is None else jitter[sl],
-                ray_images=None if ray_images is None else ray_images[sl],
-                distortion_s=s_of_t,
-            ),
-        )
-    return render_nerf(
-        model.coarse,
-        o,
-        d,
-        cfg.near,
-        cfg.far,
-        n_coarse=cfg.n_coarse,
-        fine=model.fine,
-        n_fine=cfg.n_fine,
-        perturb=perturb,
-        seed=seed,
-        background=cfg.background,
-        t_threshold=cfg.t_threshold,
-        chunk=chunk,
-        aabb=cfg.aabb_box(),
-        ray_offset=ray_offset,
-    )
-
-
-def distortion_coordinate(cfg: NeRFConfig):
-    """The map t -> s in [0, 1) on which the distortion loss measures a ray: t / (t + a) in a
-    contracted scene (a: the inner cube's half-size; distant space is squeezed as the
-    contraction squeezes it), (t - near) / (far - near) otherwise."""
-    if cfg.contract == "on":
-        a = float(cfg.aabb)
-        return lambda t: t / (t + a)
-    near, span = float(cfg.near), max(float(cfg.far) - float(cfg.near), 1e-12)
-    return lambda t: (t - near) / span
-
-
-def surface_depth(depth, opacity):
-    """Depth of the visible surface (depth / opacity; 0 where nothing is hit)."""
-    return torch.where(opacity > 1e-3, depth / opacity.clamp_min(1e-3), torch.zeros_like(depth))
-
-
-def depth_scale(cfg: NeRFConfig, depth, opacity) -> float | None:
-    """What a depth map is normalised by for display: the far plane, or for a contracted
-    (unbounded) run, whose far plane lies a thousand scene sizes away, the 99th percentile of
-    the visible surface depths (opacity > 0.5) of this frame; None there when no pixel shows a
-    surface (the caller falls back to far, or waits for a frame that does)."""
-    if cfg.contract != "on":
-        return float(cfg.far)
-    surf = surface_depth(depth, opacity)
-    seen = surf[(opacity > 0.5) & torch.isfinite(surf)]
-    if seen.numel() == 0:
-        return None
-    step = max(1, seen.numel() // 1_000_000)  # (quantile's input limit; strided: all rows)
-    return float(torch.quantile(seen[::step].double(), 0.99).clamp_min(1e-6))
-
-
-@torch.no_grad()
-def render_dataset_image(model, cfg, ds, i):
-    """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
-    h, w = ds.height, ds.width
-    o, d = dataset_rays(cfg, ds, image=i)
-    out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
-    return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
-
-
-def _psnr(mse: float) -> float:
-    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
 def _optimizer(cfg, params, poses=None, capturable=False):
@@ -251,66 +68,6 @@ def _optimizer(cfg, params, poses=None, capturable=False):
     if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
         return adam(groups, capturable, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     return adam(groups, capturable, lr=cfg.lr)
-
-
-def load_run(run, device: str | None = None, snapshot: float | None = None):
-    """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one;
-    ``snapshot`` (seconds) loads the snapshot checkpoint kept at that training time
-    (``--snapshots``) instead of the latest one."""
-    run = Path(run)
-    cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
-    if not cfg_path.is_file() or not ckpt_path.is_file():
-        raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
-    if snapshot is not None:
-        from .loop import snapshot_name
-
-        ckpt_path = run / snapshot_name(float(snapshot))
-        if not ckpt_path.is_file() or ckpt_path.is_symlink():
-            raise UserError(f"{run}: no snapshot at {snapshot:g} s ({ckpt_path.name} is missing; "
-                            "train with --snapshots to keep them)")  # fmt: skip
-    from ..data._json import read_json
-
-    saved = read_json(cfg_path, "run config")  # size- and depth-bounded, one-line errors
-    if not isinstance(saved, dict):
-        raise UserError(f"{cfg_path}: unreadable (expected a JSON object)")
-    model = saved.get("model")
-    if model == "neural_sdf":
-        raise UserError(
-            f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
-        )
-    if model is not None:
-        raise UserError(
-            f"{run}: a {model} run, not a NeRF run (config.json's model is {model!r}; "
-            f"use `warpnerf train {model} --resume`)"
-        )
-    if saved.get("field") and "grid_res" not in saved:
-        saved["grid_res"] = 0  # a run from before the occupancy grid: it had none
-    if saved.get("field") and "contract" not in saved:
-        saved["contract"] = "off"  # a run from before scene contraction: bounded
-    if saved.get("field"):  # runs from before these options had their old fixed defaults
-        saved.setdefault("appearance_dim", 0)  # (today's default is data-dependent)
-        saved.setdefault("hash_max_res", 2048)
-    try:
-        cfg = NeRFConfig.from_dict(saved, where=str(cfg_path))
-    except TypeError as e:
-        raise UserError(f"{cfg_path}: unreadable ({e})") from None
-    if device:
-        cfg.device = device
-    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(
-            f"{run}: trained on {cfg.device}, which is not available here; pass --device cpu"
-        )
-    if cfg.device.startswith("cuda"):  # matrix products as in training
-        torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    model = build_model(cfg)
-    keys = ("step", "fields", "optimizer", "generator", "history")
-    ckpt = load_checkpoint(ckpt_path, cfg.device, keys)
-    if not isinstance(ckpt["fields"], dict):
-        raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
-    model.load_parts(ckpt["fields"], ckpt_path)  # every part the config gives it, strictly
-    if hasattr(model.coarse, "set_step"):  # the last step's schedules (open levels, beta), as
-        model.coarse.set_step(max(int(ckpt["step"]) - 1, 0))  # its saved buffers hold them
-    return cfg, model, ckpt
 
 
 def train_nerf(
@@ -673,7 +430,7 @@ class NeRFTask(Task):
         return torch.where(total.sum() > 0, 0.5 * (aux + box_term), box_term)
 
     def record(self, history, terms):
-        terms = dict(terms, psnr=_psnr(terms["psnr"]))  # the fine pass's MSE, as PSNR
+        terms = dict(terms, psnr=psnr_of_mse(terms["psnr"]))  # the fine pass's MSE, as PSNR
         if "_marched" in terms:  # a static-shape step: its counts size the next one
             marched, live = int(terms.pop("_marched")), int(terms.pop("_live"))
             self.graph.last = (terms["batch"], marched, live)
@@ -721,16 +478,3 @@ class NeRFTask(Task):
             state["static_shape"] = {"last": list(self.graph.last),
                                      "current": list(self.graph.current or ())}  # fmt: skip
         return state
-
-
-def validate(model, cfg, val, keep: dict | None = None) -> float:
-    """Mean PSNR over the first cfg.val_images validation images (``keep``, a dict: receives
-    the first image's ``rgb`` [H, W, 3] and ``depth`` [H, W])."""
-    n = min(cfg.val_images, val.images.shape[0])
-    mses = []
-    for i in range(n):
-        rgb, depth, opacity = render_dataset_image(model, cfg, val, i)
-        if keep is not None and i == 0:
-            keep.update(rgb=rgb, depth=depth, opacity=opacity)
-        mses.append(float(((rgb - val.images[i].to(rgb.device)) ** 2).mean()))
-    return sum(_psnr(m) for m in mses) / max(n, 1)
