@@ -458,3 +458,14 @@ def test_real_blender_scenes(scene, size, radius):
     # Cameras look at the origin: the -z axis points from the centre towards it.
     fwd = -ds["c2w"][:, :3, 2]
     assert float((fwd * -ds["c2w"][:, :3, 3] / centres[:, None]).sum(-1).min()) > 0.99
+
+
+def test_capture_formats_are_a_property_of_the_registry():
+    """Which formats are posed photo captures (scene settings read from the data) is the
+    registry's ``capture`` trait, not a list of names; a saved config's scene must name one."""
+    from warpnerf.data.dataset import REGISTRY, capture_formats, is_capture
+
+    assert set(capture_formats()) == {"colmap", "llff"}
+    assert is_capture("colmap") and is_capture("llff")
+    assert not any(is_capture(n) for n in ("blender", "nerfstudio", "builtin", "auto", "nope"))
+    assert all(REGISTRY[n].capture for n in capture_formats())

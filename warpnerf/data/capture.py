@@ -596,11 +596,22 @@ def _keypoints(sc: dict, idx: list) -> dict | None:
 
 
 register_format(
-    "colmap", lambda req: _load(req, "colmap"), lambda root, _: find_model(root) is not None
-)
+    "colmap", lambda req: _load(req, "colmap"), lambda root, _: find_model(root) is not None,
+    capture=True,
+)  # fmt: skip
 register_format(
-    "llff", lambda req: _load(req, "llff"), lambda root, _: (root / "poses_bounds.npy").is_file()
-)
+    "llff", lambda req: _load(req, "llff"), lambda root, _: (root / "poses_bounds.npy").is_file(),
+    capture=True,
+)  # fmt: skip
+
+
+def capture_summary(root, fmt: str, downscale: int, holdout: int) -> dict:
+    """``warpnerf data``'s figures of a capture: :func:`capture_info`, and for COLMAP the
+    reprojection error of the model's observations through the loader's cameras."""
+    info = capture_info(root, fmt, downscale, holdout)
+    if fmt == "colmap":
+        info["reprojection"] = reprojection_errors(root)
+    return info
 
 
 def normalised_to_world(points, transform, ndc=None, near: float = NDC_NEAR) -> np.ndarray:

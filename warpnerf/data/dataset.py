@@ -34,6 +34,8 @@ __all__ = [
     "Format",
     "REGISTRY",
     "register_format",
+    "is_capture",
+    "capture_formats",
     "holdout_indices",
     "HOLDOUT",
     "SPLITS",
@@ -225,19 +227,33 @@ def holdout_indices(n: int, split: str, every: int, where) -> list[int]:
 @dataclass(frozen=True)
 class Format:
     """A dataset format: ``detect(root: Path, split) -> bool`` says whether a folder is of this
-    format (None: only chosen by name); ``load(LoadRequest) -> Dataset`` loads one split."""
+    format (None: only chosen by name); ``load(LoadRequest) -> Dataset`` loads one split;
+    ``capture``: a posed photo capture (COLMAP, LLFF) whose scene settings (transform, near/far,
+    box, NDC) are read from the data (:func:`warpnerf.data.capture.capture_info`)."""
 
     name: str
     load: Callable[[LoadRequest], Dataset]
     detect: Callable[[Path, str], bool] | None = None
+    capture: bool = False
 
 
 REGISTRY: dict[str, Format] = {}
 
 
-def register_format(name: str, load, detect=None) -> Format:
+def register_format(name: str, load, detect=None, capture: bool = False) -> Format:
     """Adds a format to the registry (detection asks formats in registration order)."""
     if name in REGISTRY or name == "auto":
         raise ValueError(f"format {name!r} is already registered")
-    REGISTRY[name] = fmt = Format(name, load, detect)
+    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture))
     return fmt
+
+
+def is_capture(name: str) -> bool:
+    """Whether the registered format ``name`` is a posed photo capture (``Format.capture``)."""
+    fmt = REGISTRY.get(name)
+    return fmt is not None and fmt.capture
+
+
+def capture_formats() -> tuple:
+    """The names of the registered capture formats."""
+    return tuple(n for n, f in REGISTRY.items() if f.capture)

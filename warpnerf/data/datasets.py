@@ -25,7 +25,7 @@ from ..errors import UserError
 from . import capture as _capture  # noqa: F401  (registers colmap, llff)
 from . import nerfstudio as _nerfstudio  # noqa: F401  (registers nerfstudio)
 from .blender import _read_json, check_folder, has_nerfstudio_fields
-from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest
+from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, is_capture
 
 __all__ = ["load_dataset", "detect_format", "data_summary", "FORMATS"]
 
@@ -106,10 +106,8 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
         raise UserError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     root = Path(root)
     fmt = detect_format(root) if fmt == "auto" else fmt
-    if fmt in ("colmap", "llff"):
-        info = _capture.capture_info(root, fmt, downscale, holdout)
-        if fmt == "colmap":  # the camera model against COLMAP's own observations
-            info["reprojection"] = _capture.reprojection_errors(root)
+    if is_capture(fmt):
+        info = _capture.capture_summary(root, fmt, downscale, holdout)
     else:
         info = {"format": fmt, "splits": {}}
     for split in ("train", "val"):
@@ -122,7 +120,7 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
                 continue
             raise
         info["splits"][split] = len(ds)
-        if split == "train" and fmt not in ("colmap", "llff"):
+        if split == "train" and not is_capture(fmt):
             centres = ds.c2w[:, :3, 3]
             info.update(
                 image_size=[ds.width, ds.height],

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 
+from ..data.dataset import capture_formats, is_capture
 from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
@@ -522,7 +523,7 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
             f"got {cfg.data_format!r}, {cfg.ndc!r}"
         )
     fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(cfg.data)
-    if fmt not in ("colmap", "llff"):
+    if not is_capture(fmt):
         if cfg.ndc == "on":
             raise UserError("--ndc on needs a forward-facing COLMAP or LLFF capture")
         return None
@@ -571,8 +572,9 @@ def _check_scene(scene, fail) -> None:
                    "(and optionally inner)")  # fmt: skip
     if "inner" in scene and not (_number(scene["inner"]) and 0 < scene["inner"] <= 1e6):
         raise fail("inner must be a finite number in (0, 1e6]")
-    if scene["format"] not in ("colmap", "llff"):
-        raise fail(f"format must be colmap or llff, got {scene['format']!r}"[:200])
+    if not isinstance(scene["format"], str) or not is_capture(scene["format"]):
+        raise fail(f"format must be a capture format ({', '.join(capture_formats())}), got "
+                   f"{scene['format']!r}"[:200])  # fmt: skip
     t = scene["transform"]
     rows_ok = isinstance(t, list) and len(t) == 4
     rows_ok = rows_ok and all(isinstance(r, list) and len(r) == 4 for r in t)
