@@ -113,6 +113,24 @@ def test_graph_flag_on_refuses_a_run_it_cannot_capture():
             _task("cuda", cuda_graph="on", grid_res=0)
 
 
+def test_graph_flag_on_refused_before_anything_is_written(tmp_path):
+    """`train nerf --cuda-graph on` on a CPU: one line, exit 2, no run folder left behind."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "-m", "warpnerf.cli", "train", "nerf", "--data", "builtin", "--field",
+         "hash", "--cuda-graph", "on", "--iters", "2", "--builtin-size", "16", "--out", str(out),
+         "--quiet", "--no-tensorboard"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    assert "--cuda-graph on needs --device cuda" in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
 def _cuda():
     if not torch.cuda.is_available():
         pytest.skip("CUDA graphs need CUDA")

@@ -139,11 +139,13 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
                     f"split now has {len(train)}; resume with the data it was trained on"
                 )  # fmt: skip
     tb = [TensorBoardLog(run, tensorboard)] if tensorboard and main else []  # (writes nothing)
+    # the task before any file: what it refuses (--depth-loss without points, --cuda-graph on
+    # for a run it cannot capture) leaves no run folder behind
+    task = NeRFTask(cfg, model, train, val, log, dist=dist)
     if main:
         if not resume:
             claim_run(run, locks, OUTPUTS, CHECKPOINT)
         write_json(run / "config.json", cfg.to_dict())
-    task = NeRFTask(cfg, model, train, val, log, dist=dist)
     if not resume and getattr(cfg, "beta_final", 0) > 0 and model.grid is not None:
         if cfg.beta_final < model.grid.dt:  # measured on materials: val PSNR 30.4 -> 25.6 dB
             log(f"warning: --beta-final {cfg.beta_final:g} is below the marching step "
