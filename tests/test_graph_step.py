@@ -204,3 +204,24 @@ def test_graph_resume_continues_the_run_cuda(tmp_path):
                          progress=False, log=lambda *a: None)  # fmt: skip
     assert straight["batch"] == resumed["batch"]
     assert resumed["loss"] == pytest.approx(straight["loss"], rel=2e-3)
+
+
+def test_a_failed_capture_goes_on_eagerly_without_a_second_grid_update():
+    """When a capture fails, that step and the rest run the eager step (one log line), and the
+    step's grid update is not made twice."""
+    lines = []
+    task, eager = _task("cpu", grid_every=1), _task("cpu", grid_every=1)
+    task.log = lines.append
+    _train(task, 3, static=True, force=(4096, 1 << 16, 1 << 15))
+    graph = task.graph
+
+    def fail(*args):
+        graph.failed = "capture refused (test)"
+        return None
+
+    graph.run = fail
+    opt = task.optimizer(task.parameters(), task.cfg.lr)
+    _train(task, 3, start=3, opt=opt)
+    _train(eager, 6)
+    assert task.graph is None and len(lines) == 1 and "capture failed" in lines[0]
+    assert int(task.grid.n_updates) == int(eager.grid.n_updates) == 6

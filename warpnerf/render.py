@@ -288,39 +288,10 @@ def render_marched(
     counts = n_live.to(torch.int64)
     info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
-    dirs = directions[kept.ray_indices]
     sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx])
-    if ray_images is None:
-        rgbs = field.color(feats, dirs)
-    else:
-        rgbs = field.color(feats, dirs, image_ids=ray_images[kept.ray_indices])
-    rgb, depth, opacity, *weights = render_packed(
-        kept.t_starts,
-        kept.t_ends,
-        kept.ray_indices,
-        sigmas,
-        rgbs,
-        n_rays,
-        background=background,
-        packed_info=kept.packed_info,
-        t_threshold=t_threshold,
-        check=False,
-        return_weights=distortion_s is not None,
-    )
-    out = {
-        "rgb": rgb,
-        "depth": depth,
-        "opacity": opacity,
-        "n_marched": int(smp.t_starts.shape[0]),
-        "n_kept": int(idx.shape[0]),
-    }
-    if distortion_s is not None:
-        from .ops.distortion import distortion_loss
-
-        out["distortion"] = distortion_loss(
-            distortion_s(kept.t_starts), distortion_s(kept.t_ends), kept.ray_indices, weights[0],
-            n_rays, packed_info=kept.packed_info, check=False,
-        )  # fmt: skip
+    out = _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
+                      ray_images, distortion_s)  # fmt: skip
+    out.update(n_marched=int(smp.t_starts.shape[0]), n_kept=int(idx.shape[0]))
     return out
 
 
@@ -378,27 +349,38 @@ def render_marched_fixed(
         enc, sigmas = _first_pass(field, positions)
     live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
     sigmas, feats = _second_pass(field, positions[src], None if enc is None else enc[src])
-    dirs = directions[live.ray_indices]
+    color_kw = None
     if getattr(field, "kind", "density") == "sdf":  # its eikonal term: the live slots only
         n_live = live_stats[0].clamp_max(kept)
-        rgbs = field.color(feats, dirs, valid=torch.arange(kept, device=dirs.device) < n_live)
-    elif ray_images is None:
-        rgbs = field.color(feats, dirs)
-    else:
-        rgbs = field.color(feats, dirs, image_ids=ray_images[live.ray_indices])
+        color_kw = {"valid": torch.arange(kept, device=directions.device) < n_live}
+    out = _shade_kept(field, directions, live, sigmas, feats, background, t_threshold,
+                      ray_images, distortion_s, color_kw)  # fmt: skip
+    out["stats"] = torch.cat([march_stats, live_stats])
+    return out
+
+
+def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold, ray_images,
+                distortion_s, color_kw=None) -> dict:  # fmt: skip
+    """The marchers' last part: colours of the kept samples (with their densities and
+    features from the field's second pass), compositing, and each ray's distortion loss when
+    ``distortion_s`` is given. ``color_kw``: more keywords for the field's ``color``."""
+    dirs = directions[kept.ray_indices]
+    kw = dict(color_kw or {})
+    if ray_images is not None:
+        kw["image_ids"] = ray_images[kept.ray_indices]
+    rgbs = field.color(feats, dirs, **kw)
     rgb, depth, opacity, *weights = render_packed(
-        live.t_starts, live.t_ends, live.ray_indices, sigmas, rgbs, origins.shape[0],
-        background=background, packed_info=live.packed_info, t_threshold=t_threshold,
+        kept.t_starts, kept.t_ends, kept.ray_indices, sigmas, rgbs, directions.shape[0],
+        background=background, packed_info=kept.packed_info, t_threshold=t_threshold,
         check=False, return_weights=distortion_s is not None,
     )  # fmt: skip
-    out = {"rgb": rgb, "depth": depth, "opacity": opacity,
-           "stats": torch.cat([march_stats, live_stats])}  # fmt: skip
+    out = {"rgb": rgb, "depth": depth, "opacity": opacity}
     if distortion_s is not None:
         from .ops.distortion import distortion_loss
 
         out["distortion"] = distortion_loss(
-            distortion_s(live.t_starts), distortion_s(live.t_ends), live.ray_indices, weights[0],
-            origins.shape[0], packed_info=live.packed_info, check=False,
+            distortion_s(kept.t_starts), distortion_s(kept.t_ends), kept.ray_indices, weights[0],
+            directions.shape[0], packed_info=kept.packed_info, check=False,
         )  # fmt: skip
     return out
 

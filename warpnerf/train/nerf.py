@@ -174,6 +174,7 @@ class NeRFTask(Task):
     def __init__(self, cfg, model: RadianceModel, train, val, log=print, dist=None):
         self.cfg, self.model, self.train, self.val = cfg, model, train, val
         self.log = log
+        self._grid_step = None  # the step whose grid update is done
         self.dist = dist  # data-parallel: this rank renders its share of each global batch
         self.n_img, self.h, self.w = train.images.shape[:3]
         self.flat = train.images.reshape(-1, 3)
@@ -242,27 +243,11 @@ class NeRFTask(Task):
             return None
         self._grid_update(step)
         whole = self.graph.run(step, opt, params)
-        if whole is None:  # the capture failed: the eager step from now on (said once)
+        if whole is None:  # the capture failed: the eager step from now on (said once); this
             self.log(f"CUDA graph capture failed ({self.graph.failed}); training goes on with "
                      "the eager step (--cuda-graph off)")  # fmt: skip
-            self.graph = None
-            return self._eager_once(step, opt, params)
+            self.graph = None  # step's grid update is done (loss() does not repeat it)
         return whole
-
-    def _eager_once(self, step, opt, params):
-        """This step the eager way (its grid update is done), for a failed capture."""
-        every, self.cfg.grid_every = self.cfg.grid_every, 1 << 30
-        try:
-            loss, terms = self.loss(step)
-        finally:
-            self.cfg.grid_every = every
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        from ._signals import nonfinite_flags
-
-        flags = nonfinite_flags(loss, params)
-        opt.step()
-        return loss, terms, flags
 
     def _next_batch(self, n_kept: int) -> None:
         """The next step's rays, aiming at ``target_samples`` samples from this step's
@@ -375,7 +360,11 @@ class NeRFTask(Task):
 
     def _grid_update(self, step: int) -> None:
         """The field's schedules for ``step`` and, every ``grid_every`` steps, the occupancy
-        grid's update (in place: a captured step reads the grid's own buffers)."""
+        grid's update (in place: a captured step reads the grid's own buffers); once per step
+        (a step whose capture failed goes on eagerly without updating the grid twice)."""
+        if self._grid_step == step:
+            return
+        self._grid_step = step
         cfg, grid, field = self.cfg, self.grid, self.model.coarse
         if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
             field.set_step(step)
