@@ -426,6 +426,15 @@ def test_a_new_format_is_one_loader_and_one_registry_line(tmp_path, monkeypatch)
     assert seen[0].split == "val" and seen[0].downscale == 2 and seen[0].holdout == 0
     with pytest.raises(ValueError, match="already registered"):
         register_format("toy", load)
+    # the registry is the only list of formats: --format's choices and the config's check follow
+    from warpnerf.cli.parser import build_parser
+    from warpnerf.data import FORMATS
+    from warpnerf.train.nerf_config import NeRFConfig
+
+    assert "toy" in FORMATS and list(FORMATS)[-1] == "toy" and "builtin" not in FORMATS
+    args = build_parser().parse_args(["train", "nerf", "--out", "x", "--format", "toy"])
+    assert args.data_format == "toy"
+    NeRFConfig(data_format="toy").check_values()
 
 
 def test_builtin_scene_is_a_registered_format():

@@ -17,6 +17,7 @@ LAYERS = {
     "reference": 2,
     "ops": 2,
     "io": 2,
+    "jsonio": 2,
     "files": 2,
     "metrics": 2,
     "data": 3,

@@ -11,7 +11,16 @@ import torch
 from torch import nn
 
 from warpnerf.errors import UserError
-from warpnerf.fields import FIELDS, RadianceModel, build_model, register_field
+from warpnerf.fields import (
+    FIELDS,
+    FieldTraits,
+    RadianceModel,
+    build_model,
+    field_traits,
+    fields_with,
+    register_field,
+)  # fmt: skip
+from warpnerf.fields.model import FIELD_TRAITS
 from warpnerf.fields.nerf import NeRFField
 from warpnerf.train import evaluate_run, train_nerf
 from warpnerf.train.nerf import load_run
@@ -121,6 +130,52 @@ def test_a_new_field_is_one_module_and_one_registry_entry(tmp_path):
         assert args.field == "blob"
     finally:
         FIELDS.pop("blob", None)
+        FIELD_TRAITS.pop("blob", None)
+
+
+def test_the_builtin_fields_traits():
+    assert fields_with(geometry="sdf") == ("volsdf", "hash_sdf")
+    assert fields_with(hash=True) == ("hash", "hash_sdf")
+    assert fields_with(in_box=True) == ("hash", "volsdf", "hash_sdf")
+    assert fields_with(captures=True) == ("hash",)
+    assert field_traits("nope") == FieldTraits()  # (the config's choices check reports it)
+    with pytest.raises(ValueError, match="geometry"):
+        FieldTraits(geometry="surface")
+    with pytest.raises(ValueError, match="grid"):
+        FieldTraits(captures=True)
+
+
+def test_a_new_fields_traits_decide_its_defaults_and_checks():
+    """What the library does with a field follows its registered traits, not its name: an SDF
+    field in the box with its own learning rate and check."""
+
+    def check(cfg, fail):
+        if cfg.width > 64:
+            raise fail("width", "the toy SDF field is at most 64 wide")
+
+    traits = FieldTraits(geometry="sdf", in_box=True, lr=3e-3, lr_decay=4.0,
+                         eikonal_weight=0.5, check=check)  # fmt: skip
+    register_field("toy_sdf", traits)(lambda cfg: None)
+    try:
+        cfg = tiny(field="toy_sdf", lr=None, lr_final=None).check_values().resolve()
+        assert (cfg.lr, cfg.lr_final, cfg.eikonal_weight) == (3e-3, 3e-3 / 4.0, 0.5)
+        assert cfg.aabb > 0 and cfg.aabb_box() is not None and cfg.grid_res == 0
+        with pytest.raises(UserError, match="toy SDF field is at most 64"):
+            tiny(field="toy_sdf", width=128).check_values()
+        with pytest.raises(UserError, match="pose-refine is for NeRF"):
+            tiny(field="toy_sdf", pose_refine=True).check_values()
+        with pytest.raises(UserError, match="--field hash or hash_sdf"):  # no grid trait
+            tiny(field="toy_sdf", grid_res=32).check_values()
+        assert "toy_sdf" in fields_with(geometry="sdf")
+        from warpnerf.cli.parser import build_parser
+        from warpnerf.cli.train import cmd_train_nerf
+
+        args = build_parser().parse_args(["train", "volsdf", "--out", "x", "--field", "mlp"])
+        with pytest.raises(UserError, match=r"SDF field \(volsdf, hash_sdf, toy_sdf\)"):
+            cmd_train_nerf(args)
+    finally:
+        FIELDS.pop("toy_sdf", None)
+        FIELD_TRAITS.pop("toy_sdf", None)
 
 
 def test_model_is_what_renders(tmp_path):

@@ -198,3 +198,67 @@ def test_option_machinery_on_a_small_config():
     p = argparse.ArgumentParser()
     add_flags(p, Small, groups=("x",), defaults={"extra": 5})
     assert p.parse_args([]).extra == 5
+
+
+# the tools that take a run: command line -> (config class, the library function each field
+# feeds, as {field: (function, its parameter)})
+def _tools():
+    from warpnerf.cli.tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
+    from warpnerf.export import export_pointcloud
+    from warpnerf.train.nerf_eval import evaluate_geometry, evaluate_run, render_run
+
+    ev = {
+        "split": (evaluate_run, "split"),
+        "max_images": (evaluate_run, "max_images"),
+        "renderer": (evaluate_run, "renderer"),
+        "device": (evaluate_run, "device"),
+        "mesh_resolution": (evaluate_geometry, "resolution"),
+        "geometry_points": (evaluate_geometry, "points"),
+        "geometry_views": (evaluate_geometry, "views"),
+        "clean": (evaluate_geometry, "clean"),
+    }
+    rd = {
+        "path": (render_run, "path"),
+        "frames": (render_run, "frames"),
+        "size": (render_run, "size"),
+        "device": (render_run, "device"),
+        "renderer": (render_run, "renderer"),
+    }
+    ex = {
+        "views": (export_pointcloud, "views"),
+        "stride": (export_pointcloud, "stride"),
+        "min_opacity": (export_pointcloud, "min_opacity"),
+        "device": (export_pointcloud, "device"),
+    }
+    return {
+        ("eval", "RUN"): (EvalConfig, ev),
+        ("render", "RUN"): (RenderConfig, rd),
+        ("mesh", "RUN", "--out", "m.ply"): (MeshConfig, {}),
+        ("export", "RUN", "cameras", "--out", "c.json"): (ExportConfig, ex),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("argv", list(_tools()), ids=lambda a: a[0])
+def test_run_tools_flags_come_from_their_configs(argv):
+    """eval, render, mesh and export: every flag is a config field's, with its default and help,
+    and the library function behind a field defaults to the same value."""
+    import inspect
+
+    cls, feeds = _tools()[argv]
+    args = build_parser().parse_args(list(argv))
+    fields = _flag_fields(cls, ())
+    assert fields
+    sub = {
+        a.dest: a for a in build_parser()._subparsers._group_actions[0].choices[argv[0]]._actions
+    }
+    for f in fields:
+        a = sub[f.name]
+        assert f.metadata["help"] in a.help and flag_of(f) in a.option_strings
+        if not f.metadata.get("required"):
+            assert getattr(args, f.name) == f.default, (argv[0], f.name)
+        if f.name in feeds:
+            fn, param = feeds[f.name]
+            assert inspect.signature(fn).parameters[param].default == f.default, (fn, param)
+    flags = {s for a in sub.values() for s in a.option_strings} - {"-h", "--help"}
+    assert flags == {flag_of(f) for f in fields}  # no hand-written flag beside the config's
+    assert cls(**{k: v for k, v in vars(args).items() if k in {f.name for f in fields}})

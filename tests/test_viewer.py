@@ -141,7 +141,7 @@ def test_box_fits_render_and_unknown_runs_are_clean_errors(tmp_path):
         load_scene(tmp_path / "nothing")
     (tmp_path / "b").mkdir()
     (tmp_path / "b" / "config.json").write_text('{"model": "teapot"}')
-    with pytest.raises(UserError, match="not one the viewer knows"):
+    with pytest.raises(UserError, match="not a kind of run warpnerf knows"):
         load_scene(tmp_path / "b")
     (tmp_path / "b" / "config.json").write_text("[1, 2")
     with pytest.raises(UserError, match="config"):

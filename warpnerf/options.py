@@ -48,6 +48,17 @@ def number_type(kind, ok, rule: str):
     return parse
 
 
+def _size(text):
+    """An argparse type: 'WxH' (positive integers) -> (W, H)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH such as 400x400, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
+    return w, h
+
+
 # the argparse type of each (annotation, check): what the command line accepts before the
 # config's own validation (which knows the other fields) runs
 CHECKS = {
@@ -65,6 +76,7 @@ CHECKS = {
     ("float", "finite"): number_type(float, math.isfinite, "finite"),
     ("float", None): number_type(float, math.isfinite, "finite"),
     ("str", None): str,
+    ("tuple", "size"): _size,
 }
 
 
@@ -77,14 +89,19 @@ def option(
     choices=None,
     groups: tuple = (),
     negate: str | None = None,
+    const=None,
+    metavar: str | None = None,
+    required: bool = False,
 ):
     """A config field: its ``default``, the ``help`` its flag shows, the ``flag`` (default
     ``--name-with-dashes``; None: not on the command line), the ``check`` of its value on the
-    command line (positive, nonnegative, finite, seed), its ``choices``, the ``groups`` of
+    command line (positive, nonnegative, finite, seed, size), its ``choices``, the ``groups`` of
     commands that show it (empty: every command built from the config), and for a boolean whose
-    default is True, ``negate``: the flag that turns it off (e.g. ``--fixed-beta``)."""
+    default is True, ``negate``: the flag that turns it off (e.g. ``--fixed-beta``). ``const``:
+    the flag's value may be left out, meaning ``const`` (``--clean`` = ``--clean 0.01``);
+    ``metavar``: the value's name in the help; ``required``: the flag must be given."""
     meta = dict(help=help, flag=flag, check=check, choices=choices, groups=tuple(groups))
-    meta["negate"] = negate
+    meta.update(negate=negate, const=const, metavar=metavar, required=bool(required))
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -150,14 +167,18 @@ def add_flags(
         if m["choices"] is not None:
             kw["choices"] = list(m["choices"])
         else:  # the flag's name, as argparse shows a flag whose dest is its own
-            kw["metavar"] = flag_of(f)[2:].upper().replace("-", "_")
+            kw["metavar"] = m.get("metavar") or flag_of(f)[2:].upper().replace("-", "_")
+        if m.get("const") is not None:
+            kw.update(nargs="?", const=m["const"])
+        if m.get("required"):
+            kw["required"] = True
         if f.name in unset:
             kw["default"] = None
             if default is not None:
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         else:
             kw["default"] = default
-            if default is not None and "default" not in help_:
+            if default is not None and "default" not in help_ and not m.get("required"):
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         if f.name in notes:
             kw["help"] = f"{kw['help']}; {notes[f.name]}" if kw["help"] else notes[f.name]

@@ -3,7 +3,6 @@ shared flags and the SIGTERM guard."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import signal
 import threading
@@ -57,23 +56,13 @@ def _existing(path, what: str = "run folder") -> None:
 
 def _saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
-    from ..data._json import read_json
+    from ..jsonio import read_json
 
     try:
         saved = read_json(Path(run) / "config.json", "run config")
     except UserError:
         return {}
     return saved if isinstance(saved, dict) else {}
-
-
-def _size(text):
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WxH such as 400x400, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"width and height must be positive, got {text!r}")
-    return w, h
 
 
 def _data_format_flags(p) -> None:

@@ -7,35 +7,20 @@ import os
 import sys
 
 from ..errors import UserError, exit_status
-from ._common import (
-    _data_format_flags,
-    _finite,
-    _nonnegative,
-    _positive,
-    _sigterm_exits,
-    _size,
-)
+from ..fields.model import fields_with
+from ..options import add_flags
+from ._common import _data_format_flags, _positive, _sigterm_exits
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
+from .tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
 from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
 from .view import cmd_view, view_flags
 
 # the command line, and the helpers the tools in scripts/ may use
 __all__ = ["main", "build_parser", "split_command", "nerf_task_from_argv"]
 
-# the runs eval, render and export read (the NeRF runner: any --field), and the --device help of
-# the commands that read a run
+# the runs eval, render and export read (the NeRF runner: any --field)
 RADIANCE_RUNS = "train nerf or train volsdf"
-RUN_DEVICE = "cpu or cuda (default: the run's device)"
-
-
-def _mesh_cleaning_flags(p) -> None:
-    """--clean [MIN_FRACTION] (`mesh`, `eval --geometry`)."""
-    p.add_argument(
-        "--clean", type=_finite, nargs="?", const=0.01, default=None, metavar="MIN_FRACTION",
-        help="drop floating pieces: connected components with less than MIN_FRACTION of the "
-        "surface area (default 0.01; give it after RUN)",
-    )  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -85,79 +70,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
     e.add_argument("run", help=f"run folder of {RADIANCE_RUNS} (--geometry: an SDF field's, "
-                   "volsdf or hash_sdf)")  # fmt: skip
-    e.add_argument("--split", default="val", choices=["train", "val", "test"],
-                   help="the data split to score (default val)")  # fmt: skip
-    e.add_argument("--device", default=None, help=RUN_DEVICE)
-    e.add_argument("--max-images", type=_nonnegative, default=0, help="0 = all images of the split")
-    e.add_argument(
-        "--chunk", type=_positive(int), default=None, help="rays rendered at once (run's own)"
-    )
-    e.add_argument(
-        "--march-step", type=_positive(float), default=None,
-        help="grid runs: another marching step (default the run's)",
-    )  # fmt: skip
-    e.add_argument(
-        "--round-samples", type=_nonnegative, default=None,
-        help="grid runs: another sample-count rounding (0 = none; default the run's)",
-    )  # fmt: skip
-    e.add_argument("--half", action="store_true", help="grid runs on CUDA: float16 MLPs")
-    e.add_argument(
-        "--renderer", default="volume", choices=["volume", "sphere"], help="SDF runs: sphere "
-        "(trace the surface, colour at the hit; default folder RUN/eval_SPLIT_sphere) or volume",
-    )  # fmt: skip
-    e.add_argument("--out", default=None, help="output folder (default RUN/eval_SPLIT)")
-    e.add_argument(
-        "--geometry", default=None, metavar="REF", help="SDF runs: instead of images, the "
-        "surface's accuracy, completeness and Chamfer distance against REF: 'materials' (its "
-        "analytic shapes; also the rendered depth's error) or a point cloud (.npz / .ply)",
-    )  # fmt: skip
-    e.add_argument("--mesh-resolution", type=int, default=256, help="with --geometry")
-    e.add_argument("--geometry-points", type=int, default=50000, help="with --geometry")
-    e.add_argument(
-        "--geometry-views", type=_nonnegative, default=10, help="with --geometry materials: the "
-        "rendered depth's error against the analytic hits on this many val images (0 = all)",
-    )  # fmt: skip
-    _mesh_cleaning_flags(e)  # with --geometry: also the figures without floating pieces
+                   f"{', '.join(fields_with(geometry='sdf'))})")  # fmt: skip
+    add_flags(e, EvalConfig)
     e.set_defaults(func=cmd_eval)
 
     r = sub.add_parser("render", help="colour and depth videos of a trained run along a path")
     r.add_argument("run", help=f"run folder of {RADIANCE_RUNS}")
-    r.add_argument("--path", default="spiral", help="spiral, orbit, or a camera-path JSON "
-                   "file saved by `warpnerf view`")  # fmt: skip
-    r.add_argument("--frames", type=_positive(int), default=None,
-                   help="default 40 (a path file: its own frame count)")  # fmt: skip
-    r.add_argument("--size", type=_size, default=None, help="WxH (default: training size)")
-    r.add_argument("--device", default=None, help=RUN_DEVICE)
-    r.add_argument(
-        "--renderer", default="volume", choices=["volume", "sphere"],
-        help="SDF runs: sphere-trace the surface (into RUN/render_PATH_sphere) or volume",
-    )  # fmt: skip
+    add_flags(r, RenderConfig)
     r.set_defaults(func=cmd_render)
 
     m = sub.add_parser("mesh", help="marching cubes of an SDF scene or a trained run -> PLY + PNG")
     m.add_argument("run", nargs="?", help="run folder of train nerf (density level set), "
                    "volsdf or sdf (the SDF's zero level set); or give --sdf")  # fmt: skip
-    m.add_argument("--sdf", help="SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
-    m.add_argument("--resolution", type=int, default=256, help="grid nodes per axis")
-    m.add_argument("--level", type=_finite, default=None, help="0 for SDFs; density for runs (10)")
-    m.add_argument("--bounds", type=_positive(float), default=None, help="half-size of the cube")
-    m.add_argument("--out", required=True, help="mesh.ply (a PNG screenshot goes beside it)")
-    m.add_argument(
-        "--device", default=None,
-        help="where to evaluate and march (default: the run's device; cpu for --sdf)",
-    )  # fmt: skip
-    m.add_argument(
-        "--colors", action="store_true", help="runs: bake the radiance field's colour into the "
-        "vertices (seen along the normal, looking at the surface)",
-    )  # fmt: skip
-    _mesh_cleaning_flags(m)
-    m.add_argument(
-        "--decimate", type=_finite, default=None, metavar="R", help="quadric decimation "
-        "removing about R of the faces, 0 < R < 1 (after --clean, before --colors)",
-    )  # fmt: skip
-    m.add_argument("--no-screenshot", action="store_true",
-                   help="no PNG screenshot beside the .ply")  # fmt: skip
+    add_flags(m, MeshConfig)
     m.set_defaults(func=cmd_mesh)
 
     v = sub.add_parser("view", help="web viewer of any run on a local port (viser): renders, "
@@ -174,12 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
         "what", choices=["pointcloud", "cameras"], help="pointcloud: rendered surface points "
         "with colours and normals (PLY); cameras: the cameras as nerfstudio transforms.json",
     )  # fmt: skip
-    x.add_argument("--out", required=True, help="pointcloud: a .ply; cameras: a .json")
-    x.add_argument("--views", type=_nonnegative, default=0, help="pointcloud: training views "
-                   "used, spread evenly (0: all)")  # fmt: skip
-    x.add_argument("--stride", type=_positive(int), default=2, help="pointcloud: every Nth pixel")
-    x.add_argument("--min-opacity", type=_finite, default=0.5, help="pointcloud: rays kept")
-    x.add_argument("--device", default=None, help="pointcloud: " + RUN_DEVICE)
+    add_flags(x, ExportConfig)
     x.set_defaults(func=cmd_export)
 
     dp = sub.add_parser(

@@ -12,13 +12,30 @@ import numpy as np
 
 from ..errors import UserError
 from ..io import check_foreign, json_dumps, remove_own
-from ._common import _check_out, _device, _existing, _saved_config
+from ._common import _check_out, _device, _existing
+
+
+def _renders(run, command: str) -> None:
+    """UserError unless ``run``'s method renders through the NeRF pipeline (eval, render,
+    export); a path that is no run folder is left to the loader's own message."""
+    from ..train.methods import METHODS, method_of_run
+
+    if not Path(run).is_dir():
+        return
+    method = method_of_run(run)
+    if not method.renders:
+        takes = ", ".join(m.what for m in METHODS.values() if m.renders)
+        tools = [f"`warpnerf train {method.commands[0]} --resume`", "`warpnerf view`"]
+        tools += ["`warpnerf mesh`"] if method.mesh is not None else []
+        raise UserError(f"{run}: a {method.what} run; `warpnerf {command}` takes {takes} runs "
+                        f"(use {', '.join(tools)})")  # fmt: skip
 
 
 def cmd_eval(args) -> int:
     from ..train.nerf_eval import evaluate_geometry, evaluate_run
 
     _existing(args.run)
+    _renders(args.run, "eval")
     if args.geometry is not None:  # reads the run, writes nothing: prints the figures
         device = _device(args.device) if args.device else None
         _check_clean(args.clean)
@@ -54,6 +71,7 @@ def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
     _existing(args.run)
+    _renders(args.run, "render")
     if Path(args.run).is_dir():
         name = args.path if args.path in ("spiral", "orbit") else Path(args.path).stem
         sub = f"render_{name}" + ("_sphere" if args.renderer == "sphere" else "")
@@ -98,43 +116,18 @@ def _mesh_source(args) -> _MeshSource:
         level = args.level or 0.0
         return _MeshSource(lambda p: scene.sdf(p), [-b] * 3, [b] * 3, level, level,
                            f"sdf {args.sdf}", None, dev)  # fmt: skip
-    from ..train.nerf import load_run
-    from ..train.sdf import MODEL, load_sdf_run
+    from ..train.methods import method_of_run
 
     _existing(args.run)
-    run = Path(args.run)
-    if _saved_config(run).get("model") == MODEL:
-        cfg, model, ckpt = load_sdf_run(run, dev if args.device else None)
-        c, s = ckpt["normalisation"]["center"], ckpt["normalisation"]["scale"]
-        b = args.bounds or 1.0  # in the normalised frame; vertices are mapped back below
-        fn = lambda p: model(p.to(cfg.device))  # noqa: E731
-        back = lambda v: v / s + np.asarray(c)  # noqa: E731  (the point cloud's units)
-        level = args.level or 0.0
-        return _MeshSource(fn, [-b] * 3, [b] * 3, level, level, f"sdf run {run}", back, cfg.device)
-    cfg, model, _ = load_run(run, dev if args.device else None)
-    field = model.field
-    b = args.bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
-    back = None
-    if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units
-        from ..data.capture import normalised_to_world
-
-        ndc = cfg.ndc_camera()
-        back = lambda v: normalised_to_world(v, cfg.scene["transform"], ndc)  # noqa: E731
-    lo, hi = [-b] * 3, [b] * 3
-    if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
-        lo[2], hi[2] = -1.0, 0.99
-    if model.kind == "sdf":  # the SDF's zero level set
-        level = args.level or 0.0
-        return _MeshSource(lambda p: field.sdf(p.to(cfg.device)), lo, hi, level, level,
-                           f"{cfg.field} {run}", back, cfg.device, field)  # fmt: skip
-    level = 10.0 if args.level is None else args.level
-
-    def density(p):
-        return field.density(p)[0]
-
-    # marching cubes of -density at -level: inside (dense) is negative like an SDF
-    fn = lambda p: -density(p.to(cfg.device))  # noqa: E731
-    return _MeshSource(fn, lo, hi, -level, level, f"nerf {run}", back, cfg.device, field, True)
+    method = method_of_run(args.run)
+    if method.mesh is None:
+        raise UserError(f"{args.run}: a {method.what} run has no surface for `warpnerf mesh` "
+                        f"(it is {method.what}'s own analytic shape)")  # fmt: skip
+    opened = method.open_run(args.run, dev if args.device else None)
+    m = method.mesh(opened, args.bounds, args.level)
+    return _MeshSource(m["fn"], m["lower"], m["upper"], m["level"], m["shown_level"],
+                       f"{m['what']} {args.run}", m["back"], m["device"], m["field"],
+                       m["density"])  # fmt: skip
 
 
 def _check_clean(clean) -> None:
@@ -239,6 +232,7 @@ def cmd_export(args) -> int:
     from ..export import export_cameras, export_pointcloud
 
     _existing(args.run)
+    _renders(args.run, "export")
     _check_out(args.out, file=True)
     if args.what == "pointcloud":
         if not args.out.endswith(".ply"):

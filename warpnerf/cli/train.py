@@ -5,13 +5,13 @@ from __future__ import annotations
 import sys
 
 from ..errors import UserError
+from ..fields.model import field_traits, fields_with
 from ..io import json_dumps
 from ..options import CHECKS, add_flags, apply_preset, from_flags
 from ..train.box_fit import BoxFitConfig
 from ..train.nerf_config import (
     FINE_SAMPLES,
     GRID,
-    SDF_FIELDS,
     VOLSDF,
     NeRFConfig,
     VolSDFConfig,
@@ -164,15 +164,17 @@ def _silent(*args, **kw) -> None:
 def cmd_train_nerf(args) -> int:
     from ..train.nerf import train_nerf
 
-    if args.model == "volsdf" and args.field not in SDF_FIELDS:
+    sdf = fields_with(geometry="sdf")
+    if args.model == "volsdf" and field_traits(args.field).geometry != "sdf":
         raise UserError(
-            "train volsdf trains the volsdf or hash_sdf field; use train nerf for --field mlp|hash"
+            f"train volsdf trains an SDF field ({', '.join(sdf)}); use train nerf for --field "
+            f"{'|'.join(fields_with(geometry='density'))}"
         )
     _check_out(args.out)
     if args.resume:
         device = _resume_device(args)
         field = _saved_config(args.out).get("field", "volsdf")
-        if args.model == "volsdf" and field not in SDF_FIELDS:
+        if args.model == "volsdf" and field_traits(field).geometry != "sdf":
             raise UserError(
                 f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
                 f"`warpnerf train nerf --out {args.out} --resume --iters N`"

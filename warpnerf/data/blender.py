@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..jsonio import read_json
 from ._images import read_all, read_image
-from ._json import read_json
 from ._paths import OPT_IN, outside_reason
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format

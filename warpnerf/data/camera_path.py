@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ._json import read_json
+from ..jsonio import read_json
 from .cameras import check_poses
 
 __all__ = [
@@ -84,7 +84,7 @@ class CameraPath:
         being opened (:func:`~warpnerf.files.check_foreign`), so it cannot hang the save."""
         from ..files import check_foreign, read_regular
         from ..io import write_json
-        from ._json import MAX_JSON_BYTES
+        from ..jsonio import MAX_JSON_BYTES
 
         p = Path(path)
         if len(self.keyframes) == 0:

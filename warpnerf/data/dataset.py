@@ -229,23 +229,51 @@ class Format:
     """A dataset format: ``detect(root: Path, split) -> bool`` says whether a folder is of this
     format (None: only chosen by name); ``load(LoadRequest) -> Dataset`` loads one split;
     ``capture``: a posed photo capture (COLMAP, LLFF) whose scene settings (transform, near/far,
-    box, NDC) are read from the data (:func:`warpnerf.data.capture.capture_info`)."""
+    box, NDC) are read from the data (:func:`warpnerf.data.capture.capture_info`); ``folder``:
+    a format of data folders, one of ``--format``'s choices (the built-in scene is not)."""
 
     name: str
     load: Callable[[LoadRequest], Dataset]
     detect: Callable[[Path, str], bool] | None = None
     capture: bool = False
+    folder: bool = True
 
 
 REGISTRY: dict[str, Format] = {}
 
 
-def register_format(name: str, load, detect=None, capture: bool = False) -> Format:
+def register_format(name: str, load, detect=None, capture: bool = False,
+                    folder: bool = True) -> Format:  # fmt: skip
     """Adds a format to the registry (detection asks formats in registration order)."""
     if name in REGISTRY or name == "auto":
         raise ValueError(f"format {name!r} is already registered")
-    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture))
+    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture), bool(folder))
     return fmt
+
+
+class FormatChoices:
+    """``--format``'s choices, read from the registry whenever asked: "auto" and every
+    registered folder format in detection order (a format registered after import is one too).
+    A sequence of names: ``in``, iteration, ``len`` and indexing, as argparse and messages use
+    them."""
+
+    def names(self) -> tuple:
+        return ("auto",) + tuple(n for n, f in REGISTRY.items() if f.folder)
+
+    def __iter__(self):
+        return iter(self.names())
+
+    def __contains__(self, name) -> bool:
+        return name in self.names()
+
+    def __len__(self) -> int:
+        return len(self.names())
+
+    def __getitem__(self, i):
+        return self.names()[i]
+
+    def __repr__(self) -> str:
+        return repr(self.names())
 
 
 def is_capture(name: str) -> bool:

@@ -25,7 +25,7 @@ from ..errors import UserError
 from . import capture as _capture  # noqa: F401  (registers colmap, llff)
 from . import nerfstudio as _nerfstudio  # noqa: F401  (registers nerfstudio)
 from .blender import _read_json, check_folder, has_nerfstudio_fields
-from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, is_capture
+from .dataset import HOLDOUT, REGISTRY, Dataset, FormatChoices, LoadRequest, is_capture
 
 __all__ = ["load_dataset", "detect_format", "data_summary", "FORMATS"]
 
@@ -37,7 +37,7 @@ _FOLDER_FORMATS = ("blender", "nerfstudio", "colmap", "llff")
 for _name in _FOLDER_FORMATS:
     REGISTRY[_name] = REGISTRY.pop(_name)
 
-FORMATS = ("auto",) + _FOLDER_FORMATS  # --format choices
+FORMATS = FormatChoices()  # --format's choices: "auto" + the registered folder formats, live
 
 
 def detect_format(root, split: str = "train") -> str:

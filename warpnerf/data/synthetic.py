@@ -167,4 +167,4 @@ def _load_builtin(req: LoadRequest) -> Dataset:
     return dataclasses.replace(ds, images=images, c2w=ds.c2w[:n], intrinsics=ds.intrinsics[:n])
 
 
-register_format("builtin", _load_builtin, lambda root, _: str(root) == "builtin")
+register_format("builtin", _load_builtin, lambda root, _: str(root) == "builtin", folder=False)

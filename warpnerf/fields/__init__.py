@@ -2,7 +2,15 @@
 
 from .encoding import HashEncoding, PositionalEncoding, SphericalHarmonics
 from .hash_nerf import HashNeRFField
-from .model import FIELDS, RadianceModel, build_model, register_field
+from .model import (
+    FIELDS,
+    FieldTraits,
+    RadianceModel,
+    build_model,
+    field_traits,
+    fields_with,
+    register_field,
+)  # fmt: skip
 from .nerf import NeRFField
 from .sdf_volume import SDFVolume, laplace_cdf, sdf_box, sdf_sphere, sdf_torus
 
@@ -19,6 +27,9 @@ __all__ = [
     "HashNeRFField",
     "RadianceModel",
     "FIELDS",
+    "FieldTraits",
+    "field_traits",
+    "fields_with",
     "register_field",
     "build_model",
 ]

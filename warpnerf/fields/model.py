@@ -11,21 +11,29 @@ renderers of train/nerf.py take.
 
 Adding a field: write the module (one new file in ``warpnerf/fields/``), then one builder::
 
-    @register_field("myfield")
+    @register_field("myfield", FieldTraits(in_box=True, lr=1e-3))
     def _my_field(cfg):
         return RadianceModel(MyField(cfg.width).to(cfg.device))
 
-and ``--field myfield`` trains it (the config's choices come from this registry).
+and ``--field myfield`` trains it (the config's choices come from this registry). The field's
+:class:`FieldTraits` are what the rest of the library knows of it: whether it is a density or an
+SDF, whether it lives in the scene box, takes the hash flags or the occupancy grid, its
+learning-rate defaults. Code asks the traits (``field_traits(name)``, ``cfg.traits``), never the
+field's name.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import nn
 
-__all__ = ["RadianceModel", "FIELDS", "register_field", "build_model"]
+__all__ = [
+    "RadianceModel", "FIELDS", "FieldTraits", "register_field", "field_traits", "fields_with",
+    "build_model",
+]  # fmt: skip
 
 
 class RadianceModel(nn.Module):
@@ -114,20 +122,74 @@ class RadianceModel(nn.Module):
         return out
 
 
+@dataclass(frozen=True)
+class FieldTraits:
+    """What the library needs to know of a registered field, declared with it.
+
+    ``geometry``: "density" (a NeRF field: `train nerf`, depth supervision, pose refinement) or
+    "sdf" (VolSDF's family: `train volsdf`, beta and the eikonal term, meshes, sphere tracing).
+    ``in_box``: the field lives in the scene box [-aabb, aabb]^3 (an aabb is resolved for it).
+    ``hash``: on the hash encoding (the ``--hash-*`` flags and ``--hidden`` apply; Adam with
+    instant-ngp's eps 1e-15 for the sparse table updates). ``grid``: can march an occupancy
+    grid, on by default (``--grid-res`` 128). ``captures``: the capture features (contraction of
+    unbounded scenes, appearance codes, the distortion loss; on a COLMAP/LLFF capture the finest
+    hash level defaults to 1024). ``beta_schedule``: takes ``--beta-final``, ``--sdf-density``
+    and ``--color-direction``. ``lr``, ``lr_decay``: the default learning rate and its final
+    value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields). ``cpu_cost``:
+    the work per sample relative to the plain MLP or hash estimate (``--preset`` hints on a
+    CPU). ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds
+    the error to raise), or None."""
+
+    geometry: str = "density"
+    in_box: bool = False
+    hash: bool = False
+    grid: bool = False
+    captures: bool = False
+    beta_schedule: bool = False
+    lr: float = 5e-4
+    lr_decay: float = 10.0
+    eikonal_weight: float = 0.1
+    cpu_cost: float = 1.0
+    check: Callable | None = None
+
+    def __post_init__(self):
+        if self.geometry not in ("density", "sdf"):
+            raise ValueError(f"geometry must be 'density' or 'sdf', got {self.geometry!r}")
+        if self.captures and not self.grid:
+            raise ValueError("the capture features need the occupancy grid (grid=True)")
+
+
 # name -> builder(cfg) -> RadianceModel; cfg is a NeRFConfig (resolved by the builder if needed)
 FIELDS: dict[str, Callable] = {}
+FIELD_TRAITS: dict[str, FieldTraits] = {}
+_NO_TRAITS = FieldTraits()
 
 
-def register_field(name: str):
-    """Decorator: registers ``builder(cfg) -> RadianceModel`` under ``name`` (``--field name``)."""
+def register_field(name: str, traits: FieldTraits | None = None):
+    """Decorator: registers ``builder(cfg) -> RadianceModel`` under ``name`` (``--field name``)
+    with its :class:`FieldTraits` (default: a density field outside any box)."""
 
     def add(builder):
         if name in FIELDS:
             raise ValueError(f"field {name!r} is registered already")
         FIELDS[name] = builder
+        FIELD_TRAITS[name] = traits or _NO_TRAITS
         return builder
 
     return add
+
+
+def field_traits(name: str) -> FieldTraits:
+    """The traits of field ``name``; an unregistered name has the defaults (its config's
+    validation reports it)."""
+    return FIELD_TRAITS.get(name, _NO_TRAITS)
+
+
+def fields_with(**traits) -> tuple:
+    """The registered fields whose traits have these values, e.g. ``fields_with(geometry="sdf")``
+    (for messages and choices)."""
+    return tuple(n for n, t in FIELD_TRAITS.items()
+                 if all(getattr(t, k) == v for k, v in traits.items()))  # fmt: skip
 
 
 def build_model(cfg) -> RadianceModel:
@@ -147,7 +209,7 @@ def build_model(cfg) -> RadianceModel:
     return model.to(cfg.device)
 
 
-@register_field("mlp")
+@register_field("mlp")  # density, samples near..far: the default traits
 def _mlp(cfg) -> RadianceModel:
     """NeRF's MLP (positional encoding, skip connection); a second one for the fine pass."""
     from .nerf import NeRFField
@@ -183,7 +245,8 @@ def _on_grid(cfg, f, box) -> RadianceModel:
     return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
 
 
-@register_field("hash")
+@register_field("hash", FieldTraits(in_box=True, hash=True, grid=True, captures=True, lr=1e-2,
+                                    lr_decay=20.0))  # fmt: skip
 def _hash(cfg) -> RadianceModel:
     """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
     ``cfg.grid_res`` > 0 (then there is no fine pass)."""
@@ -203,7 +266,15 @@ def _hash(cfg) -> RadianceModel:
     return _on_grid(cfg, f, box)
 
 
-@register_field("volsdf")
+def _check_volsdf(cfg, fail) -> None:
+    d_in = 3 * (1 + 2 * cfg.pos_freqs)
+    if cfg.width <= d_in:
+        raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
+
+
+@register_field(
+    "volsdf", FieldTraits(geometry="sdf", in_box=True, cpu_cost=3.0, check=_check_volsdf)
+)  # (3: the eikonal double backward)
 def _volsdf(cfg) -> RadianceModel:
     """A neural SDF rendered through VolSDF's Laplace density; one network for both passes."""
     from .volsdf import VolSDFField
@@ -217,7 +288,10 @@ def _volsdf(cfg) -> RadianceModel:
     return RadianceModel(f, f if cfg.n_fine > 0 else None)
 
 
-@register_field("hash_sdf")
+@register_field("hash_sdf", FieldTraits(
+    geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
+    eikonal_weight=0.01, cpu_cost=2.3,  # (2.3: the SDF's central differences, measured)
+))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:
     """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
     from ..ops.encoding import HashGrid

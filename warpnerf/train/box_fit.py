@@ -95,14 +95,14 @@ class BoxFitConfig:
         unknown field names, values of the wrong type (``true`` is not a number), non-finite
         numbers and out-of-range values are a UserError naming ``where``, the field and the
         expected form."""
-        from ..data._json import check_fields
+        from ..jsonio import check_fields
 
         return cls(**check_fields(cls, d, where)).validate(where)
 
     def validate(self, where: str | None = None):
         """Range checks; ``where`` None: messages name the command-line flags, else the file
         ``where`` and the config field."""
-        from ..data._json import field_error
+        from ..jsonio import field_error
 
         for name in ("iters", "batch", "n_samples", "ckpt_every"):
             if getattr(self, name) < 1:
@@ -203,6 +203,8 @@ class BoxTask(Task):
     volume-rendered through the box's SDF, mean squared colour error; the side lengths are kept
     above 1e-3 after each step."""
 
+    method = MODEL  # its kind of run (train/methods.py)
+
     def __init__(self, images, c2w, intrinsics, cfg, volume, log_every=0):
         self.images, self.c2w, self.intrinsics, self.cfg = images, c2w, intrinsics, cfg
         self.flat = images.reshape(-1, 3)
@@ -246,7 +248,7 @@ class BoxTask(Task):
 def _read_config(run: Path, strict: bool = False):
     """config.json of a run folder as a dict; None when there is none, or (unless ``strict``:
     then a UserError naming the file) when it is unreadable, malformed or not a JSON object."""
-    from ..data._json import read_json
+    from ..jsonio import read_json
 
     path = run / "config.json"
     if not path.is_file():
@@ -264,7 +266,7 @@ def _read_config(run: Path, strict: bool = False):
 
 def load_box_run(run, device: str | None = None):
     """(cfg, data, device, checkpoint) of a box run folder; ``device`` overrides the saved one."""
-    from ..data._json import is_device, show
+    from ..jsonio import is_device, show
 
     run = Path(run)
     d = _read_config(run, strict=(run / CHECKPOINT).is_file())

@@ -18,7 +18,8 @@ from ..io import write_json
 from ..ops import random_pixels
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
-from .nerf_config import HASH_FIELDS, NeRFConfig, scene_settings
+from .nerf_config import MODEL as NERF_MODEL
+from .nerf_config import NeRFConfig, scene_settings
 from .nerf_run import (
     CHECKPOINT,
     dataset_rays,
@@ -65,7 +66,7 @@ def _optimizer(cfg, params, poses=None, capturable=False):
         rest = [p for p in params if id(p) not in own]
         scale = cfg.pose_lr / cfg.lr
         groups = [{"params": rest}, {"params": list(poses.parameters()), "lr_scale": scale}]
-    if cfg.field in HASH_FIELDS:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
+    if cfg.traits.hash:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
         return adam(groups, capturable, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     return adam(groups, capturable, lr=cfg.lr)
 
@@ -167,6 +168,8 @@ class NeRFTask(Task):
     """NeRF and VolSDF as a :class:`~warpnerf.train.loop.Task`: random ray batches across all
     training images, coarse/fine or occupancy-grid rendering, the photometric loss (plus the
     coarse pass's and VolSDF's eikonal term), validation PSNR."""
+
+    method = NERF_MODEL  # its kind of run (train/methods.py)
 
     history_keys = ("psnr", "val_step", "val_psnr")
     validation_keys = ("val_psnr",)

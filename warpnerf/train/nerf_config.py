@@ -14,19 +14,19 @@ from ..data.dataset import capture_formats, is_capture
 from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
+from ..fields.model import FieldTraits, field_traits, fields_with
 from ..options import option
 from .presets import PRESET_NAMES
 
-__all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings"]
+__all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL"]
 
 
 FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
 GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
-HASH_FIELDS = ("hash", "hash_sdf")  # fields on the hash encoding (lr, grid, hash flags)
-SDF_FIELDS = ("volsdf", "hash_sdf")  # fields whose geometry is an SDF (beta, eikonal, mesh)
-BOX_FIELDS = ("hash", "volsdf", "hash_sdf")  # fields living in the scene box
+DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MAX_DEPTH_RAYS = 1 << 20  # --depth-rays: observation rays a step, at most
+MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
 
 
@@ -239,6 +239,7 @@ class NeRFConfig:
     tf32: bool = option(False, "TF32 matrix products on CUDA (kernels stay float32)")
     seed: int = option(0, "random seed", check="seed")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
+    model: str = option(MODEL, flag=None)  # the kind of run (train/methods.py); older runs lack it
 
     def to_dict(self):
         return asdict(self)
@@ -250,10 +251,15 @@ class NeRFConfig:
         out-of-range values (the checks of :meth:`validate` that need no data or device, see
         :meth:`check_values`) are a UserError naming ``where`` (the file), the field and the
         expected form."""
-        from ..data._json import check_fields
+        from ..jsonio import check_fields
 
         cfg = cls(**check_fields(cls, d, where))
         return cfg.check_values(where)
+
+    @property
+    def traits(self) -> FieldTraits:
+        """The traits its field was registered with (fields/model.py)."""
+        return field_traits(self.field)
 
     def resolve(self, scene: dict | None = None):
         """Fills in the defaults that depend on the data and the field (near/far, lr, aabb, the
@@ -262,28 +268,30 @@ class NeRFConfig:
         files: the one explicit step that reads the data is ``train.nerf.resolve_data``."""
         if self.scene is None and scene is not None:
             self.scene = scene
+        traits = self.traits
         if self.lr is None:
-            self.lr = 1e-2 if self.field in HASH_FIELDS else 5e-4
+            self.lr = traits.lr
         if self.eikonal_weight is None:
-            self.eikonal_weight = 0.01 if self.field == "hash_sdf" else 0.1
+            self.eikonal_weight = traits.eikonal_weight
         if self.lr_final is None:
-            self.lr_final = self.lr / (20.0 if self.field in HASH_FIELDS else 10.0)
+            self.lr_final = self.lr / traits.lr_decay
         if self.grid_res is None:
-            self.grid_res = 128 if self.field in HASH_FIELDS else 0
+            self.grid_res = DEFAULT_GRID_RES if traits.grid else 0
+        captures = traits.captures and bool(self.grid_res)  # (the features need the grid)
         if self.contract == "auto":  # inward-facing captures (not NDC): unbounded
             cap = self.scene is not None and self.scene["ndc"] is None
-            self.contract = "on" if cap and self.field == "hash" and self.grid_res else "off"
+            self.contract = "on" if cap and captures else "off"
         capture = self.scene is not None  # a COLMAP/LLFF capture (photos, not renders)
         if self.appearance_dim is None:  # photos: exposure changes between them
-            self.appearance_dim = 16 if capture and self.field == "hash" and self.grid_res else 0
+            self.appearance_dim = 16 if capture and captures else 0
         if self.hash_max_res is None:  # (captures: less capacity to fit noise, measured)
-            self.hash_max_res = 1024 if capture and self.field == "hash" else 2048
+            self.hash_max_res = 1024 if capture and traits.captures else 2048
         contracted = self.contract == "on"
         if self.aabb <= 0 and contracted and self.scene is not None and "inner" in self.scene:
             self.aabb = self.scene["inner"]
         if self.aabb <= 0 and self.scene is not None:
             self.aabb = self.scene["aabb"]
-        if self.aabb <= 0 and self.field in BOX_FIELDS:
+        if self.aabb <= 0 and traits.in_box:
             if self.data == "builtin":
                 from ..data.synthetic import BOUND
 
@@ -316,7 +324,7 @@ class NeRFConfig:
         sizes, choices, ranges, the seed and a saved ``scene``. ``where`` None: messages name the
         command-line flags; else the file ``where`` and the config field."""
 
-        from ..data._json import field_error, is_device
+        from ..jsonio import field_error, is_device
 
         def fail(name: str, rule: str):
             return field_error(where, name, rule)
@@ -345,56 +353,61 @@ class NeRFConfig:
         for name, allowed in choices.items():
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
+        if self.model != MODEL:
+            raise fail("model", f"must be {MODEL!r} (a NeRF/VolSDF run), got {self.model!r}")
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
+        traits = self.traits
         if self.appearance_dim:
-            if self.field != "hash" or self.grid_res == 0:  # (None: the default grid)
-                raise fail("appearance_dim", "appearance codes need --field hash with an "
-                           f"occupancy grid (--grid-res > 0), not --field {self.field} "
+            if not traits.captures or self.grid_res == 0:  # (None: the default grid)
+                raise fail("appearance_dim", f"appearance codes need {_fields(captures=True)} "
+                           f"with an occupancy grid (--grid-res > 0), not --field {self.field} "
                            f"--grid-res {self.grid_res}")  # fmt: skip
             if self.appearance_dim > 256:
                 raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
         if not (math.isfinite(self.distortion_loss) and self.distortion_loss >= 0):
             raise fail("distortion_loss", f"must be finite and >= 0, got {self.distortion_loss}")
-        if self.distortion_loss and (self.field != "hash" or self.grid_res == 0):
-            raise fail("distortion_loss", "needs --field hash with an occupancy grid (--grid-res "
-                       f"> 0), not --field {self.field} --grid-res {self.grid_res}")  # fmt: skip
+        if self.distortion_loss and (not traits.captures or self.grid_res == 0):
+            raise fail(
+                "distortion_loss",
+                f"needs {_fields(captures=True)} with an occupancy grid "
+                f"(--grid-res > 0), not --field {self.field} --grid-res {self.grid_res}",
+            )
         if not (math.isfinite(self.depth_loss) and self.depth_loss >= 0):
             raise fail("depth_loss", f"must be finite and >= 0, got {self.depth_loss}")
         if not 1 <= self.depth_rays <= MAX_DEPTH_RAYS:
             raise fail("depth_rays", f"must be in [1, {MAX_DEPTH_RAYS}], got {self.depth_rays}")
-        if self.depth_loss and self.field not in ("hash", "mlp"):
-            raise fail("depth_loss", f"needs a NeRF field (--field hash or mlp), not "
+        if self.depth_loss and traits.geometry != "density":
+            raise fail("depth_loss", f"needs a NeRF field ({_fields(geometry='density')}), not "
                        f"--field {self.field}")  # fmt: skip
         if not 0 <= self.appearance_images <= 10**6:
             raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
         if not 0 <= self.pose_images <= 10**6:
             raise fail("pose_images", f"must be in [0, 10^6], got {self.pose_images}")
-        if self.pose_refine and self.field in SDF_FIELDS:  # (their positions carry no gradient)
-            raise fail("pose_refine", f"is for NeRF fields (--field hash or mlp), not --field "
-                       f"{self.field}")  # fmt: skip
-        if self.field in SDF_FIELDS:
+        if self.pose_refine and traits.geometry == "sdf":  # (their positions carry no gradient)
+            raise fail("pose_refine", f"is for NeRF fields ({_fields(geometry='density')}), not "
+                       f"--field {self.field}")  # fmt: skip
+        if traits.geometry == "sdf":
             if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
                 raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
                            f"beta {self.beta}")  # fmt: skip
             if self.beta_final > 0 and not self.beta_min <= self.beta_final <= self.beta:
                 raise fail("beta_final", f"must be in [beta_min, beta] = [{self.beta_min}, "
                            f"{self.beta}] (or 0: off), got {self.beta_final}")  # fmt: skip
-            if self.field != "hash_sdf" and (self.beta_final > 0 or self.sdf_density != "laplace"
+            if not traits.beta_schedule and (self.beta_final > 0 or self.sdf_density != "laplace"
                                              or self.color_direction != "view"):  # fmt: skip
                 raise fail("field", "--beta-final, --sdf-density and --color-direction need "
-                           "--field hash_sdf")  # fmt: skip
+                           f"{_fields(beta_schedule=True)}")  # fmt: skip
             if self.color_direction == "reflect" and not self.view_dependence:
                 raise fail("color_direction", "reflect needs view dependence")
             if self.beta_anneal_steps < 1:
                 raise fail("beta_anneal_steps", f"must be >= 1, got {self.beta_anneal_steps}")
-            d_in = 3 * (1 + 2 * self.pos_freqs)
-            if self.field == "volsdf" and self.width <= d_in:
-                raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
             ew = self.eikonal_weight
             if ew is not None and not (math.isfinite(ew) and ew >= 0):
                 raise fail("eikonal_weight", f"must be finite and >= 0, got {ew}")
-        if self.field in HASH_FIELDS:
+        if traits.check is not None:
+            traits.check(self, fail)
+        if traits.hash:
             from ..ops.encoding import HashGrid
 
             if self.hash_max_res is not None:  # (None: resolved from the data, checked then)
@@ -405,10 +418,8 @@ class NeRFConfig:
             if self.hidden < 1:
                 raise fail("hidden", f"must be >= 1, got {self.hidden}")
         if self.grid_res:
-            if self.field not in HASH_FIELDS:
-                raise fail(
-                    "grid_res", "needs --field hash or hash_sdf (set --grid-res 0 otherwise)"
-                )
+            if not traits.grid:
+                raise fail("grid_res", f"needs {_fields(grid=True)} (set --grid-res 0 otherwise)")
             if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
                 raise fail("grid_res", f"must be even, in [2, 1024], got {self.grid_res}")
             for name in ("grid_every", "max_samples"):
@@ -424,9 +435,9 @@ class NeRFConfig:
         if not (math.isfinite(self.march_cone) and 0 <= self.march_cone <= 1):
             raise fail("march_cone", f"must be in [0, 1], got {self.march_cone}")
         if self.contract == "on":
-            if self.field != "hash" or self.grid_res == 0:
-                raise fail("contract", "needs --field hash with an occupancy grid, not --field "
-                           f"{self.field} --grid-res {self.grid_res}")  # fmt: skip
+            if not traits.captures or self.grid_res == 0:
+                raise fail("contract", f"needs {_fields(captures=True)} with an occupancy grid, "
+                           f"not --field {self.field} --grid-res {self.grid_res}")  # fmt: skip
             if self.scene is not None and self.scene["ndc"] is not None:
                 raise fail("contract", "is for inward-facing captures: this one uses NDC rays "
                            "(pass --ndc off)")  # fmt: skip
@@ -502,9 +513,16 @@ class NeRFConfig:
             return [-a, -a, -1.0, a, a, 1.0]
         if self.contract == "on":  # the contracted cube
             return [-2 * a] * 3 + [2 * a] * 3
-        if self.field not in BOX_FIELDS:
+        if not self.traits.in_box:
             return None
         return [-a, -a, -a, a, a, a]
+
+
+def _fields(**traits) -> str:
+    """'--field a, b or c': the registered fields with these traits (for messages)."""
+    names = fields_with(**traits)
+    return "--field " + (", ".join(names[:-1]) + " or " + names[-1] if len(names) > 1
+                         else "".join(names))  # fmt: skip
 
 
 def scene_settings(cfg: NeRFConfig) -> dict | None:

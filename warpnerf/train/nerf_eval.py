@@ -62,11 +62,17 @@ def _depth_image(depth, opacity, scale):
 RENDERERS = ("volume", "sphere")  # eval / render --renderer: volume rendering, sphere tracing
 
 
+def _sdf_fields() -> str:
+    from ..fields.model import fields_with
+
+    return ", ".join(fields_with(geometry="sdf"))
+
+
 def _check_renderer(renderer: str, model, cfg) -> None:
     if renderer not in RENDERERS:
         raise UserError(f"--renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
     if renderer == "sphere" and model.kind != "sdf":
-        raise UserError(f"--renderer sphere needs an SDF run (volsdf, hash_sdf), not {cfg.field} "
+        raise UserError(f"--renderer sphere needs an SDF run ({_sdf_fields()}), not {cfg.field} "
                         "(a density field has no surface to trace)")  # fmt: skip
 
 
@@ -640,7 +646,7 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
         raise UserError(f"--clean MIN_FRACTION must be in [0, 1), got {clean}")
     cfg, model, _ = load_run(run, device, snapshot)
     if model.kind != "sdf":
-        raise UserError(f"{run}: --geometry needs an SDF run (volsdf, hash_sdf), not {cfg.field}")
+        raise UserError(f"{run}: --geometry needs an SDF run ({_sdf_fields()}), not {cfg.field}")
     analytic = reference == "materials"
     ref = materials_reference(points) if analytic else _load_reference(reference)
     a, field = cfg.aabb, model.field

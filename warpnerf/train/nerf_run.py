@@ -16,7 +16,7 @@ from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
 from ..io import load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
-from .nerf_config import NeRFConfig
+from .nerf_config import MODEL, NeRFConfig
 
 __all__ = [
     "load_run", "load_data", "images_stay_on_host", "with_refined_poses", "dataset_rays",
@@ -236,7 +236,7 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
         if not ckpt_path.is_file() or ckpt_path.is_symlink():
             raise UserError(f"{run}: no snapshot at {snapshot:g} s ({ckpt_path.name} is missing; "
                             "train with --snapshots to keep them)")  # fmt: skip
-    from ..data._json import read_json
+    from ..jsonio import read_json
 
     saved = read_json(cfg_path, "run config")  # size- and depth-bounded, one-line errors
     if not isinstance(saved, dict):
@@ -246,7 +246,7 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
         raise UserError(
             f"{run}: a neural-SDF run (use `warpnerf mesh` or `warpnerf train sdf --resume`)"
         )
-    if model is not None:
+    if model is not None and model != MODEL:
         raise UserError(
             f"{run}: a {model} run, not a NeRF run (config.json's model is {model!r}; "
             f"use `warpnerf train {model} --resume`)"

@@ -138,16 +138,14 @@ def step_seconds(cfg) -> float:
         samples = min(cfg.max_samples, steps / 2)
     else:
         samples = cfg.n_coarse + (cfg.n_coarse + cfg.n_fine if cfg.n_fine else 0)
-    if cfg.field in ("hash", "hash_sdf"):
+    if cfg.traits.hash:
         mlp = 6 * 4 * cfg.hidden**2  # the density and colour MLPs, about 4 layers of width hidden
         per_sample = mlp * SEC_PER_MLP_FLOP + cfg.hash_levels * SEC_PER_HASH_LOOKUP
-        if cfg.field == "hash_sdf":  # the SDF's gradient (central differences), measured
-            per_sample *= 2.3
     else:
         per_sample = 6 * cfg.n_layers * cfg.width**2 * SEC_PER_MLP_FLOP
-        if cfg.field == "volsdf":  # the eikonal term's double backward
-            per_sample *= 3
-    return cfg.batch * samples * per_sample
+    # the field's own factor: hash_sdf's central differences (2.3, measured), volsdf's eikonal
+    # double backward (3)
+    return cfg.batch * samples * per_sample * cfg.traits.cpu_cost
 
 
 def cpu_hint(cfg, command: str = "train nerf") -> str | None:

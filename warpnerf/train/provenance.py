@@ -207,8 +207,8 @@ def _session(device, step: int, iters: int, dist) -> dict:
 
 def _earlier_sessions(path: Path) -> list:
     """The sessions of an existing run.json (untrusted: anything malformed counts as none)."""
-    from ..data._json import read_json
     from ..errors import UserError
+    from ..jsonio import read_json
 
     if not path.is_file() or path.is_symlink():
         return []

@@ -117,14 +117,14 @@ class SDFConfig:
         the wrong type (``true`` is not a number), non-finite numbers, integers beyond +-2^31 and
         out-of-range values (:meth:`check_values`) are a UserError naming ``where`` (the file),
         the field and the expected form."""
-        from ..data._json import check_fields
+        from ..jsonio import check_fields
 
         return cls(**check_fields(cls, d, where)).check_values(where)
 
     def check_values(self, where: str | None = None):
         """The checks of :meth:`validate` that do not need the device; ``where`` None: messages
         name the command-line flags, else the file ``where`` and the config field."""
-        from ..data._json import field_error, is_device
+        from ..jsonio import field_error, is_device
 
         if self.preset not in PRESET_NAMES:
             raise field_error(where, "preset", f"must be one of {', '.join(PRESET_NAMES)}, got "
@@ -292,7 +292,7 @@ def nearest_distance(x: torch.Tensor, points: torch.Tensor, chunk: int = 4096) -
 
 def load_sdf_run(run, device=None):
     """(cfg, model, checkpoint) of a neural-SDF run folder."""
-    from ..data._json import read_json
+    from ..jsonio import read_json
 
     run = Path(run)
     if not (run / "config.json").exists():
@@ -402,6 +402,8 @@ class SDFTask(Task):
     """A neural SDF fitted to points as a :class:`~warpnerf.train.loop.Task`: each step draws
     surface points, uniform box points and points near the surface, and minimises
     :func:`sdf_loss`."""
+
+    method = MODEL  # its kind of run (train/methods.py)
 
     history_keys = ("surface", "eikonal")
 

@@ -22,20 +22,15 @@ __all__ = ["LiveViewer"]
 
 
 def scene_of_task(task, title: str = ""):
-    """The :class:`~warpnerf.viewer.scene.RunScene` of a training task's live model: a box fit
-    (its volume and cameras), a neural SDF fitted to points, or a NeRF/VolSDF task."""
-    from types import SimpleNamespace
+    """The :class:`~warpnerf.viewer.scene.RunScene` of a training task's live model (its
+    method's ``open_task``: a NeRF/VolSDF task, a neural SDF fitted to points, a box fit)."""
+    from ..train.methods import method_of_task
+    from .scene import scene_of
 
-    from .scene import RunScene
-
-    if hasattr(task, "volume"):  # the box fit
-        n, h, w = task.images.shape[:3]
-        cams = SimpleNamespace(c2w=task.c2w, intrinsics=task.intrinsics, width=w, height=h,
-                               images=task.images)  # fmt: skip
-        return RunScene.of_box(task.volume, task.cfg, cams, title=title)
-    if hasattr(task, "pts"):  # a neural SDF fitted to points
-        return RunScene.of_point_sdf(task.model, task.cfg, title=title)
-    return RunScene.of_radiance(task.model, task.cfg, getattr(task, "train", None), title=title)
+    method = method_of_task(task)
+    opened = method.open_task(task)
+    opened.title = title
+    return scene_of(method, opened)
 
 
 def training_text(step: int, history: dict) -> str:

@@ -26,7 +26,6 @@ how many rays a frame can have to render in a given time.
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import math
 import threading
@@ -40,7 +39,7 @@ from ..data.camera_path import window_rule
 from ..errors import UserError
 from ..io import to_uint8
 
-__all__ = ["RunScene", "load_scene", "RADIANCE_MODES", "SDF_MODES", "POINT_SDF_MODES"]
+__all__ = ["RunScene", "load_scene", "scene_of", "RADIANCE_MODES", "SDF_MODES", "POINT_SDF_MODES"]
 
 RADIANCE_MODES = ("rgb", "depth", "opacity")
 SDF_MODES = ("rgb", "depth", "normals", "opacity")
@@ -364,66 +363,31 @@ def _up_of(c2w) -> tuple:
     return tuple((u / n).tolist()) if n > 1e-6 else (0.0, 0.0, 1.0)
 
 
+def scene_of(method, opened) -> RunScene:
+    """The :class:`RunScene` of a run or a training task opened by its method
+    (:mod:`warpnerf.train.methods`): ``method.view`` picks the renderer."""
+    o = opened
+    if method.view == "radiance":
+        scene = RunScene.of_radiance(o.model, o.cfg, o.cameras, title=o.title)
+        if o.reload is not None:
+            scene.reload = lambda: o.reload(scene.lock)
+        return scene
+    if method.view == "point_sdf":
+        return RunScene.of_point_sdf(o.model, o.cfg, title=o.title)
+    return RunScene.of_box(o.model, o.cfg, o.cameras, title=o.title)
+
+
 def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunScene:
     """The :class:`RunScene` of a run folder: a ``train nerf``/``train volsdf`` run (its
     training cameras too) or a ``train sdf`` run. ``mesh``: a PLY to show (default RUN/mesh.ply
     when it exists)."""
-    from ..data._json import read_json
+    from ..train.methods import method_of_run
 
-    run = Path(run)
-    if not run.is_dir():
-        raise UserError(f"{run}: no such run folder")
-    cfg_path = run / "config.json"
-    if not cfg_path.is_file():
-        raise UserError(f"{run}: not a training run (no config.json)")
-    saved = read_json(cfg_path, "run config")
-    kind = saved.get("model") if isinstance(saved, dict) else None
-    if kind == "neural_sdf":
-        from ..train.sdf import load_sdf_run
-
-        cfg, model, _ = load_sdf_run(run, device)
-        model.eval()
-        scene = RunScene.of_point_sdf(model, cfg, title=f"{run.name}: neural SDF ({cfg.field})")
-    elif kind is None:
-        from ..train.nerf import load_data, load_run, with_refined_poses
-
-        cfg, model, _ = load_run(run, device)
-        train = None
-        with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
-            train = with_refined_poses(model, load_data(cfg, "train"), "train")
-        scene = RunScene.of_radiance(model, cfg, train, title=f"{run.name}: {cfg.field}")
-
-        def reload() -> int:
-            """Loads the run's latest checkpoint into the shown model (a training in another
-            process keeps writing it); returns its step."""
-            _, fresh, ck = load_run(run, device)
-            with scene.lock:
-                for k, part in model.parts().items():
-                    if part is not None:
-                        part.load_state_dict(fresh.parts()[k].state_dict())
-            return int(ck["step"])
-
-        scene.reload = reload
-    elif kind == "box":
-        from ..data.blender import load_blender
-        from ..fields.sdf_volume import SDFVolume
-        from ..io import load_weights
-        from ..train.box_fit import load_box_run
-
-        cfg, data, dev, ckpt = load_box_run(run, device)
-        volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
-        load_weights(volume, ckpt["volume"], run / "checkpoint.pt", "box parameters")
-        train = None
-        with contextlib.suppress(UserError):  # the cameras are an overlay
-            train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
-                                 allow_outside=cfg.allow_outside_paths)  # fmt: skip
-        scene = RunScene.of_box(volume, cfg, train, title=f"{run.name}: box fit")
-    else:
-        raise UserError(f"{run}: config.json's model {kind!r} is not one the viewer knows "
-                        "(train nerf, volsdf, sdf or box runs)")  # fmt: skip
+    method = method_of_run(run)  # (UserError: not a run folder, a kind of run no one knows)
+    scene = scene_of(method, method.open_run(run, device))
     if mesh is not None:
         if not scene.load_mesh(mesh):
             raise UserError(f"{mesh}: no such mesh file")
     else:
-        scene.load_mesh(run / "mesh.ply")
+        scene.load_mesh(Path(run) / "mesh.ply")
     return scene

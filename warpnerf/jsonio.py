@@ -15,7 +15,7 @@ import reprlib
 import typing
 from pathlib import Path
 
-from ..errors import UserError
+from .errors import UserError
 
 __all__ = ["read_json", "check_fields", "field_error", "is_device", "show", "MAX_JSON_BYTES",
            "MAX_INT"]  # fmt: skip
