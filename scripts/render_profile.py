@@ -1,4 +1,5 @@
-"""Render time of one val image of a grid run against --round-samples and chunking (GPU).
+"""Render time of one val image of a grid run against --round-samples and chunking (GPU; on the
+CPU for a smoke test).
 
 python3 scripts/render_profile.py RUN [--rounds 0,8,16,32,64]
 """
@@ -33,16 +34,17 @@ def main():
         return orig(*x, **k)
 
     R.render_packed = counting
+    sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     for rs in [int(x) for x in a.rounds.split(",")]:
         cfg.round_samples = rs
         times = []
         with torch.no_grad():
             for _ in range(6):
                 counts["rounds"] = 0
-                torch.cuda.synchronize()
+                sync()
                 t0 = time.perf_counter()
                 out = render_rays_of(model, cfg, o, d, chunk=1 << 20)
-                torch.cuda.synchronize()
+                sync()
                 times.append(1e3 * (time.perf_counter() - t0))
         psnr = -10 * math.log10(float(((out["rgb"] - gt) ** 2).mean()))
         print(json.dumps({"round_samples": rs, "ms": sorted(times)[len(times) // 2],

@@ -1,0 +1,118 @@
+"""A smoke test of each kept tool in scripts/ (scripts/README.md): each runs as a process on the
+CPU with the smallest inputs that reach its end (a tiny run of the built-in scene, a few steps)
+and leaves the output it promises. GPU-only tools (CUDA memory, CUDA sync debugging, several
+GPUs) are checked to start (``--help``) and, where they have one, through their CPU part.
+They are `slow` (subprocesses that import torch and Warp): the quick subset leaves them out."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = ROOT / "scripts"
+pytestmark = pytest.mark.slow
+
+# a tiny `train nerf` of the built-in scene: hash field with an 8^3 grid, a few steps
+TINY = ["--data", "builtin", "--field", "hash", "--builtin-size", "12", "--batch", "64",
+        "--hash-levels", "2", "--hash-log2-size", "10", "--hash-max-res", "16", "--hidden", "8",
+        "--grid-res", "8", "--val-images", "1", "--quiet", "--no-tensorboard"]  # fmt: skip
+
+
+def _run(args, cwd, timeout=600) -> str:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
+    p = subprocess.run([sys.executable, *map(str, args)], cwd=cwd, env=env, capture_output=True,
+                       text=True, timeout=timeout)  # fmt: skip
+    assert p.returncode == 0, f"{args[0]}:\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}"
+    assert "Traceback" not in p.stderr, p.stderr[-3000:]
+    return p.stdout
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A tiny NeRF run with snapshots (the run folder the tools on runs read)."""
+    d = tmp_path_factory.mktemp("run")
+    _run(["-m", "warpnerf.cli", "train", "nerf", *TINY, "--iters", "6", "--snapshots", "0.01",
+          "--out", d / "r"], d)  # fmt: skip
+    return d / "r"
+
+
+@pytest.mark.parametrize("script", ["dp_scaling.py", "images_memory.py", "sync_sites.py",
+                                    "dp_profile.py", "materials_geometry.py"])  # fmt: skip
+def test_gpu_tools_start(script, tmp_path):
+    assert "usage" in _run([SCRIPTS / script, "--help"], tmp_path).lower()
+
+
+def test_exp_bias_on_the_cpu(tmp_path):
+    assert "cpu" in _run([SCRIPTS / "exp_bias.py"], tmp_path).lower()
+
+
+def test_bounds_and_checkpoint_costs(tmp_path):
+    _run([SCRIPTS / "bounds_overhead.py", "--device", "cpu", "--quick", "--json", "b.json"],
+         tmp_path)  # fmt: skip
+    assert json.loads((tmp_path / "b.json").read_text())
+    out = _run([SCRIPTS / "checkpoint_cost.py", "--params", "1000", "--repeats", "1", "--dir",
+                tmp_path], tmp_path)  # fmt: skip
+    assert out.strip()
+
+
+def test_numerics_report(tmp_path):
+    _run([SCRIPTS / "numerics_report.py", "--sizes", "4", "--budget", "64", "--json", "n.json"],
+         tmp_path)  # fmt: skip
+    assert json.loads((tmp_path / "n.json").read_text())
+
+
+def test_contact_sheet_and_curves(tmp_path, run):
+    import imageio.v3 as iio
+
+    for i in range(3):
+        iio.imwrite(tmp_path / f"f{i}.png", np.full((8, 12, 3), 40 * i, np.uint8))
+    _run([SCRIPTS / "contact_sheet.py", "sheet.png", "f0.png", "f1.png", "f2.png", "--cols", "2",
+          "--every", "1"], tmp_path)  # fmt: skip
+    assert iio.imread(tmp_path / "sheet.png").shape[:2] == (16, 24)
+    _run([SCRIPTS / "plot_nerf_curves.py", f"{run / 'history.json'}:tiny", "--out", "c.png"],
+         tmp_path)  # fmt: skip
+    assert (tmp_path / "c.png").is_file()
+
+
+def test_step_profile(tmp_path):
+    _run([SCRIPTS / "profile_train_step.py", "--warm", "1", "--steps", "2", "--cprofile", "0",
+          "--json", "p.json", "--", "train", "nerf", *TINY, "--out", "x"], tmp_path)  # fmt: skip
+    assert json.loads((tmp_path / "p.json").read_text())["step_ms_median"] > 0
+
+
+def test_tools_on_a_run(tmp_path, run):
+    _run([SCRIPTS / "render_profile.py", run, "--rounds", "0,4"], tmp_path)
+    _run([SCRIPTS / "speed_vs_error.py", "sweep", run, "s.json", "--images", "1", "--divisors",
+          "64,128"], tmp_path)  # fmt: skip
+    _run([SCRIPTS / "speed_vs_error.py", "plot", "s.json", "--png", "s.png"], tmp_path)
+    assert (tmp_path / "s.png").is_file()
+    _run([SCRIPTS / "time_to_quality.py", "eval", run, "t.json", "--images", "1"], tmp_path)
+    _run([SCRIPTS / "time_to_quality.py", "plot", "t.json", "--png", "t.png"], tmp_path)
+    assert json.loads((tmp_path / "t.json").read_text()) and (tmp_path / "t.png").is_file()
+
+
+def test_studies_that_train(tmp_path):
+    """The tools that train several runs themselves, at three steps each."""
+    _run([SCRIPTS / "distortion_effect.py", "--weights", "0,0.01", "--json", "d.json", "--",
+          "train", "nerf", *TINY, "--iters", "3"], tmp_path)  # fmt: skip
+    assert len(json.loads((tmp_path / "d.json").read_text())) >= 2
+    _run([SCRIPTS / "pose_refine_effect.py", "--iters", "3", "--json", "p.json", "--", "train",
+          "nerf", *TINY], tmp_path)  # fmt: skip
+    assert json.loads((tmp_path / "p.json").read_text())
+    _run([SCRIPTS / "watch_overhead.py", "--repeats", "1", "--", *TINY, "--iters", "3"], tmp_path)
+
+
+def test_surface_renderers_on_an_sdf_run(tmp_path):
+    flags = ["hash_sdf" if a == "hash" else a for a in TINY]
+    _run(["-m", "warpnerf.cli", "train", "volsdf", *flags, "--iters", "3", "--out", "v"],
+         tmp_path)  # fmt: skip
+    out = _run([SCRIPTS / "surface_renderers.py", "v", "--images", "1", "--repeats", "1"],
+               tmp_path)  # fmt: skip
+    assert json.loads(out.strip().splitlines()[-1])
