@@ -5,6 +5,7 @@ training through the unchanged pipeline."""
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 
 import pytest
 import torch
@@ -22,6 +23,7 @@ from warpnerf.fields import (
 )  # fmt: skip
 from warpnerf.fields.model import FIELD_TRAITS
 from warpnerf.fields.nerf import NeRFField
+from warpnerf.options import option
 from warpnerf.train import evaluate_run, train_nerf
 from warpnerf.train.nerf import load_run
 from warpnerf.train.nerf_config import NeRFConfig
@@ -131,6 +133,87 @@ def test_a_new_field_is_one_module_and_one_registry_entry(tmp_path):
     finally:
         FIELDS.pop("blob", None)
         FIELD_TRAITS.pop("blob", None)
+
+
+@dataclass
+class BallOptions:
+    """The toy field's own settings: registered with it, flags on `train nerf`."""
+
+    ball_radius: float = option(0.6, "the toy ball's initial radius", check="positive")
+    ball_density: float = option(20.0, "the toy ball's density scale", check="positive")
+
+
+class _Ball(_Blob):
+    def __init__(self, radius, scale):
+        super().__init__()
+        self.radius.data.fill_(radius)
+        self.scale = scale
+
+    def density(self, x):
+        s, h = super().density(x)
+        return s * (self.scale / 20), h
+
+
+def test_a_new_field_brings_its_own_flags(tmp_path, capsys):
+    """A new field is one module and one registry entry with its traits and options: `train
+    nerf` takes its flags (in --help, refused with another field), the run saves them, and
+    eval, render, mesh and view accept the run."""
+    from warpnerf.cli import main
+    from warpnerf.viewer import load_scene
+
+    @register_field("ball", FieldTraits(options=BallOptions))
+    def _ball(cfg):
+        o = cfg.field_settings()
+        return RadianceModel(_Ball(o.ball_radius, o.ball_density))
+
+    run = tmp_path / "r"
+    base = [
+        "train",
+        "nerf",
+        "--data",
+        "builtin",
+        "--builtin-size",
+        "12",
+        "--iters",
+        "3",
+        "--batch",
+        "32",
+        "--samples",
+        "8",
+        "--val-images",
+        "1",
+        "--quiet",
+        "--no-tensorboard",
+    ]
+    try:
+        with pytest.raises(SystemExit):
+            main(["train", "nerf", "--help"])
+        help_ = capsys.readouterr().out
+        assert "--ball-radius" in help_ and "initial radius" in help_ and "--field ball" in help_
+        assert main([*base, "--field", "mlp", "--ball-radius", "0.3", "--out", str(run)]) == 2
+        assert "--ball-radius: options of another field" in capsys.readouterr().err
+        assert not run.exists()
+        assert main([*base, "--field", "ball", "--ball-radius", "0.3", "--out", str(run)]) == 0
+        saved = json.loads((run / "config.json").read_text())
+        assert saved["field_options"] == {"ball_radius": 0.3} and saved["model"] == "nerf"
+        cfg, m, _ = load_run(run)
+        assert cfg.field_settings() == BallOptions(ball_radius=0.3)
+        assert isinstance(m.coarse, _Ball)
+        capsys.readouterr()
+        assert main(["eval", str(run), "--max-images", "1"]) == 0
+        assert main(["render", str(run), "--frames", "1", "--size", "8x8"]) == 0
+        assert main(["mesh", str(run), "--resolution", "12", "--level", "7", "--out",
+                     str(tmp_path / "m.ply"), "--no-screenshot"]) == 0  # fmt: skip
+        assert load_scene(run).title.endswith("ball")
+        assert main(["train", "nerf", "--out", str(run), "--resume", "--iters", "4",
+                     "--quiet"]) == 0  # fmt: skip
+        bad = dict(saved, field_options={"ball_radius": "big"})  # a saved config is untrusted
+        (run / "config.json").write_text(json.dumps(bad))
+        with pytest.raises(UserError, match="field_options of --field ball"):
+            load_run(run)
+    finally:
+        FIELDS.pop("ball", None)
+        FIELD_TRAITS.pop("ball", None)
 
 
 def test_the_builtin_fields_traits():

@@ -99,16 +99,40 @@ def test_old_sdf_and_box_runs_show_mesh_and_resume(runs, capsys):
 
 
 def test_a_new_kind_of_run_is_one_registry_entry(runs, capsys):
-    """A toy method: a run folder whose config.json names it is opened by its own loader for
-    the viewer (here as a box: the fixture's volume), and its live task is found by the task's
-    class attribute."""
+    """A toy method in one registry entry: `train toy` exists with its config's flags, a run
+    folder whose config.json names it is opened by its own loader for the viewer (here as a
+    box: the fixture's volume), its live task is found by the task's class attribute, and the
+    NeRF tools refuse it by name."""
+    from dataclasses import asdict, dataclass
+
+    from warpnerf.options import option
     from warpnerf.viewer import load_scene
+
+    @dataclass
+    class ToyConfig:
+        iters: int = option(3, "toy steps", check="positive")
+        size: float = option(1.0, "the toy's size", check="positive")
+
+    def train_toy(cfg, out, resume=False, progress=True):
+        Path(out).mkdir(exist_ok=True)
+        (Path(out) / "config.json").write_text(json.dumps({"model": "toy", **asdict(cfg)}))
+        return {"steps": cfg.iters, "resume": resume}
 
     box = METHODS["box"]
     toy = register_method(Method("toy", ("toy",), "toy fit", "box",
                                  open_run=lambda run, device=None: box.open_run(runs / "box"),
-                                 open_task=lambda task: Opened(None, task.volume)))  # fmt: skip
+                                 open_task=lambda task: Opened(None, task.volume),
+                                 config=ToyConfig, train=train_toy))  # fmt: skip
     try:
+        # `train toy` exists with the config's flags
+        capsys.readouterr()
+        assert main(["train", "toy", "--out", "t", "--iters", "5", "--size", "2", "--quiet"]) == 0
+        assert json.loads(capsys.readouterr().out) == {"steps": 5, "resume": False}
+        assert _config(runs / "t") == {"model": "toy", "iters": 5, "size": 2.0}
+        assert method_of_run(runs / "t") is toy
+        with pytest.raises(SystemExit):
+            main(["train", "toy", "--help"])
+        assert "the toy's size" in capsys.readouterr().out
         shutil.copytree(runs / "box", runs / "toy")
         cfg = _config(runs / "toy")
         (runs / "toy" / "config.json").write_text(json.dumps({**cfg, "model": "toy"}))

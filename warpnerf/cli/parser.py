@@ -13,7 +13,15 @@ from ._common import _data_format_flags, _positive, _sigterm_exits
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
-from .train import _box_flags, _nerf_flags, _sdf_flags, cmd_train_box, cmd_train_nerf, cmd_train_sdf
+from .train import (
+    _box_flags,
+    _nerf_flags,
+    _sdf_flags,
+    cmd_train_box,
+    cmd_train_method,
+    cmd_train_nerf,
+    cmd_train_sdf,
+)  # fmt: skip
 from .view import cmd_view, view_flags
 
 # the command line, and the helpers the tools in scripts/ may use
@@ -21,6 +29,27 @@ __all__ = ["main", "build_parser", "split_command", "nerf_task_from_argv"]
 
 # the runs eval, render and export read (the NeRF runner: any --field)
 RADIANCE_RUNS = "train nerf or train volsdf"
+
+
+def _registered_train_commands(tsub) -> None:
+    """`train <command>` of every registered method with a config and a trainer (methods
+    added after the built-in ones): the config's flags, --out, --resume, --quiet."""
+    from ..train.methods import METHODS
+
+    taken = set(tsub.choices)
+    for method in METHODS.values():
+        if method.config is None or method.train is None:
+            continue
+        for command in method.commands:
+            if command in taken:
+                continue
+            taken.add(command)
+            tm = tsub.add_parser(command, help=method.help or f"train a {method.what}")
+            add_flags(tm, method.config)
+            tm.add_argument("--out", required=True, help="run folder")
+            tm.add_argument("--resume", action="store_true", help="continue the run in --out")
+            tm.add_argument("--quiet", action="store_true", help="no progress bar")
+            tm.set_defaults(func=cmd_train_method, method=method, subparser=tm)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
     _sdf_flags(ts)
     ts.set_defaults(func=cmd_train_sdf, subparser=ts)
+    _registered_train_commands(tsub)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
     e.add_argument("run", help=f"run folder of {RADIANCE_RUNS} (--geometry: an SDF field's, "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 from ..errors import UserError
@@ -36,6 +37,17 @@ from .view import live_hooks, tensorboard_every, watch_flags
 __all__ = ["nerf_config_from_args"]  # (the helpers scripts/ may use)
 
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
+
+
+def cmd_train_method(args) -> int:
+    """`train <command>` of a registered method (train/methods.py) with a config and a
+    trainer: the config from its flags, the method's trainer, its result printed as JSON."""
+    method = args.method
+    _check_out(args.out)
+    cfg = method.config(**from_flags(method.config, args))
+    res = method.train(cfg, args.out, resume=args.resume, progress=not args.quiet)
+    print(json_dumps(res))
+    return 0
 
 
 def cmd_train_box(args) -> int:
@@ -131,7 +143,27 @@ def nerf_config_from_args(args):
     kw = apply_preset(kw, preset_values(NERF_PRESETS, kw["preset"], kw["field"]))
     kw["n_fine"] = (kw["n_fine"] or FINE_SAMPLES) if args.coarse_fine else 0
     kw["device"] = _device(args.device or cls.device)
+    opts = field_traits(kw["field"]).options  # the chosen field's own flags
+    if opts is not None:
+        kw["field_options"] = from_flags(opts, args)
+    given = [
+        n
+        for t in _field_option_classes()
+        if t is not opts
+        for n in (f.name for f in dataclasses.fields(t))
+        if getattr(args, n, None) is not None
+    ]
+    if given:
+        flags = ", ".join("--" + n.replace("_", "-") for n in given)
+        raise UserError(f"{flags}: options of another field, not of --field {kw['field']}")
     return cls(**kw)
+
+
+def _field_option_classes() -> list:
+    """The ``options`` classes of the registered fields (each field's own flags)."""
+    from ..fields.model import FIELD_TRAITS
+
+    return list(dict.fromkeys(t.options for t in FIELD_TRAITS.values() if t.options))
 
 
 class _CpuNote:
@@ -289,3 +321,9 @@ def _nerf_flags(tn, model: str) -> None:
     unset = ("iters", "device", *_NERF_PRESET)
     add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=unset,
               notes=preset_help(NERF_PRESETS))  # fmt: skip
+    from ..fields.model import FIELD_TRAITS
+
+    for opts in _field_option_classes():  # each registered field's own flags ("not given": None)
+        fields = [n for n, t in FIELD_TRAITS.items() if t.options is opts]
+        group = tn.add_argument_group(f"--field {' or '.join(fields)}")
+        add_flags(group, opts, unset=[f.name for f in dataclasses.fields(opts)])

@@ -138,7 +138,10 @@ class FieldTraits:
     value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields). ``cpu_cost``:
     the work per sample relative to the plain MLP or hash estimate (``--preset`` hints on a
     CPU). ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds
-    the error to raise), or None."""
+    the error to raise), or None. ``options``: the field's own settings, a dataclass declared
+    with :func:`~warpnerf.options.option`: their flags are on `train nerf|volsdf` (for this
+    field only), the run saves them in its config's ``field_options`` and the builder reads them
+    as ``cfg.field_settings()``."""
 
     geometry: str = "density"
     in_box: bool = False
@@ -151,6 +154,7 @@ class FieldTraits:
     eikonal_weight: float = 0.1
     cpu_cost: float = 1.0
     check: Callable | None = None
+    options: type | None = None
 
     def __post_init__(self):
         if self.geometry not in ("density", "sdf"):

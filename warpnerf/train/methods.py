@@ -6,10 +6,14 @@ the registry has no ``model`` key: it is a NeRF run). The tools that take a run 
 (``view``, ``mesh``, ``eval``, ``render``, ``export``) and the live viewer ask the registry
 (:func:`method_of_run`, :func:`method_of_task`), never the run's keys or the task's attributes.
 
-Adding a kind of run: its module (config, task, loader), then one entry::
+Adding a kind of run: its module (config, task, loader, trainer), then one entry::
 
     register_method(Method("mymethod", ("mymethod",), "my method", "radiance",
-                           open_run=open_my_run, open_task=open_my_task))
+                           open_run=open_my_run, open_task=open_my_task,
+                           config=MyConfig, train=train_my_method))
+
+and `warpnerf train mymethod` exists with MyConfig's flags (the four built-in commands keep
+their own, richer front ends in cli/train.py: presets, resume checks, data parallel).
 
 ``view`` picks how the viewer shows it: "radiance" (a :class:`~warpnerf.fields.model.
 RadianceModel` with a NeRFConfig: volume rendering), "point_sdf" (an SDF network in [-1, 1]^3,
@@ -55,7 +59,11 @@ class Method:
     ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
     and upper corners, the marched level and the level asked for, back: vertices -> the data's
-    units or None, field for --colors or None, density: fn is minus a density)."""
+    units or None, field for --colors or None, density: fn is minus a density). A method added
+    after the built-in ones gives ``config`` (a dataclass declared with
+    :func:`~warpnerf.options.option`) and ``train(cfg, out, resume, progress) -> result``
+    (JSON-able): `warpnerf train <command>` then exists with the config's flags, ``--out``,
+    ``--resume`` and ``--quiet`` (``help``: its line in `warpnerf train --help`)."""
 
     name: str
     commands: tuple
@@ -65,6 +73,9 @@ class Method:
     open_task: Callable
     renders: bool = False
     mesh: Callable | None = None
+    config: type | None = None
+    train: Callable | None = None
+    help: str = ""
 
     def __post_init__(self):
         if self.view not in VIEWS:

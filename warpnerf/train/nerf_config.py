@@ -240,6 +240,8 @@ class NeRFConfig:
     seed: int = option(0, "random seed", check="seed")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
     model: str = option(MODEL, flag=None)  # the kind of run (train/methods.py); older runs lack it
+    # the field's own settings (its traits' ``options``), saved by name; {} for the built-in fields
+    field_options: dict = option({}, flag=None)
 
     def to_dict(self):
         return asdict(self)
@@ -260,6 +262,12 @@ class NeRFConfig:
     def traits(self) -> FieldTraits:
         """The traits its field was registered with (fields/model.py)."""
         return field_traits(self.field)
+
+    def field_settings(self):
+        """The field's own settings: its traits' ``options`` class built from
+        ``field_options`` (None for a field without options)."""
+        opts = self.traits.options
+        return None if opts is None else opts(**self.field_options)
 
     def resolve(self, scene: dict | None = None):
         """Fills in the defaults that depend on the data and the field (near/far, lr, aabb, the
@@ -405,6 +413,13 @@ class NeRFConfig:
             ew = self.eikonal_weight
             if ew is not None and not (math.isfinite(ew) and ew >= 0):
                 raise fail("eikonal_weight", f"must be finite and >= 0, got {ew}")
+        if traits.options is not None:  # typed, no unknown names (the saved config: untrusted)
+            from ..jsonio import check_fields
+
+            name = f"{where + ': ' if where else ''}field_options of --field {self.field}"
+            self.field_options = check_fields(traits.options, self.field_options, name)
+        elif self.field_options:
+            raise fail("field_options", f"must be empty: --field {self.field} has no options")
         if traits.check is not None:
             traits.check(self, fail)
         if traits.hash:
