@@ -9,6 +9,7 @@ threshold for NeRFs. Vertices come back in world coordinates.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import sys
 import warnings
@@ -28,6 +29,11 @@ __all__ = [
     "screenshot",
     "sample_surface",
     "clean_mesh",
+    "merge_vertices",
+    "face_components",
+    "face_areas",
+    "seen_faces",
+    "cull_unseen",
     "decimate_mesh",
 ]
 
@@ -277,19 +283,67 @@ def _arrays(mesh):
     return v, np.asarray(mesh.regular_faces, dtype=np.int32)
 
 
-def _merged(vertices, faces):
-    """The mesh with coincident points merged (so triangles meeting at a position share its
-    vertex), degenerate triangles and unused points dropped: a triangle-only PolyData."""
-    return _polydata(*_arrays(_polydata(vertices, faces).clean(tolerance=0.0)))
+def merge_vertices(vertices, faces):
+    """The mesh with coincident vertices merged (marching cubes may emit a vertex per triangle:
+    triangles meeting at a position then share its vertex), degenerate triangles and unused
+    vertices dropped: (vertices float32 [V', 3], faces int64 [F', 3])."""
+    v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+    uniq, inv = np.unique(v, axis=0, return_inverse=True)
+    f = inv.reshape(-1)[f]
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    return _compact(uniq, f)
+
+
+def _compact(v, f):
+    """(v, f) without the vertices no face uses (faces renumbered)."""
+    used = np.zeros(len(v), bool)
+    used[f.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return v[used], remap[f].astype(np.int64)
+
+
+def face_components(faces, n_vertices: int) -> tuple:
+    """The connected components of a triangle mesh (faces sharing a vertex are connected):
+    (label per face int64 [F] in 0..k-1, k). Min-label propagation over the faces with pointer
+    jumping, in torch (no VTK): each round every vertex takes the least label of the faces it
+    is on, then labels follow their own labels to a fixed point."""
+    f = torch.as_tensor(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
+    if len(f) == 0:
+        return np.zeros(0, np.int64), 0
+    lab = torch.arange(int(n_vertices), dtype=torch.int64)
+    for _ in range(10_000):  # (converges in far fewer rounds: labels jump along their chains)
+        m = lab[f].amin(1)
+        new = lab.clone()
+        for k in range(3):
+            new.scatter_reduce_(0, f[:, k], m, reduce="amin")
+        while True:  # pointer jumping: a label's label, to its root
+            nxt = new[new]
+            if torch.equal(nxt, new):
+                break
+            new = nxt
+        if torch.equal(new, lab):
+            break
+        lab = new
+    uniq, per_face = torch.unique(lab[f[:, 0]], return_inverse=True)
+    return per_face.numpy(), int(len(uniq))
+
+
+def face_areas(vertices, faces) -> np.ndarray:
+    """Area of each triangle [F] (float64)."""
+    t = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
 
 
 def clean_mesh(vertices: np.ndarray, faces: np.ndarray, min_fraction: float = 0.01):
     """Removes floating pieces: the connected components whose surface area is below
     ``min_fraction`` of the whole mesh's (the largest component is always kept).
 
-    Coincident points are merged first (marching cubes may emit a vertex per triangle), so that
-    connectivity follows the surface; degenerate triangles and unused vertices go too. Uses
-    pyvista's ``clean``, ``connectivity`` and ``compute_cell_sizes``.
+    Coincident points are merged first (:func:`merge_vertices`), so that connectivity follows
+    the surface; degenerate triangles and unused vertices go too. numpy and torch only
+    (:func:`face_components`): it runs wherever training runs, without VTK.
 
     Args:
         vertices: [V, 3] positions.
@@ -305,26 +359,98 @@ def clean_mesh(vertices: np.ndarray, faces: np.ndarray, min_fraction: float = 0.
         raise ValueError(f"min_fraction must be in [0, 1), got {min_fraction}")
     info = {"faces_before": int(len(faces)), "faces_after": 0, "components": 0,
             "components_removed": 0, "area_removed_fraction": 0.0}  # fmt: skip
-    if len(faces) == 0:
-        return *_arrays(_polydata(vertices, faces)), info
-    mesh = _merged(vertices, faces)
-    if mesh.n_cells == 0:
-        return *_arrays(mesh), info
-    mesh = mesh.connectivity("all").compute_cell_sizes(length=False, area=True, volume=False)
-    region = np.asarray(mesh.cell_data["RegionId"], dtype=np.int64)
-    area = np.bincount(region, weights=np.asarray(mesh.cell_data["Area"], dtype=np.float64))
+    v, f = merge_vertices(vertices, faces)
+    if len(f) == 0:
+        return v, f.astype(np.int32), info
+    region, k = face_components(f, len(v))
+    area = np.bincount(region, weights=face_areas(v, f), minlength=k)
     keep = area >= min_fraction * area.sum()
     keep[np.argmax(area)] = True
-    v, f = _arrays(mesh)
-    f = f[keep[region]]
-    used = np.zeros(len(v), bool)
-    used[f.ravel()] = True
-    remap = np.cumsum(used) - 1
+    v, f = _compact(v, f[keep[region]])
     total = float(area.sum())
     removed = float(area[~keep].sum() / total) if total > 0 else 0.0
-    info.update(faces_after=int(len(f)), components=int(len(area)),
+    info.update(faces_after=int(len(f)), components=int(k),
                 components_removed=int((~keep).sum()), area_removed_fraction=removed)  # fmt: skip
-    return v[used], remap[f].astype(np.int32), info
+    return v, f.astype(np.int32), info
+
+
+CULL_MAX_SIDE = 512  # visibility z-buffers: the longest side, pixels (a camera's, scaled down)
+CULL_TOLERANCE = 0.01  # a face is seen when no splat is nearer than (1 - this) x its depth
+
+
+def seen_faces(vertices, faces, c2w, intrinsics, width: int, height: int, *,
+               max_side: int = CULL_MAX_SIDE, tolerance: float = CULL_TOLERANCE,
+               device="cpu") -> np.ndarray:  # fmt: skip
+    """Which faces some camera sees: bool [F]. A face is seen by a camera when its centroid
+    lies in front of it, inside its image, and is not hidden: each camera's depth buffer holds,
+    per pixel, the nearest splatted point of the mesh (each face's centroid and vertices), at
+    most ``max_side`` pixels on the longest side and no finer than the mesh's median edge at its
+    median depth (so a surface's splats, vertices and centroids, leave no holes; a pixel none
+    reached takes a neighbour's depth); a face counts as hidden where that buffer is nearer
+    than its centroid by more than ``tolerance`` of its depth plus two pixels' width at that
+    depth. Cameras:
+    ``c2w`` [N, 4, 4] camera-to-world (OpenGL: x right, y up, looking down -z, the library's
+    rays), ``intrinsics`` [N, 4] (fx, fy, cx, cy) of ``width`` x ``height`` images. A dense
+    mesh (marching cubes) splats densely, so points behind a surface are hidden by it; what
+    no training camera sees (the inside of an object, space under a floor) is not kept."""
+    v = torch.as_tensor(np.asarray(vertices, dtype=np.float32), device=device)
+    f = torch.as_tensor(np.asarray(faces, dtype=np.int64), device=device)
+    c2w = torch.as_tensor(c2w, dtype=torch.float32, device=device).reshape(-1, 4, 4)
+    k = torch.as_tensor(intrinsics, dtype=torch.float32, device=device).reshape(-1, 4)
+    seen = torch.zeros(len(f), dtype=torch.bool, device=device)
+    if len(f) == 0:
+        return seen.cpu().numpy()
+    tri = v[f]
+    cent = tri.mean(1)
+    pts = torch.cat([cent, v])  # what each camera's depth buffer is made of
+    nc = len(cent)
+    edge = (tri - tri.roll(1, 1)).norm(dim=-1).median().clamp_min(1e-9)  # the mesh's spacing
+    for i in range(len(c2w)):
+        r, t = c2w[i, :3, :3], c2w[i, :3, 3]
+        q = (pts - t) @ r  # world -> camera (r orthonormal: r^T (p - t))
+        z = -q[:, 2]  # depth along the viewing axis
+        front = z > 1e-6
+        if not front[:nc].any():
+            continue
+        zs = z.clamp_min(1e-6)
+        # the buffer's pixels no finer than the mesh's spacing at its median depth, so that the
+        # splats of a surface leave no holes that would show what lies behind it
+        zmed = z[:nc][front[:nc]].median()
+        scale = min(max_side / max(int(width), int(height)), float(zmed / (k[i, 0] * edge)))
+        w, h = max(1, math.ceil(width * scale)), max(1, math.ceil(height * scale))
+        px = (k[i, 0] * q[:, 0] / zs + k[i, 2]) * (w / width)
+        py = (k[i, 3] - k[i, 1] * q[:, 1] / zs) * (h / height)
+        ok = front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+        pix = (py.floor().clamp(0, h - 1) * w + px.floor().clamp(0, w - 1)).long()
+        zbuf = torch.full((w * h,), float("inf"), device=device)
+        zbuf.scatter_reduce_(0, pix[ok], z[ok], reduce="amin")
+        # a pixel no splat reached takes its nearest neighbour's depth (holes between splats)
+        grid = zbuf.reshape(1, 1, h, w)
+        near = -torch.nn.functional.max_pool2d(-grid, 3, stride=1, padding=1)
+        zbuf = torch.where(torch.isinf(grid), near, grid).reshape(-1)
+        # hidden: something nearer by more than the tolerance and two pixels' width (a sloped
+        # surface's own depth changes across a pixel)
+        zc = z[:nc]
+        allow = tolerance * zc + 2.0 * zc / (k[i, 0] * (w / width))
+        seen |= ok[:nc] & (zbuf[pix[:nc]] >= zc - allow)
+    return seen.cpu().numpy()
+
+
+def cull_unseen(vertices, faces, c2w, intrinsics, width: int, height: int, **kw):
+    """The mesh without the faces no camera sees (:func:`seen_faces`), unused vertices dropped:
+    (vertices float32, faces int32, info) with info = {"faces_unseen", "area_unseen_fraction"}."""
+    v, f = merge_vertices(vertices, faces)
+    if len(f) == 0:
+        return v, f.astype(np.int32), {"faces_unseen": 0, "area_unseen_fraction": 0.0}
+    seen = seen_faces(v, f, c2w, intrinsics, width, height, **kw)
+    area = face_areas(v, f)
+    total = float(area.sum())
+    info = {
+        "faces_unseen": int((~seen).sum()),
+        "area_unseen_fraction": float(area[~seen].sum() / total) if total > 0 else 0.0,
+    }
+    v, f = _compact(v, f[seen])
+    return v, f.astype(np.int32), info
 
 
 def decimate_mesh(vertices: np.ndarray, faces: np.ndarray, reduction: float):
@@ -345,7 +471,7 @@ def decimate_mesh(vertices: np.ndarray, faces: np.ndarray, reduction: float):
         raise ValueError(f"reduction must be in (0, 1), got {reduction}")
     if len(faces) == 0:
         return _arrays(_polydata(vertices, faces))
-    mesh = _merged(vertices, faces).decimate(reduction, volume_preservation=True)
+    mesh = _polydata(*merge_vertices(vertices, faces)).decimate(reduction, volume_preservation=True)
     return _arrays(_polydata(*_arrays(mesh)).clean(tolerance=0.0))
 
 

@@ -99,6 +99,7 @@ class _MeshSource(NamedTuple):
     device: str  # where the grid is evaluated and marched: --device, else the run's device
     field: object = None  # a radiance field (forward(x, d) -> (sigma, rgb)) for --colors
     density: bool = False  # fn is minus a density (a NeRF): its values are -sigma
+    cameras: object = None  # training cameras (c2w, intrinsics, width, height) to cull by
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -127,7 +128,7 @@ def _mesh_source(args) -> _MeshSource:
     m = method.mesh(opened, args.bounds, args.level)
     return _MeshSource(m["fn"], m["lower"], m["upper"], m["level"], m["shown_level"],
                        f"{m['what']} {args.run}", m["back"], m["device"], m["field"],
-                       m["density"])  # fmt: skip
+                       m["density"], m["cameras"])  # fmt: skip
 
 
 def _check_clean(clean) -> None:
@@ -151,8 +152,11 @@ def _clean_and_decimate(v, f, clean, decimate):
             v, f = decimate_mesh(v, f, decimate)
             rep.update(decimate=decimate, faces_decimated=int(n - len(f)))
     except ImportError as e:  # pyvista is a dependency; say so on machines without it
-        raise UserError(f"--clean and --decimate need pyvista ({e})") from None
+        raise UserError(f"--decimate needs pyvista ({e})") from None
     return v, f, rep
+
+
+DEFAULT_CLEAN = 0.01  # `mesh` of a run: components under this fraction of the area are dropped
 
 
 def cmd_mesh(args) -> int:
@@ -172,7 +176,7 @@ def cmd_mesh(args) -> int:
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
         check_foreign([png])
-    fn, lo, hi, level, shown_level, what, back, dev, field, density = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, back, dev, field, density, cams = _mesh_source(args)
     if args.colors and field is None:
         raise UserError(f"--colors needs a NeRF or VolSDF run (a radiance field); {what} has none")
     t0 = time.perf_counter()
@@ -188,7 +192,23 @@ def cmd_mesh(args) -> int:
                         f"{hint}")  # fmt: skip
     del vals
     t1 = time.perf_counter()
-    v, f, post = _clean_and_decimate(v, f, args.clean, args.decimate)  # (the field's own frame)
+    # a run's surface as the training saw it (unless --keep-all): faces no training camera sees
+    # culled, then floating pieces dropped; an SDF scene's only with --clean
+    clean, cull, n_faces = args.clean, {}, int(len(f))
+    if args.run is not None and not args.keep_all:
+        clean = DEFAULT_CLEAN if clean is None else clean
+        cull = {"culled_by_views": cams is not None}
+        if cams is not None:
+            from ..mesh import cull_unseen
+
+            v, f, info = cull_unseen(v, f, cams.c2w, cams.intrinsics, cams.width, cams.height,
+                                     device=dev)  # fmt: skip
+            cull.update(info)
+            if len(f) == 0:
+                raise UserError(f"{what}: no face of the level set is seen by a training camera "
+                                "(--keep-all keeps them all)")  # fmt: skip
+    v, f, post = _clean_and_decimate(v, f, clean, args.decimate)  # (the field's own frame)
+    post = {**cull, **post, "faces_extracted": n_faces}
     post_secs = time.perf_counter() - t1
     rgb = vertex_colors(field, fn, v, dev) if args.colors else None  # of the final vertices
     if back is not None:  # normalised frame -> the data's own units
@@ -222,7 +242,7 @@ def cmd_mesh(args) -> int:
         "level": shown_level,
         "seconds": secs,
     }
-    if args.clean is not None or args.decimate is not None:
+    if clean is not None or args.decimate is not None:
         res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))
     return 0

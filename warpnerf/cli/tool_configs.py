@@ -81,8 +81,12 @@ class MeshConfig:
                                 "cpu for --sdf)")  # fmt: skip
     colors: bool = option(False, "runs: bake the radiance field's colour into the vertices "
                           "(seen along the normal, looking at the surface)")  # fmt: skip
-    clean: float | None = option(None, CLEAN_HELP, check="finite", const=0.01,
+    clean: float | None = option(None, CLEAN_HELP + "; a run's mesh is cleaned at 0.01 unless "
+                                 "--keep-all", check="finite", const=0.01,
                                  metavar="MIN_FRACTION")  # fmt: skip
+    keep_all: bool = option(False, "runs: the raw level set; by default faces no training "
+                            "camera sees are culled (the inside of objects, space under a floor) "
+                            "and floating pieces dropped (--clean)")  # fmt: skip
     decimate: float | None = option(None, "quadric decimation removing about R of the faces, "
                                     "0 < R < 1 (after --clean, before --colors)",
                                     check="finite", metavar="R")  # fmt: skip

@@ -59,8 +59,9 @@ class Method:
     ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
     and upper corners, the marched level and the level asked for, back: vertices -> the data's
-    units or None, field for --colors or None, density: fn is minus a density). A method added
-    after the built-in ones gives ``config`` (a dataclass declared with
+    units or None, field for --colors or None, density: fn is minus a density, cameras: the
+    training cameras in the mesh's frame or None: what the default cleaning culls by). A method
+    added after the built-in ones gives ``config`` (a dataclass declared with
     :func:`~warpnerf.options.option`) and ``train(cfg, out, resume, progress) -> result``
     (JSON-able): `warpnerf train <command>` then exists with the config's flags, ``--out``,
     ``--resume`` and ``--quiet`` (``help``: its line in `warpnerf train --help`)."""
@@ -170,7 +171,9 @@ def _nerf_mesh(o: Opened, bounds, level) -> dict:
     lo, hi = [-b] * 3, [b] * 3
     if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
         lo[2], hi[2] = -1.0, 0.99
-    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field)
+    # the training cameras, in the mesh's frame, for `mesh`'s culling (not NDC: another frame)
+    cams = o.cameras if cfg.ndc_camera() is None else None
+    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams)
     if o.model.kind == "sdf":  # the SDF's zero level set
         level = level or 0.0
         return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,
@@ -204,7 +207,7 @@ def _point_sdf_mesh(o: Opened, bounds, level) -> dict:
     level = level or 0.0
     return dict(fn=lambda p: model(p.to(cfg.device)), lower=[-b] * 3, upper=[b] * 3, level=level,
                 shown_level=level, what="sdf run", back=lambda v: v / s + np.asarray(c),
-                device=cfg.device, field=None, density=False)  # fmt: skip
+                device=cfg.device, field=None, density=False, cameras=None)  # fmt: skip
 
 
 def _point_sdf_task(task) -> Opened:
