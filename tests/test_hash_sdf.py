@@ -291,6 +291,13 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
     mat = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert mat["depth_views"] == 4 and mat["depth_pixels"] > 0  # (its sphere vs materials')
     assert 0 < mat["depth_error_mean"] < 3.0 and 0 < mat["depth_error_median"] < 3.0
+    # the figures of the mesh as delivered (culled by the training cameras, cleaned) and of the
+    # raw level set with every face counted (the main figures leave out what lies under the disk)
+    raw, dl = mat["raw_every_face"], mat["delivered"]
+    assert dl["culled_by_views"] is True and dl["clean"] == 0.01
+    assert dl["mesh_faces"] <= raw["mesh_faces"] and raw["surface_points"] >= mat["surface_points"]
+    assert all(raw[k] is not None and raw[k] >= 0 for k in ("accuracy", "chamfer"))
+    assert "raw_every_face" not in same and same["delivered"]["culled_by_views"] is True
     assert main(["eval", str(run), "--geometry", "materials", "--clean", "1"]) == 2
     assert main(["eval", str(run), "--clean"]) == 2  # only with --geometry
     assert main(["eval", str(run), "--geometry", str(tmp_path / "nope.npz")]) == 2

@@ -34,6 +34,8 @@ __all__ = [
     "face_areas",
     "seen_faces",
     "cull_unseen",
+    "surface_mesh",
+    "DEFAULT_CLEAN",
     "decimate_mesh",
 ]
 
@@ -451,6 +453,31 @@ def cull_unseen(vertices, faces, c2w, intrinsics, width: int, height: int, **kw)
     }
     v, f = _compact(v, f[seen])
     return v, f.astype(np.int32), info
+
+
+DEFAULT_CLEAN = 0.01  # a run's mesh: components under this fraction of the area are dropped
+
+
+def surface_mesh(vertices, faces, cameras=None, min_fraction: float = DEFAULT_CLEAN, device="cpu"):
+    """A run's mesh as `warpnerf mesh` delivers it by default: the faces no camera of
+    ``cameras`` sees culled (:func:`cull_unseen`; ``cameras`` with ``c2w``, ``intrinsics``,
+    ``width``, ``height``, e.g. the training split; None: no culling), then the components
+    under ``min_fraction`` of the area dropped (:func:`clean_mesh`). Returns (vertices,
+    faces, info): ``culled_by_views`` and, with cameras, ``faces_unseen`` and
+    ``area_unseen_fraction``; ``clean`` and :func:`clean_mesh`'s figures."""
+    info = {"culled_by_views": cameras is not None}
+    if cameras is not None:
+        c = cameras
+        vertices, faces, cull = cull_unseen(vertices, faces, c.c2w, c.intrinsics, c.width,
+                                            c.height, device=device)  # fmt: skip
+        info.update(cull)
+    if len(faces) == 0:
+        return vertices, faces, info
+    vertices, faces, c = clean_mesh(vertices, faces, min_fraction)
+    info.update(clean=min_fraction, components=c["components"],
+                components_removed=c["components_removed"],
+                area_removed_fraction=c["area_removed_fraction"])  # fmt: skip
+    return vertices, faces, info
 
 
 def decimate_mesh(vertices: np.ndarray, faces: np.ndarray, reduction: float):

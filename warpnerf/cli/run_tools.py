@@ -156,9 +156,6 @@ def _clean_and_decimate(v, f, clean, decimate):
     return v, f, rep
 
 
-DEFAULT_CLEAN = 0.01  # `mesh` of a run: components under this fraction of the area are dropped
-
-
 def cmd_mesh(args) -> int:
     import time
 
@@ -194,19 +191,16 @@ def cmd_mesh(args) -> int:
     t1 = time.perf_counter()
     # a run's surface as the training saw it (unless --keep-all): faces no training camera sees
     # culled, then floating pieces dropped; an SDF scene's only with --clean
-    clean, cull, n_faces = args.clean, {}, int(len(f))
+    clean, n_faces, cull = args.clean, int(len(f)), {}
     if args.run is not None and not args.keep_all:
-        clean = DEFAULT_CLEAN if clean is None else clean
-        cull = {"culled_by_views": cams is not None}
-        if cams is not None:
-            from ..mesh import cull_unseen
+        from ..mesh import DEFAULT_CLEAN, surface_mesh
 
-            v, f, info = cull_unseen(v, f, cams.c2w, cams.intrinsics, cams.width, cams.height,
-                                     device=dev)  # fmt: skip
-            cull.update(info)
-            if len(f) == 0:
-                raise UserError(f"{what}: no face of the level set is seen by a training camera "
-                                "(--keep-all keeps them all)")  # fmt: skip
+        clean = DEFAULT_CLEAN if clean is None else clean
+        v, f, cull = surface_mesh(v, f, cams, clean, device=dev)
+        if len(f) == 0:
+            raise UserError(f"{what}: no face of the level set is seen by a training camera "
+                            "(--keep-all keeps them all)")  # fmt: skip
+        clean = None  # (done)
     v, f, post = _clean_and_decimate(v, f, clean, args.decimate)  # (the field's own frame)
     post = {**cull, **post, "faces_extracted": n_faces}
     post_secs = time.perf_counter() - t1
@@ -242,7 +236,7 @@ def cmd_mesh(args) -> int:
         "level": shown_level,
         "seconds": secs,
     }
-    if clean is not None or args.decimate is not None:
+    if "clean" in post or args.decimate is not None:
         res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))
     return 0
