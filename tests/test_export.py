@@ -91,3 +91,46 @@ def test_ply_with_normals_round_trips(tmp_path):
     pv = pytest.importorskip("pyvista")
     cloud = pv.read(tmp_path / "p.ply")
     assert cloud.n_points == 9 and np.allclose(np.asarray(cloud.points), v)
+
+
+def test_an_exported_capture_trains_as_the_capture_it_came_from(tmp_path, capsys):
+    """A COLMAP capture's run exported as a nerfstudio folder (`export cameras`: per-frame
+    intrinsics and splits, the poses in the run's normalised frame, its near/far/box in
+    ``warpnerf_scene``) resolves to the same scene settings and splits, and trains to the same
+    result (same seed) as the COLMAP folder."""
+    from warpnerf.train.nerf import load_data, load_run
+
+    from .test_capture import _colmap_capture, _object_cameras
+
+    _colmap_capture(tmp_path / "cap", _object_cameras(12))
+    flags = ["--field", "hash", "--hash-levels", "2", "--hash-log2-size", "8", "--hash-max-res",
+             "16", "--hidden", "8", "--grid-res", "8", "--batch", "64", "--iters", "4",
+             "--val-images", "0", "--quiet", "--no-tensorboard", "--holdout", "4"]  # fmt: skip
+    assert main(["train", "nerf", "--data", str(tmp_path / "cap"), *flags, "--out",
+                 str(tmp_path / "a")]) == 0  # fmt: skip
+    out = tmp_path / "ns" / "transforms.json"
+    out.parent.mkdir()
+    assert main(["export", str(tmp_path / "a"), "cameras", "--out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["warpnerf_scene"]) == {"near", "far", "aabb", "inner"}
+    assert main(["train", "nerf", "--data", str(out.parent), *flags, "--allow-outside-paths",
+                 "--out", str(tmp_path / "b")]) == 0  # fmt: skip
+    ca, ma, _ = load_run(tmp_path / "a")
+    cb, mb, _ = load_run(tmp_path / "b")
+    assert cb.scene["format"] == "nerfstudio" and ca.scene["format"] == "colmap"
+    for k in ("near", "far", "aabb", "contract", "appearance_dim", "hash_max_res", "march_step"):
+        assert getattr(ca, k) == pytest.approx(getattr(cb, k), rel=1e-6), k
+    for split in ("train", "val"):
+        da, db = load_data(ca, split), load_data(cb, split)
+        assert torch.allclose(da.c2w.float(), db.c2w.float(), atol=1e-5)
+        assert torch.allclose(da.intrinsics.float(), db.intrinsics.float(), atol=1e-4)
+        assert torch.allclose(da.images, db.images, atol=1.5 / 255)
+    ha = json.loads((tmp_path / "a" / "history.json").read_text())["loss"]
+    hb = json.loads((tmp_path / "b" / "history.json").read_text())["loss"]
+    assert np.allclose(ha, hb, rtol=1e-3)
+    capsys.readouterr()
+    bad = dict(doc, warpnerf_scene={"near": 1.0, "far": 0.5, "aabb": 1.0})
+    out.write_text(json.dumps(bad))
+    assert main(["train", "nerf", "--data", str(out.parent), *flags, "--allow-outside-paths",
+                 "--out", str(tmp_path / "c")]) == 2  # fmt: skip
+    assert "warpnerf_scene" in capsys.readouterr().err and not (tmp_path / "c").exists()

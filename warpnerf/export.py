@@ -146,6 +146,9 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
     doc = {"camera_model": "OPENCV", "frames": frames}
     if cfg.scene is not None:  # a capture: poses are in the run's normalised frame
         doc["applied_transform"] = np.asarray(cfg.scene["transform"])[:3].tolist()
+        if cfg.ndc_camera() is None:  # its scene settings, so that a run on it trains the same
+            keys = ("near", "far", "aabb", "inner")
+            doc["warpnerf_scene"] = {k: float(cfg.scene[k]) for k in keys if k in cfg.scene}
     folder = out.parent / "images"
     if images and os.path.lexists(folder):  # a link or a file there: refused before any write
         make_folder(folder, "exported images folder")

@@ -230,25 +230,36 @@ class Format:
     format (None: only chosen by name); ``load(LoadRequest) -> Dataset`` loads one split;
     ``capture``: a posed photo capture (COLMAP, LLFF) whose scene settings (transform, near/far,
     box, NDC) are read from the data (:func:`warpnerf.data.capture.capture_info`); ``folder``:
-    a format of data folders, one of ``--format``'s choices (the built-in scene is not)."""
+    a format of data folders, one of ``--format``'s choices (the built-in scene is not);
+    ``scene(root) -> dict | None``: scene settings a folder of this format carries itself (a
+    capture exported by `warpnerf export cameras`: near, far, aabb in its normalised frame),
+    which a run then resolves as a capture's."""
 
     name: str
     load: Callable[[LoadRequest], Dataset]
     detect: Callable[[Path, str], bool] | None = None
     capture: bool = False
     folder: bool = True
+    scene: Callable[[Path], dict | None] | None = None
 
 
 REGISTRY: dict[str, Format] = {}
 
 
 def register_format(name: str, load, detect=None, capture: bool = False,
-                    folder: bool = True) -> Format:  # fmt: skip
+                    folder: bool = True, scene=None) -> Format:  # fmt: skip
     """Adds a format to the registry (detection asks formats in registration order)."""
     if name in REGISTRY or name == "auto":
         raise ValueError(f"format {name!r} is already registered")
-    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture), bool(folder))
+    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture), bool(folder), scene)
     return fmt
+
+
+def carries_scene(name: str) -> bool:
+    """Whether a run's saved scene may name format ``name``: a capture format, or one whose
+    folders carry their own scene settings (``Format.scene``)."""
+    fmt = REGISTRY.get(name)
+    return fmt is not None and (fmt.capture or fmt.scene is not None)
 
 
 class FormatChoices:

@@ -16,9 +16,16 @@ refused otherwise (degenerate, scaled, mirrored); camera centres within 1e6 of t
 Every ``file_path`` must stay inside the folder (also through symlinks) unless
 ``allow_outside=True`` (``--allow-outside-paths``), as in the Blender loader.
 
-Split rule (nerfstudio folders have no split files): the one hold-out rule
-(:func:`~warpnerf.data.dataset.holdout_indices`) in the order of ``frames``: by default ``val`` and
-``test`` are the frames with index ``i % 8 == 0`` and ``train`` all the others.
+Split rule (nerfstudio folders have no split files): when every frame names its ``split``
+("train", "val" or "test"; what `warpnerf export cameras` writes), a split is those frames
+(``test``, when no frame is named so, is ``val``); otherwise the one hold-out rule
+(:func:`~warpnerf.data.dataset.holdout_indices`) in the order of ``frames``: by default ``val``
+and ``test`` are the frames with index ``i % 8 == 0`` and ``train`` all the others.
+
+A folder exported from a COLMAP/LLFF run (not NDC) carries the run's scene settings in
+``warpnerf_scene`` (near, far, aabb and the contracted scene's inner cube, in the normalised
+frame its poses are in): a run on it resolves them as a capture's (:func:`exported_scene`), so it
+trains as the capture it came from.
 """
 
 from __future__ import annotations
@@ -39,7 +46,8 @@ from .blender import (
 from .cameras import check_intrinsics
 from .dataset import Dataset, LoadRequest, register_format
 
-__all__ = ["load_nerfstudio", "detect_nerfstudio", "CAMERA_MODELS", "DISTORTION_FIELDS"]
+__all__ = ["load_nerfstudio", "detect_nerfstudio", "exported_scene", "CAMERA_MODELS",
+           "DISTORTION_FIELDS"]  # fmt: skip
 
 CAMERA_MODELS = ("PINHOLE", "OPENCV")
 DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -112,7 +120,7 @@ def _load(req: LoadRequest) -> Dataset:
     js, frames = _read_json(path)
     # Every frame's camera is checked (JSON only, cheap), whichever split is loaded.
     cams = [_frame_camera(js, fr, i, path) for i, fr in enumerate(frames)]
-    indices = req.select(len(frames), path)
+    indices = _split_indices(frames, req, path)
     cams = [cams[i] for i in indices]
     sizes = [hw for _, hw in cams]
     for i, hw in zip(indices, sizes):
@@ -127,4 +135,44 @@ def _load(req: LoadRequest) -> Dataset:
     return make_dataset(req, images, c2w, k, paths, "nerfstudio")
 
 
-register_format("nerfstudio", _load, detect_nerfstudio)
+SPLITS = ("train", "val", "test")
+
+
+def _split_indices(frames: list, req: LoadRequest, path) -> list:
+    """The frames of the request's split: by their ``split`` fields when every frame has one,
+    else by the hold-out rule; cut to ``max_images``."""
+    named = [fr.get("split") for fr in frames]
+    if not all(isinstance(n, str) and n in SPLITS for n in named):
+        if any("split" in fr for fr in frames):
+            raise UserError(f"{path}: field 'split' must be one of {', '.join(SPLITS)} in every "
+                            "frame, or in none")  # fmt: skip
+        return req.select(len(frames), path)
+    want = req.split if req.split in named or req.split != "test" else "val"
+    idx = [i for i, n in enumerate(named) if n == want]
+    if not idx:
+        raise UserError(f"{path}: no frame has split '{req.split}'")
+    return idx[: req.max_images]
+
+
+def exported_scene(root) -> dict | None:
+    """The scene settings of a folder exported from a capture run (``warpnerf_scene`` in its
+    transforms.json: near, far, aabb, optionally inner; the poses are in the normalised frame
+    already, so the transform is the identity), or None. UserError for a malformed block."""
+    path = Path(root) / "transforms.json"
+    if not path.is_file():
+        return None
+    js, _ = _read_json(path)
+    sc = js.get("warpnerf_scene")
+    if sc is None:
+        return None
+    keys = {"near", "far", "aabb", "inner"}
+    if not isinstance(sc, dict) or not {"near", "far", "aabb"} <= set(sc) <= keys:
+        raise UserError(f"{path}: field 'warpnerf_scene' must be an object with near, far, aabb "
+                        "(and optionally inner)")  # fmt: skip
+    vals = {k: _number(sc[k], f"warpnerf_scene.{k}", path, positive=k != "near") for k in sc}
+    if not (vals["near"] >= 0 and vals["far"] > vals["near"] and max(vals.values()) <= 1e6):
+        raise UserError(f"{path}: warpnerf_scene needs 0 <= near < far and values up to 1e6")
+    return {"format": "nerfstudio", "transform": np.eye(4).tolist(), "ndc": None, **vals}
+
+
+register_format("nerfstudio", _load, detect_nerfstudio, scene=exported_scene)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from ..data.dataset import capture_formats, is_capture
+from ..data.dataset import capture_formats, carries_scene, is_capture
 from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
@@ -556,6 +556,13 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
             f"got {cfg.data_format!r}, {cfg.ndc!r}"
         )
     fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(cfg.data)
+    from ..data.dataset import REGISTRY
+
+    carried = REGISTRY[fmt].scene(Path(cfg.data)) if REGISTRY[fmt].scene is not None else None
+    if carried is not None:  # an exported capture: its own near/far/aabb, normalised poses
+        if cfg.ndc == "on":
+            raise UserError(f"{cfg.data}: --ndc on needs a forward-facing COLMAP or LLFF capture")
+        return carried
     if not is_capture(fmt):
         if cfg.ndc == "on":
             raise UserError("--ndc on needs a forward-facing COLMAP or LLFF capture")
@@ -605,9 +612,9 @@ def _check_scene(scene, fail) -> None:
                    "(and optionally inner)")  # fmt: skip
     if "inner" in scene and not (_number(scene["inner"]) and 0 < scene["inner"] <= 1e6):
         raise fail("inner must be a finite number in (0, 1e6]")
-    if not isinstance(scene["format"], str) or not is_capture(scene["format"]):
-        raise fail(f"format must be a capture format ({', '.join(capture_formats())}), got "
-                   f"{scene['format']!r}"[:200])  # fmt: skip
+    if not isinstance(scene["format"], str) or not carries_scene(scene["format"]):
+        raise fail(f"format must be a capture format ({', '.join(capture_formats())}) or an "
+                   f"exported one (nerfstudio), got {scene['format']!r}"[:200])  # fmt: skip
     t = scene["transform"]
     rows_ok = isinstance(t, list) and len(t) == 4
     rows_ok = rows_ok and all(isinstance(r, list) and len(r) == 4 for r in t)
