@@ -61,9 +61,21 @@ def test_merge_and_components_of_a_long_chain():
     v = np.stack([x, (np.arange(n + 2) % 2).astype(np.float32), np.zeros(n + 2, np.float32)], 1)
     f = np.stack([np.arange(n), np.arange(n) + 1, np.arange(n) + 2], 1)
     assert face_components(f[::-1].copy(), len(v))[1] == 1
+    # vertex numbers in an order that runs against the strip: still one component, in few rounds
+    perm = np.random.default_rng(0).permutation(n + 2)
+    assert face_components(perm[f], n + 2)[1] == 1
+    rev = (n + 1 - np.arange(n + 2))[f]  # the least label at the far end
+    assert face_components(rev, n + 2)[1] == 1
     vs, fs = v[f].reshape(-1, 3), np.arange(3 * n).reshape(-1, 3)
     vm, fm = merge_vertices(vs, fs)
     assert len(vm) == n + 2 and face_components(fm, len(vm))[1] == 1
+
+
+def test_non_finite_vertices_are_seen_by_no_camera():
+    c2w, k, size = _cameras(8, 32)
+    v = np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [np.nan, 0, 0]], np.float32)
+    seen = seen_faces(v, [[0, 1, 2], [3, 1, 2]], c2w, k, size, size)
+    assert seen.tolist() == [True, False]
 
 
 def _cameras(n=12, size=64, upper=False):

@@ -141,6 +141,7 @@ class BallOptions:
 
     ball_radius: float = option(0.6, "the toy ball's initial radius", check="positive")
     ball_density: float = option(20.0, "the toy ball's density scale", check="positive")
+    ball_hollow: bool = option(False, "a toy switch (a bool option: off unless given)")
 
 
 class _Ball(_Blob):
@@ -193,9 +194,12 @@ def test_a_new_field_brings_its_own_flags(tmp_path, capsys):
         assert main([*base, "--field", "mlp", "--ball-radius", "0.3", "--out", str(run)]) == 2
         assert "--ball-radius: options of another field" in capsys.readouterr().err
         assert not run.exists()
+        assert main([*base, "--field", "mlp", "--ball-hollow", "--out", str(run)]) == 2
+        assert main([*base, "--iters", "1", "--field", "mlp", "--out", str(tmp_path / "m")]) == 0
         assert main([*base, "--field", "ball", "--ball-radius", "0.3", "--out", str(run)]) == 0
         saved = json.loads((run / "config.json").read_text())
-        assert saved["field_options"] == {"ball_radius": 0.3} and saved["model"] == "nerf"
+        assert saved["field_options"] == {"ball_radius": 0.3, "ball_hollow": False}
+        assert saved["model"] == "nerf"
         cfg, m, _ = load_run(run)
         assert cfg.field_settings() == BallOptions(ball_radius=0.3)
         assert isinstance(m.coarse, _Ball)

@@ -307,20 +307,26 @@ def _compact(v, f):
     return v[used], remap[f].astype(np.int64)
 
 
+MAX_LABEL_ROUNDS = 10_000  # face_components: a bound that a correct run never nears
+
+
 def face_components(faces, n_vertices: int) -> tuple:
     """The connected components of a triangle mesh (faces sharing a vertex are connected):
     (label per face int64 [F] in 0..k-1, k). Min-label propagation over the faces with pointer
-    jumping, in torch (no VTK): each round every vertex takes the least label of the faces it
-    is on, then labels follow their own labels to a fixed point."""
+    jumping, in torch (no VTK): each round every vertex, and the root its label points to, takes
+    the least label of the faces it is on (hooking roots, as Shiloach-Vishkin's algorithm does,
+    so the rounds grow with the logarithm of the mesh's size, not its length), then labels follow
+    their own labels to a fixed point."""
     f = torch.as_tensor(np.asarray(faces, dtype=np.int64).reshape(-1, 3))
     if len(f) == 0:
         return np.zeros(0, np.int64), 0
     lab = torch.arange(int(n_vertices), dtype=torch.int64)
-    for _ in range(10_000):  # (converges in far fewer rounds: labels jump along their chains)
+    for _ in range(MAX_LABEL_ROUNDS):
         m = lab[f].amin(1)
         new = lab.clone()
-        for k in range(3):
+        for k in range(3):  # each face's least label to its vertices and to their labels' roots
             new.scatter_reduce_(0, f[:, k], m, reduce="amin")
+            new.scatter_reduce_(0, lab[f[:, k]], m, reduce="amin")
         while True:  # pointer jumping: a label's label, to its root
             nxt = new[new]
             if torch.equal(nxt, new):
@@ -329,6 +335,8 @@ def face_components(faces, n_vertices: int) -> tuple:
         if torch.equal(new, lab):
             break
         lab = new
+    else:  # (hooking roots keeps the rounds logarithmic; a partition cut short would be wrong)
+        raise RuntimeError(f"connected components did not settle in {MAX_LABEL_ROUNDS} rounds")
     uniq, per_face = torch.unique(lab[f[:, 0]], return_inverse=True)
     return per_face.numpy(), int(len(uniq))
 
@@ -411,19 +419,21 @@ def seen_faces(vertices, faces, c2w, intrinsics, width: int, height: int, *,
         r, t = c2w[i, :3, :3], c2w[i, :3, 3]
         q = (pts - t) @ r  # world -> camera (r orthonormal: r^T (p - t))
         z = -q[:, 2]  # depth along the viewing axis
-        front = z > 1e-6
+        front = (z > 1e-6) & torch.isfinite(q).all(1)
         if not front[:nc].any():
             continue
         zs = z.clamp_min(1e-6)
         # the buffer's pixels no finer than the mesh's spacing at its median depth, so that the
         # splats of a surface leave no holes that would show what lies behind it
         zmed = z[:nc][front[:nc]].median()
-        scale = min(max_side / max(int(width), int(height)), float(zmed / (k[i, 0] * edge)))
+        scale = min(1.0, max_side / max(int(width), int(height)), float(zmed / (k[i, 0] * edge)))
         w, h = max(1, math.ceil(width * scale)), max(1, math.ceil(height * scale))
         px = (k[i, 0] * q[:, 0] / zs + k[i, 2]) * (w / width)
         py = (k[i, 3] - k[i, 1] * q[:, 1] / zs) * (h / height)
-        ok = front & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-        pix = (py.floor().clamp(0, h - 1) * w + px.floor().clamp(0, w - 1)).long()
+        ok = front & (px >= 0) & (px < w) & (py >= 0) & (py < h)  # (False for NaN)
+        ok &= torch.isfinite(z)
+        pix = torch.where(ok, py.floor().clamp(0, h - 1) * w + px.floor().clamp(0, w - 1), 0)
+        pix = pix.long()
         zbuf = torch.full((w * h,), float("inf"), device=device)
         zbuf.scatter_reduce_(0, pix[ok], z[ok], reduce="amin")
         # a pixel no splat reached takes its nearest neighbour's depth (holes between splats)

@@ -196,6 +196,10 @@ def cmd_mesh(args) -> int:
         from ..mesh import DEFAULT_CLEAN, surface_mesh
 
         clean = DEFAULT_CLEAN if clean is None else clean
+        if cams is None and field is not None:  # a NeRF/VolSDF run whose cameras are not at hand
+            print("warpnerf mesh: note: no culling by the training cameras (the run's data is "
+                  "not at hand, or its rays are NDC); floating pieces are still dropped",
+                  file=sys.stderr)  # fmt: skip
         v, f, cull = surface_mesh(v, f, cams, clean, device=dev)
         if len(f) == 0:
             raise UserError(f"{what}: no face of the level set is seen by a training camera "

@@ -146,12 +146,12 @@ def nerf_config_from_args(args):
     opts = field_traits(kw["field"]).options  # the chosen field's own flags
     if opts is not None:
         kw["field_options"] = from_flags(opts, args)
-    given = [
-        n
+    given = [  # another field's flags given (None: not given; a bool flag: not its default)
+        f.name
         for t in _field_option_classes()
         if t is not opts
-        for n in (f.name for f in dataclasses.fields(t))
-        if getattr(args, n, None) is not None
+        for f in dataclasses.fields(t)
+        if getattr(args, f.name, None) not in (None, f.default)
     ]
     if given:
         flags = ", ".join("--" + n.replace("_", "-") for n in given)

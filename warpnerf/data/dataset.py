@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -262,7 +262,7 @@ def carries_scene(name: str) -> bool:
     return fmt is not None and (fmt.capture or fmt.scene is not None)
 
 
-class FormatChoices:
+class FormatChoices(Sequence):
     """``--format``'s choices, read from the registry whenever asked: "auto" and every
     registered folder format in detection order (a format registered after import is one too).
     A sequence of names: ``in``, iteration, ``len`` and indexing, as argparse and messages use
@@ -285,6 +285,15 @@ class FormatChoices:
 
     def __repr__(self) -> str:
         return repr(self.names())
+
+    def __eq__(self, other) -> bool:
+        return tuple(self) == tuple(other) if isinstance(other, (tuple, list, Sequence)) else False
+
+    def __hash__(self):
+        return id(self)
+
+    def __add__(self, other):
+        return self.names() + tuple(other)
 
 
 def is_capture(name: str) -> bool:

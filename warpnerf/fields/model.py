@@ -186,7 +186,7 @@ def register_field(name: str, traits: FieldTraits | None = None):
 def field_traits(name: str) -> FieldTraits:
     """The traits of field ``name``; an unregistered name has the defaults (its config's
     validation reports it)."""
-    return FIELD_TRAITS.get(name, _NO_TRAITS)
+    return FIELD_TRAITS.get(name, _NO_TRAITS) if isinstance(name, str) else _NO_TRAITS
 
 
 def fields_with(**traits) -> tuple:

@@ -101,7 +101,10 @@ def method_of_config(saved: dict, where: str = "config.json") -> Method:
     name = saved.get("model", LEGACY) if isinstance(saved, dict) else None
     if not isinstance(name, str) or name not in METHODS:
         kinds = ", ".join(f"{m.name} ({m.what})" for m in METHODS.values())
-        raise UserError(f"{where}: model {name!r} is not a kind of run warpnerf knows ({kinds})")
+        from ..jsonio import show
+
+        raise UserError(f"{where}: model {show(name)} is not a kind of run warpnerf knows "
+                        f"({kinds})")  # fmt: skip
     return METHODS[name]
 
 
