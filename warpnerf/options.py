@@ -178,7 +178,7 @@ def add_flags(
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         else:
             kw["default"] = default
-            if default is not None and "default" not in help_ and not m.get("required"):
+            if default not in (None, "") and "default" not in help_ and not m.get("required"):
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         if f.name in notes:
             kw["help"] = f"{kw['help']}; {notes[f.name]}" if kw["help"] else notes[f.name]
