@@ -220,6 +220,22 @@ def test_a_new_field_brings_its_own_flags(tmp_path, capsys):
         FIELD_TRAITS.pop("ball", None)
 
 
+def test_a_field_option_named_like_a_train_flag_is_refused_by_name():
+    @dataclass
+    class Clashing:
+        width: int = option(3, "a name `train nerf` has already")
+
+    register_field("clash", FieldTraits(options=Clashing))(lambda cfg: None)
+    try:
+        from warpnerf.cli.parser import build_parser
+
+        with pytest.raises(ValueError, match="--field clash .* other train flags: width"):
+            build_parser()
+    finally:
+        FIELDS.pop("clash", None)
+        FIELD_TRAITS.pop("clash", None)
+
+
 def test_the_builtin_fields_traits():
     assert fields_with(geometry="sdf") == ("volsdf", "hash_sdf")
     assert fields_with(hash=True) == ("hash", "hash_sdf")

@@ -323,7 +323,15 @@ def _nerf_flags(tn, model: str) -> None:
               notes=preset_help(NERF_PRESETS))  # fmt: skip
     from ..fields.model import FIELD_TRAITS
 
+    taken = {a.dest for a in tn._actions}
     for opts in _field_option_classes():  # each registered field's own flags ("not given": None)
         fields = [n for n, t in FIELD_TRAITS.items() if t.options is opts]
+        clash = sorted(taken & {f.name for f in dataclasses.fields(opts)})
+        if clash:  # (a developer's mistake: say which, rather than argparse's conflict)
+            raise ValueError(
+                f"the options of --field {' or '.join(fields)} ({opts.__name__}) "
+                f"reuse the names of other train flags: {', '.join(clash)}"
+            )
+        taken |= {f.name for f in dataclasses.fields(opts)}
         group = tn.add_argument_group(f"--field {' or '.join(fields)}")
         add_flags(group, opts, unset=[f.name for f in dataclasses.fields(opts)])
