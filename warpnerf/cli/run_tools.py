@@ -99,7 +99,7 @@ class _MeshSource(NamedTuple):
     device: str  # where the grid is evaluated and marched: --device, else the run's device
     field: object = None  # a radiance field (forward(x, d) -> (sigma, rgb)) for --colors
     density: bool = False  # fn is minus a density (a NeRF): its values are -sigma
-    cameras: object = None  # training cameras (c2w, intrinsics, width, height) to cull by
+    cameras: object = None  # () -> training cameras (c2w, intrinsics, width, height) to cull by
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -196,6 +196,7 @@ def cmd_mesh(args) -> int:
         from ..mesh import DEFAULT_CLEAN, surface_mesh
 
         clean = DEFAULT_CLEAN if clean is None else clean
+        cams = cams() if callable(cams) else cams  # (reads the training data)
         if cams is None and field is not None:  # a NeRF/VolSDF run whose cameras are not at hand
             print("warpnerf mesh: note: no culling by the training cameras (the run's data is "
                   "not at hand, or its rays are NDC); floating pieces are still dropped",

@@ -48,6 +48,13 @@ class Opened:
     title: str = ""
     reload: Callable | None = None  # reload(lock) -> step; lock guards the copy into the model
     extra: dict | None = None  # what a method's own tools need besides (a checkpoint's keys)
+    load_cameras: Callable | None = None  # loads ``cameras`` when first asked (reads the data)
+
+    def training_cameras(self):
+        """The training cameras (loaded by ``load_cameras`` on the first call), or None."""
+        if self.cameras is None and self.load_cameras is not None:
+            self.cameras, self.load_cameras = self.load_cameras(), None
+        return self.cameras
 
 
 @dataclass(frozen=True)
@@ -59,8 +66,9 @@ class Method:
     ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
     and upper corners, the marched level and the level asked for, back: vertices -> the data's
-    units or None, field for --colors or None, density: fn is minus a density, cameras: the
-    training cameras in the mesh's frame or None: what the default cleaning culls by). A method
+    units or None, field for --colors or None, density: fn is minus a density, cameras: a
+    callable giving the training cameras in the mesh's frame (or None), or None: what the
+    default cleaning culls by). A method
     added after the built-in ones gives ``config`` (a dataclass declared with
     :func:`~warpnerf.options.option`) and ``train(cfg, out, resume, progress) -> result``
     (JSON-able): `warpnerf train <command>` then exists with the config's flags, ``--out``,
@@ -143,9 +151,11 @@ def _open_nerf(run, device=None) -> Opened:
 
     run = Path(run)
     cfg, model, _ = load_run(run, device)
-    train = None
-    with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
-        train = with_refined_poses(model, load_data(cfg, "train"), "train")
+
+    def cameras():  # (read only when asked: `mesh --keep-all` never reads the images)
+        with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
+            return with_refined_poses(model, load_data(cfg, "train"), "train")
+        return None
 
     def reload(lock) -> int:
         """Loads the run's latest checkpoint into the opened model (copied in under ``lock``,
@@ -157,7 +167,7 @@ def _open_nerf(run, device=None) -> Opened:
                     part.load_state_dict(fresh.parts()[k].state_dict())
         return int(ck["step"])
 
-    return Opened(cfg, model, train, f"{run.name}: {cfg.field}", reload)
+    return Opened(cfg, model, None, f"{run.name}: {cfg.field}", reload, load_cameras=cameras)
 
 
 def _nerf_mesh(o: Opened, bounds, level) -> dict:
@@ -175,7 +185,7 @@ def _nerf_mesh(o: Opened, bounds, level) -> dict:
     if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
         lo[2], hi[2] = -1.0, 0.99
     # the training cameras, in the mesh's frame, for `mesh`'s culling (not NDC: another frame)
-    cams = o.cameras if cfg.ndc_camera() is None else None
+    cams = o.training_cameras if cfg.ndc_camera() is None else None  # (loaded when culling)
     out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams)
     if o.model.kind == "sdf":  # the SDF's zero level set
         level = level or 0.0

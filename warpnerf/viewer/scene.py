@@ -368,13 +368,13 @@ def scene_of(method, opened) -> RunScene:
     (:mod:`warpnerf.train.methods`): ``method.view`` picks the renderer."""
     o = opened
     if method.view == "radiance":
-        scene = RunScene.of_radiance(o.model, o.cfg, o.cameras, title=o.title)
+        scene = RunScene.of_radiance(o.model, o.cfg, o.training_cameras(), title=o.title)
         if o.reload is not None:
             scene.reload = lambda: o.reload(scene.lock)
         return scene
     if method.view == "point_sdf":
         return RunScene.of_point_sdf(o.model, o.cfg, title=o.title)
-    return RunScene.of_box(o.model, o.cfg, o.cameras, title=o.title)
+    return RunScene.of_box(o.model, o.cfg, o.training_cameras(), title=o.title)
 
 
 def load_scene(run, device: str | None = None, mesh: str | None = None) -> RunScene:
