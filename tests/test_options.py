@@ -14,9 +14,10 @@ import pytest
 
 from warpnerf.cli.parser import build_parser
 from warpnerf.cli.train import nerf_config_from_args
+from warpnerf.fields.settings import VOLSDF
 from warpnerf.options import add_flags, flag_of, from_flags, option
 from warpnerf.train.box_fit import BoxFitConfig
-from warpnerf.train.nerf_config import GRID, VOLSDF, NeRFConfig, VolSDFConfig
+from warpnerf.train.nerf_config import GRID, NeRFConfig, VolSDFConfig
 from warpnerf.train.presets import NERF_PRESETS, SDF_PRESETS, preset_fields
 from warpnerf.train.sdf import SDFConfig
 

@@ -25,7 +25,8 @@ import dataclasses
 import math
 
 __all__ = [
-    "option", "add_flags", "from_flags", "apply_preset", "flag_of", "number_type", "CHECKS"
+    "option", "add_flags", "from_flags", "apply_preset", "flag_of", "number_type", "CHECKS",
+    "with_defaults", "section_of", "section_declaring", "check_at_least",
 ]  # fmt: skip
 
 _AUTO = "auto"
@@ -107,6 +108,52 @@ def option(
     return dataclasses.field(default=default, metadata=meta)
 
 
+def with_defaults(cls, **changes):
+    """A subclass of config section ``cls`` whose fields named in ``changes`` get another default
+    (a value: the field's help and flag are kept) or another declaration (an :func:`option`).
+    A section is declared once and each kind of run takes it with its own defaults, e.g.
+    ``class SDFConfig(with_defaults(LoopConfig, iters=2000, ckpt_every=500))``."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(changes) - set(fields))
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no fields {', '.join(unknown)}")
+    new = []
+    for name, value in changes.items():
+        f = fields[name]
+        if not isinstance(value, dataclasses.Field):
+            meta = dict(f.metadata)
+            value = option(value, meta.pop("help"), **{k: meta[k] for k in _OPTION_KEYS})
+        new.append((name, f.type, value))
+    return dataclasses.make_dataclass(cls.__name__, new, bases=(cls,))
+
+
+_OPTION_KEYS = ("flag", "check", "choices", "groups", "negate", "const", "metavar", "required")
+
+
+def section_of(cfg, cls):
+    """The values of config section ``cls`` (a dataclass the config class derives from) in the
+    config ``cfg``, as a ``cls`` instance (a copy: the loop's settings, a field's own)."""
+    return cls(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(cls)})
+
+
+def check_at_least(cfg, fail, low, *names) -> None:
+    """Raises ``fail(name, "must be >= low, got v")`` for the first of the fields ``names`` of
+    config ``cfg`` whose value is below ``low`` (``fail(name, rule)`` builds the error)."""
+    for name in names:
+        if (v := getattr(cfg, name)) < low:
+            raise fail(name, f"must be >= {low}, got {v}")
+
+
+def section_declaring(cls, name: str):
+    """The config section of config class ``cls`` that declares field ``name``: the first class
+    in its bases (the most basic) that declares it, when that class has a ``TITLE`` (its flags
+    are shown apart, under it); else None (the config's own fields)."""
+    for k in reversed(cls.__mro__):
+        if name in vars(k).get("__annotations__", {}):
+            return k if vars(k).get("TITLE") else None
+    return None
+
+
 def _fields(cls, groups=(), include=None, exclude=()):
     for f in dataclasses.fields(cls):
         m = f.metadata
@@ -137,7 +184,16 @@ def _default(f):
 
 
 def add_flags(
-    parser, cls, *, groups=(), include=None, exclude=(), defaults=None, unset=(), notes=None
+    parser,
+    cls,
+    *,
+    groups=(),
+    include=None,
+    exclude=(),
+    defaults=None,
+    unset=(),
+    notes=None,
+    titles=None,
 ) -> None:
     """Adds the flags of config class ``cls`` to ``parser``: the fields declared with a flag,
     those of the given ``groups`` too (or exactly the fields named in ``include``). Each
@@ -146,10 +202,20 @@ def add_flags(
     given": the config's default applies, as :func:`from_flags` leaves them out, or a preset's
     value, see :func:`apply_preset`; the help says which default that is). ``notes``
     ({field: text}) are added to the fields' help (e.g. what a preset sets). The parsed value
-    lands under the field's name."""
+    lands under the field's name. The flags of a config section with a ``TITLE`` (see
+    :func:`section_declaring`) are shown together, under that title or ``titles(section)``."""
     defaults, notes = defaults or {}, notes or {}
+    target, sections = parser, {}
     for f in _fields(cls, groups, include, exclude):
         m, kind = f.metadata, _kind(f)
+        section = section_declaring(cls, f.name)
+        if section is not None and isinstance(target, argparse.ArgumentParser):
+            if section not in sections:  # the section's flags shown together
+                title = titles(section) if titles else section.TITLE
+                sections[section] = target.add_argument_group(title)
+            parser = sections[section]
+        else:
+            parser = target
         default = defaults.get(f.name, _default(f))
         help_ = m["help"]
         kw = dict(dest=f.name, help=help_)

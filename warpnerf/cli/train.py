@@ -7,13 +7,13 @@ import sys
 
 from ..errors import UserError
 from ..fields.model import field_traits, fields_with
+from ..fields.settings import VOLSDF
 from ..io import json_dumps
 from ..options import CHECKS, add_flags, apply_preset, from_flags
 from ..train.box_fit import BoxFitConfig
 from ..train.nerf_config import (
     FINE_SAMPLES,
     GRID,
-    VOLSDF,
     NeRFConfig,
     VolSDFConfig,
 )
@@ -50,43 +50,35 @@ def cmd_train_method(args) -> int:
     return 0
 
 
+def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
+    """The front end `train box` and `train sdf` share: the run folder checked, the config
+    (``new_config(args) -> (config, device)`` for a new run; on --resume :func:`_resumed`),
+    ``train(config, device, resume=..., progress=..., tensorboard=..., hooks=...)``, and
+    ``report(result)`` printed as JSON."""
+    _check_out(args.out)
+    cfg, device = _resumed(args, cls) if args.resume else new_config(args)
+    res = train(cfg, device, resume=args.resume, progress=not args.quiet,
+                tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
+    print(json_dumps(report(res)))
+    return 0
+
+
 def cmd_train_box(args) -> int:
     from ..train.box_fit import run_box_fit_on_folder
 
-    _check_out(args.out)
-    if args.resume:
-        device = _resume_device(args)
-        cfg = BoxFitConfig(iters=args.iters, max_seconds=args.max_seconds)
-        res = run_box_fit_on_folder(
-            None,
-            args.out,
-            cfg,
-            device=device,
-            frames=args.frames,
-            progress=not args.quiet,
-            resume=True,
-            tensorboard=tensorboard_every(args),
-            hooks=live_hooks(args),
-        )
-        print(json_dumps(res))
-        return 0
-    if args.data is None:
-        raise UserError("--data DIR is required (a Blender-format folder)")
-    cfg = BoxFitConfig(**from_flags(BoxFitConfig, args))
-    if not cfg.far > cfg.near >= 0:
-        raise UserError(f"need 0 <= --near < --far, got --near {cfg.near} and --far {cfg.far}")
-    res = run_box_fit_on_folder(
-        args.data,
-        args.out,
-        cfg,
-        device=_device(args.device or DEVICE),
-        frames=args.frames,
-        progress=not args.quiet,
-        tensorboard=tensorboard_every(args),
-        hooks=live_hooks(args),
-    )
-    print(json_dumps(res))
-    return 0
+    def new_config(args):
+        if args.data is None:
+            raise UserError("--data DIR is required (a Blender-format folder)")
+        cfg = BoxFitConfig(**from_flags(BoxFitConfig, args))
+        if not cfg.far > cfg.near >= 0:
+            raise UserError(f"need 0 <= --near < --far, got --near {cfg.near} and --far {cfg.far}")
+        return cfg, _device(args.device or DEVICE)
+
+    def train(cfg, device, **kw):  # (a resumed fit reads its data folder from the run)
+        data = None if args.resume else args.data
+        return run_box_fit_on_folder(data, args.out, cfg, device=device, frames=args.frames, **kw)
+
+    return _train_command(args, BoxFitConfig, new_config, train)
 
 
 # Flags a resume may carry; every other train-nerf flag is fixed by the run's config.json.
@@ -130,6 +122,14 @@ def _resume_device(args):
         )
     _existing(args.out, "training run to continue (--out RUN --resume)")
     return _device(args.device) if args.device else None
+
+
+def _resumed(args, cls) -> tuple:
+    """(config, device) of `train ... --resume`: the class's defaults with the loop's --iters
+    and --max-seconds from the command line (the trainer reads the rest from the run's saved
+    config), and the --device override (None: the run's own)."""
+    device = _resume_device(args)
+    return cls(iters=args.iters, max_seconds=args.max_seconds), device
 
 
 def nerf_config_from_args(args):
@@ -204,14 +204,13 @@ def cmd_train_nerf(args) -> int:
         )
     _check_out(args.out)
     if args.resume:
-        device = _resume_device(args)
+        cfg, device = _resumed(args, NeRFConfig)
         field = _saved_config(args.out).get("field", "volsdf")
         if args.model == "volsdf" and field_traits(field).geometry != "sdf":
             raise UserError(
                 f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
                 f"`warpnerf train nerf --out {args.out} --resume --iters N`"
             )
-        cfg = NeRFConfig(iters=args.iters, max_seconds=args.max_seconds)
     else:
         cfg, device = nerf_config_from_args(args), None
     # started by torchrun (WORLD_SIZE > 1): one rank of a data-parallel run (train/distributed.py)
@@ -246,13 +245,7 @@ def cmd_train_nerf(args) -> int:
 def cmd_train_sdf(args) -> int:
     from ..train.sdf import train_sdf
 
-    _check_out(args.out)
-    if args.resume:
-        dev = _resume_device(args)
-        cfg = SDFConfig(iters=args.iters, max_seconds=args.max_seconds)
-        m = train_sdf(cfg, args.out, resume=True, progress=not args.quiet, device=dev,
-                      tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
-    else:
+    def new_config(args):
         if args.points is None:
             raise UserError("--points FILE.npz|FILE.ply (or 'builtin') is required")
         kw = from_flags(SDFConfig, args)
@@ -261,14 +254,17 @@ def cmd_train_sdf(args) -> int:
         batch, layers = kw.get("batch", SDFConfig.batch), kw.get("n_layers", SDFConfig.n_layers)
         kw.update(n_random=batch, skip=max(1, layers // 2))
         kw["device"] = _device(args.device or SDFConfig.device)
-        cfg = SDFConfig(**kw)
-        m = train_sdf(cfg, args.out, progress=not args.quiet, tensorboard=tensorboard_every(args),
-                      hooks=live_hooks(args))  # fmt: skip
-    keys = ("step", "seconds", "chamfer", "vertices", "faces")
-    out = {k: m[k] for k in keys}
-    out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
-    print(json_dumps(out))
-    return 0
+        return SDFConfig(**kw), None  # (the device is the config's)
+
+    def report(m):
+        out = {k: m[k] for k in ("step", "seconds", "chamfer", "vertices", "faces")}
+        out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
+        return out
+
+    def train(cfg, device, **kw):
+        return train_sdf(cfg, args.out, device=device, **kw)
+
+    return _train_command(args, SDFConfig, new_config, train, report)
 
 
 def _box_flags(tb) -> None:
@@ -304,6 +300,15 @@ _GROUPS = {"nerf": GRID, "volsdf": VOLSDF + GRID}  # the config fields each comm
 _NERF_PRESET, _SDF_PRESET = preset_fields(NERF_PRESETS), preset_fields(SDF_PRESETS)
 
 
+def _section_title(section) -> str:
+    """A config section's title in --help; a field's section names the fields that read it
+    (their traits' ``config``)."""
+    from ..fields.model import FIELD_TRAITS
+
+    readers = [n for n, t in FIELD_TRAITS.items() if section in t.config]
+    return f"{section.TITLE} (--field {', '.join(readers)})" if readers else section.TITLE
+
+
 def _nerf_flags(tn, model: str) -> None:
     """The flags of `train nerf` and `train volsdf`: built from NeRFConfig / VolSDFConfig
     (warpnerf.options; defaults and help are the config's), plus the command's own."""
@@ -320,7 +325,7 @@ def _nerf_flags(tn, model: str) -> None:
     watch_flags(tn)
     unset = ("iters", "device", *_NERF_PRESET)
     add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=unset,
-              notes=preset_help(NERF_PRESETS))  # fmt: skip
+              notes=preset_help(NERF_PRESETS), titles=_section_title)  # fmt: skip
     from ..fields.model import FIELD_TRAITS
 
     taken = {a.dest for a in tn._actions}

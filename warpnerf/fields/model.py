@@ -30,6 +30,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from ..options import section_of
+from .settings import HashConfig, MLPConfig, SDFDensityConfig
+
 __all__ = [
     "RadianceModel", "FIELDS", "FieldTraits", "register_field", "field_traits", "fields_with",
     "build_model",
@@ -129,8 +132,8 @@ class FieldTraits:
     ``geometry``: "density" (a NeRF field: `train nerf`, depth supervision, pose refinement) or
     "sdf" (VolSDF's family: `train volsdf`, beta and the eikonal term, meshes, sphere tracing).
     ``in_box``: the field lives in the scene box [-aabb, aabb]^3 (an aabb is resolved for it).
-    ``hash``: on the hash encoding (the ``--hash-*`` flags and ``--hidden`` apply; Adam with
-    instant-ngp's eps 1e-15 for the sparse table updates). ``grid``: can march an occupancy
+    ``hash``: on the hash encoding (Adam with instant-ngp's eps 1e-15 for the sparse table
+    updates; its flags are ``config``'s HashConfig). ``grid``: can march an occupancy
     grid, on by default (``--grid-res`` 128). ``captures``: the capture features (contraction of
     unbounded scenes, appearance codes, the distortion loss; on a COLMAP/LLFF capture the finest
     hash level defaults to 1024). ``beta_schedule``: takes ``--beta-final``, ``--sdf-density``
@@ -141,7 +144,9 @@ class FieldTraits:
     the error to raise), or None. ``options``: the field's own settings, a dataclass declared
     with :func:`~warpnerf.options.option`: their flags are on `train nerf|volsdf` (for this
     field only), the run saves them in its config's ``field_options`` and the builder reads them
-    as ``cfg.field_settings()``."""
+    as ``cfg.field_settings()``. ``config``: the built-in config sections its builder reads
+    (fields/settings.py: MLPConfig, HashConfig, SDFDensityConfig): their checks apply to a run
+    with this field, and ``--help`` names the fields that read each section."""
 
     geometry: str = "density"
     in_box: bool = False
@@ -155,6 +160,7 @@ class FieldTraits:
     cpu_cost: float = 1.0
     check: Callable | None = None
     options: type | None = None
+    config: tuple = ()
 
     def __post_init__(self):
         if self.geometry not in ("density", "sdf"):
@@ -213,7 +219,7 @@ def build_model(cfg) -> RadianceModel:
     return model.to(cfg.device)
 
 
-@register_field("mlp")  # density, samples near..far: the default traits
+@register_field("mlp", FieldTraits(config=(MLPConfig,)))  # density, samples near..far
 def _mlp(cfg) -> RadianceModel:
     """NeRF's MLP (positional encoding, skip connection); a second one for the fine pass."""
     from .nerf import NeRFField
@@ -226,6 +232,13 @@ def _mlp(cfg) -> RadianceModel:
 
     coarse = make()
     return RadianceModel(coarse, make() if cfg.n_fine > 0 else None)
+
+
+def _hash_grid(cfg):
+    """The hash encoding of a config's :class:`HashConfig` section."""
+    from ..ops.encoding import HashGrid
+
+    return HashGrid(**section_of(cfg, HashConfig).grid_kwargs())
 
 
 def _contraction(cfg) -> dict:
@@ -250,11 +263,10 @@ def _on_grid(cfg, f, box) -> RadianceModel:
 
 
 @register_field("hash", FieldTraits(in_box=True, hash=True, grid=True, captures=True, lr=1e-2,
-                                    lr_decay=20.0))  # fmt: skip
+                                    lr_decay=20.0, config=(HashConfig,)))  # fmt: skip
 def _hash(cfg) -> RadianceModel:
     """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
     ``cfg.grid_res`` > 0 (then there is no fine pass)."""
-    from ..ops.encoding import HashGrid
     from .hash_nerf import HashNeRFField
 
     box = cfg.resolve().aabb_box()
@@ -265,7 +277,7 @@ def _hash(cfg) -> RadianceModel:
         if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
             raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
         app = (cfg.appearance_images, cfg.appearance_dim)
-    f = HashNeRFField(box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, cfg.view_dependence, app,
+    f = HashNeRFField(box, _hash_grid(cfg), cfg.hidden, cfg.view_dependence, app,
                       contract=_contraction(cfg).get("contract", 0.0))  # fmt: skip
     return _on_grid(cfg, f, box)
 
@@ -277,7 +289,14 @@ def _check_volsdf(cfg, fail) -> None:
 
 
 @register_field(
-    "volsdf", FieldTraits(geometry="sdf", in_box=True, cpu_cost=3.0, check=_check_volsdf)
+    "volsdf",
+    FieldTraits(
+        geometry="sdf",
+        in_box=True,
+        cpu_cost=3.0,
+        check=_check_volsdf,
+        config=(MLPConfig, SDFDensityConfig),
+    ),
 )  # (3: the eikonal double backward)
 def _volsdf(cfg) -> RadianceModel:
     """A neural SDF rendered through VolSDF's Laplace density; one network for both passes."""
@@ -295,15 +314,15 @@ def _volsdf(cfg) -> RadianceModel:
 @register_field("hash_sdf", FieldTraits(
     geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
     eikonal_weight=0.01, cpu_cost=2.3,  # (2.3: the SDF's central differences, measured)
+    config=(HashConfig, SDFDensityConfig),
 ))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:
     """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
-    from ..ops.encoding import HashGrid
     from .hash_sdf import HashSDFField
 
     box = cfg.resolve().aabb_box()
     f = HashSDFField(
-        box, HashGrid(**cfg._grid_kwargs()), cfg.hidden, view_dependence=cfg.view_dependence,
+        box, _hash_grid(cfg), cfg.hidden, view_dependence=cfg.view_dependence,
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
         level_every=cfg.c2f_every, density=cfg.sdf_density, beta_final=cfg.beta_final,
         anneal_steps=cfg.beta_anneal_steps, color_direction=cfg.color_direction,

@@ -34,10 +34,10 @@ from ..io import (
     write_video,
 )
 from ..ops import generate_rays, random_pixels
-from ..options import option
+from ..options import check_at_least, option, with_defaults
 from ..render import render_rays, render_views
 from .logs import TensorBoardLog
-from .loop import LoopSettings, Task, lock_run, resume_checks, run_loop
+from .loop import LoopConfig, LoopSettings, Task, lock_run, resume_checks, run_loop
 
 __all__ = [
     "BoxFitConfig",
@@ -56,22 +56,30 @@ OUTPUTS = ("config.json", CHECKPOINT, "history.json", "result.json", "spiral_rgb
 _RUN_KEYS = ("data", "device", "model")  # saved in config.json beside the BoxFitConfig fields
 
 
-@dataclass
-class BoxFitConfig:
-    """The box fit's settings, defaults and help (`warpnerf train box` builds its flags from
-    these fields: warpnerf.options)."""
+# the loop's section (shared by every kind of run) with the box fit's defaults: Adam, decayed
+# exponentially to lr * lr_final_ratio at lr_decay_steps (0: iters; a run saves its first
+# invocation's)
+BOX_LOOP = with_defaults(
+    LoopConfig, iters=400, lr=0.02, ckpt_every=100, lr_final=option(None, flag=None),
+    max_seconds=option(
+        0.0, "stop (a run folder checkpoints) after this much fitting time in this call (a "
+        "resume gets a fresh budget; 0: run all --iters)", check="nonnegative",
+    ),
+)  # fmt: skip
 
-    iters: int = option(400, "total steps", check="positive")
+
+@dataclass
+class BoxFitConfig(BOX_LOOP):
+    """The box fit's settings, defaults and help (`warpnerf train box` builds its flags from
+    these fields: warpnerf.options); the loop's section is :class:`LoopConfig`."""
+
     batch: int = option(4096, "rays per step, drawn uniformly across all images",
                         check="positive")  # fmt: skip
     n_samples: int = option(64, "stratified samples per ray (jittered while fitting)",
                             flag="--samples", check="positive")  # fmt: skip
     near: float = option(0.0, "near bound of the rays", check="finite")
     far: float = option(5.0, "far bound of the rays", check="finite")
-    # Adam, decayed exponentially to lr * lr_final_ratio at lr_decay_steps
-    lr: float = option(0.02, "Adam's learning rate", check="positive")
     lr_final_ratio: float = option(0.1, flag=None)
-    lr_decay_steps: int = option(0, flag=None)  # 0: iters (a run saves its first invocation's)
     beta: float = option(0.05, flag=None)
     alpha: float = option(1.0, flag=None)
     background: float = option(0.0, flag=None)  # black, as the seed's box task
@@ -79,12 +87,6 @@ class BoxFitConfig:
         False, "let the dataset's files name images outside its folder (absolute paths, '..', "
         "symlinks out of it); refused by default",
     )  # fmt: skip
-    ckpt_every: int = option(100, "steps between checkpoints", check="positive")
-    max_seconds: float = option(
-        0.0, "stop (a run folder checkpoints) after this much fitting time in this call (a "
-        "resume gets a fresh budget; 0: run all --iters)", check="nonnegative",
-    )  # fmt: skip
-    seed: int = option(0, "random seed", check="seed")
 
     def to_dict(self):
         return asdict(self)
@@ -104,25 +106,22 @@ class BoxFitConfig:
         ``where`` and the config field."""
         from ..jsonio import field_error
 
-        for name in ("iters", "batch", "n_samples", "ckpt_every"):
-            if getattr(self, name) < 1:
-                raise field_error(where, name, f"must be >= 1, got {getattr(self, name)}")
+        def fail(name: str, rule: str):
+            return field_error(where, name, rule)
+
+        LoopConfig.check_section(self, fail)
+        if self.lr is None:
+            raise field_error(where, "lr", "must be a number, got null")
+        check_at_least(self, fail, 1, "batch", "n_samples")
         if not (math.isfinite(self.far) and self.far > self.near >= 0):
             raise field_error(where, "near", f"must be >= 0 and below a finite far (--far), got "
                               f"near {self.near}, far {self.far}")  # fmt: skip
-        for name in ("lr", "lr_final_ratio", "beta", "alpha"):
+        for name in ("lr_final_ratio", "beta", "alpha"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise field_error(where, name, f"must be positive and finite, got {v}")
-        if not (math.isfinite(self.max_seconds) and self.max_seconds >= 0):
-            raise field_error(where, "max_seconds", f"must be finite and >= 0, got "
-                              f"{self.max_seconds}")  # fmt: skip
         if not (math.isfinite(self.background) and 0 <= self.background <= 1):
             raise field_error(where, "background", f"must be in [0, 1], got {self.background}")
-        if self.lr_decay_steps < 0:
-            raise field_error(where, "lr_decay_steps", f"must be >= 0, got {self.lr_decay_steps}")
-        if not 0 <= self.seed < 2**31:
-            raise field_error(where, "seed", f"must be an integer in [0, 2^31), got {self.seed}")
         return self
 
     def render_kwargs(self) -> dict:

@@ -51,12 +51,14 @@ from ..io import (
     save_checkpoint,
     write_json,
 )
+from ..options import check_at_least, option, section_of
 from ._signals import check_resume_iters, nonfinite_flags, raise_if_diverged, stop_requests
 from .provenance import RUN_INFO, finish_session, start_session
 
 __all__ = [
-    "Task", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks", "claim_run",
-    "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr", "bare_step", "one_step",
+    "Task", "LoopConfig", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks",
+    "claim_run", "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr",
+    "bare_step", "one_step",
     "read_terms", "nonfinite_flags", "to_host", "BackgroundWriter", "adam", "sync_sites",
 ]  # fmt: skip
 
@@ -65,8 +67,49 @@ LOOP_KEYS = ("step", "optimizer", "history")
 
 
 @dataclass
+class LoopConfig:
+    """The loop's section of every kind of run's config, declared once: each config class
+    derives from it (``with_defaults(LoopConfig, iters=..., ...)`` for its own defaults); its
+    flags are shown under TITLE, and :meth:`LoopSettings.of` reads exactly these fields.
+    ``lr``/``lr_final`` None: resolved by the run (its field's defaults); ``lr_decay_steps`` 0:
+    the first invocation's ``iters`` (saved)."""
+
+    TITLE = "training loop"
+
+    iters: int = option(20000, "total steps", check="positive")
+    lr: float | None = option(None, "Adam's learning rate", check="positive")
+    lr_final: float | None = option(
+        None, "lr decays exponentially to this at lr_decay_steps (default lr/10)",
+        check="positive",
+    )  # fmt: skip
+    lr_decay_steps: int = option(0, flag=None)
+    max_seconds: float = option(
+        0.0, "stop after this much training time in this invocation (a resume gets a fresh "
+        "budget; 0: run all --iters)", check="nonnegative",
+    )  # fmt: skip
+    ckpt_every: int = option(1000, "steps between checkpoints", check="positive")
+    seed: int = option(0, "random seed", check="seed")
+
+    def check_section(self, fail) -> None:
+        """The loop section's ranges; ``fail(name, rule)`` builds the error to raise."""
+        import math
+
+        check_at_least(self, fail, 1, "iters", "ckpt_every")
+        check_at_least(self, fail, 0, "lr_decay_steps")
+        if not (math.isfinite(self.max_seconds) and self.max_seconds >= 0):
+            raise fail("max_seconds", f"must be finite and >= 0, got {self.max_seconds}")
+        for name in ("lr", "lr_final"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise fail(name, f"must be finite and positive, got {v}")
+        if not 0 <= self.seed < 2**31:
+            raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
+
+
+@dataclass
 class LoopSettings:
-    """The loop's settings (taken from a task's config)."""
+    """The loop's settings at run time: a config's :class:`LoopConfig` section (resolved), the
+    progress bar's text and the snapshot times."""
 
     iters: int
     lr: float
@@ -79,13 +122,14 @@ class LoopSettings:
     snapshot_seconds: tuple = ()  # training seconds at which to keep a copy of the checkpoint
 
     @classmethod
-    def of(cls, cfg, desc: str, **override) -> LoopSettings:
-        """The loop settings of a task config (fields of the same names; ``override`` wins; a
-        config's ``snapshots`` string, "30,60,120", gives ``snapshot_seconds``)."""
-        names = ("iters", "lr", "lr_final", "lr_decay_steps", "max_seconds", "ckpt_every")
-        kw = {k: getattr(cfg, k) for k in names if hasattr(cfg, k)}
-        if getattr(cfg, "snapshots", ""):
-            kw["snapshot_seconds"] = parse_snapshots(cfg.snapshots)
+    def of(cls, cfg: LoopConfig, desc: str, snapshots: str = "", **override) -> LoopSettings:
+        """The loop settings of a task config: its :class:`LoopConfig` section (``override``
+        wins); ``snapshots``, "30,60,120", gives ``snapshot_seconds``."""
+        loop = section_of(cfg, LoopConfig)
+        kw = {k: getattr(loop, k) for k in ("iters", "lr", "lr_final", "lr_decay_steps",
+                                            "max_seconds", "ckpt_every")}  # fmt: skip
+        if snapshots:
+            kw["snapshot_seconds"] = parse_snapshots(snapshots)
         return cls(**(kw | override), desc=desc)
 
 

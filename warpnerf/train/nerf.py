@@ -156,7 +156,9 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
         task.resume(ckpt, run, log)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    settings = LoopSettings.of(cfg, "train nerf", val_every=cfg.val_every if val is not None else 0)
+    settings = LoopSettings.of(
+        cfg, "train nerf", cfg.snapshots, val_every=cfg.val_every if val is not None else 0
+    )
     hooks = [*hooks, *tb]
     return run_loop(
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress,

@@ -15,15 +15,20 @@ from ..data.datasets import FORMATS
 from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..fields.model import FieldTraits, field_traits, fields_with
-from ..options import option
-from .presets import PRESET_NAMES
+from ..fields.settings import HashConfig, MLPConfig, SDFDensityConfig
+from ..options import check_at_least, option, with_defaults
+from .loop import LoopConfig
+from .presets import PRESET_NAMES, preset_option
 
-__all__ = ["NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL"]
+__all__ = [
+    "NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL", "DataConfig", "SceneConfig",
+    "SamplingConfig", "CaptureConfig", "ValidationConfig", "SECTIONS",
+]  # fmt: skip
 
 
 FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
-GRID, VOLSDF = ("grid",), ("volsdf",)  # flag groups: `train nerf` only, `train volsdf` only
+GRID = ("grid",)  # flag group: `train nerf` only (VOLSDF: `train volsdf` only)
 DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MAX_DEPTH_RAYS = 1 << 20  # --depth-rays: observation rays a step, at most
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
@@ -31,12 +36,10 @@ CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube hal
 
 
 @dataclass
-class NeRFConfig:
-    """Every setting of a NeRF (or VolSDF) run, its default and its help; the flags of `warpnerf
-    train nerf|volsdf` and of the NeRF demos are built from these fields (warpnerf.options).
-    Values left None (and aabb/march_step 0) are filled in from the data and the field by
-    :meth:`resolve`, called once by :meth:`validate` at the start of training; the result is
-    saved in the run's config.json."""
+class DataConfig:
+    """Where the images come from and how they are read."""
+
+    TITLE = "data"
 
     data: str = option(
         "builtin", "Blender, nerfstudio, COLMAP or LLFF folder, or 'builtin' (the built-in scene)"
@@ -55,104 +58,86 @@ class NeRFConfig:
     # COLMAP/LLFF, resolved at the start: format, transform (world -> normalised [4][4]), ndc
     # camera (fx, fy, W, H) or None, near, far, aabb
     scene: dict | None = option(None, flag=None)
-    preset: str = option(
-        "default", "sizes: cpu (the built-in scene in under a minute on 2 CPU cores; sets the "
-        "flags marked --preset cpu, flags given explicitly win) or default/gpu (the defaults)",
-        choices=PRESET_NAMES,
+    downscale: int = option(1, "image downscale factor", check="positive")
+    max_images: int = option(0, "training images used (0 = all)", check="nonnegative")
+    allow_outside_paths: bool = option(
+        False, "let the dataset's files name images outside its folder (absolute paths, '..', "
+        "symlinks out of it); refused by default",
     )  # fmt: skip
-    iters: int = option(20000, "total steps", check="positive")
-    batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
-    field: str = option(
-        "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
-        "volsdf: neural SDF with VolSDF's density (see `train volsdf`); hash_sdf: hash-grid SDF "
-        "with VolSDF's density on the occupancy grid", choices=FIELDS,
+    images_on: str = option(
+        "auto", "where the training images live on a GPU run: device (gathered on the GPU), "
+        "host (host memory; each batch's pixels gathered there into pinned memory and copied: "
+        "GPU memory independent of the number of images) or auto (device while they take at most a "
+        "quarter of the free GPU memory)",
     )  # fmt: skip
-    lr: float | None = option(None, "5e-4 (mlp), 1e-2 (hash)", check="positive")
-    lr_final: float | None = option(
-        None, "lr decays exponentially to this at lr_decay_steps (default lr/10 (mlp), lr/20)",
-        check="positive",
+    builtin_size: int = option(48, "image size of the built-in scene", check="positive")
+
+    def check_section(self, fail) -> None:
+        check_at_least(self, fail, 1, "downscale", "builtin_size")
+        if self.holdout < 0 or self.holdout == 1:
+            raise fail("holdout", f"must be 0 (none) or >= 2, got {self.holdout}")
+        check_at_least(self, fail, 0, "max_images")
+        for name, allowed in (("ndc", ("auto", "on", "off")), ("data_format", FORMATS),
+                              ("images_on", ("auto", "device", "host"))):  # fmt: skip
+            if (v := getattr(self, name)) not in allowed:
+                raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
+        if self.scene is not None:
+            _check_scene(self.scene, lambda rule: fail("scene", rule))
+
+
+@dataclass
+class SceneConfig:
+    """The part of space a run models: near/far, the scene box, contraction, the background."""
+
+    TITLE = "scene bounds"
+
+    aabb: float = option(
+        0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
+        "built-in scene's own for builtin; with --contract on: of the inner cube, default the "
+        "camera centres' extent)", check="nonnegative",
     )  # fmt: skip
-    # 0: the run's first `iters` (resolved and saved at the start)
-    lr_decay_steps: int = option(0, flag=None)
+    contract: str = option(
+        "auto", "unbounded scene (hash field with a grid): space beyond the inner cube (--aabb) "
+        "is contracted into a shell around it (mip-NeRF 360), the grid lives in contracted "
+        "space, marching steps grow with distance and training composites onto random "
+        "backgrounds (auto: on for COLMAP/LLFF captures that are not forward-facing)",
+        choices=("auto", "on", "off"),
+    )  # fmt: skip
+    near: float | None = option(None, "default 2 (the built-in scene's own for builtin)",
+                                check="finite")  # fmt: skip
+    far: float | None = option(None, "default 6 (the built-in scene's own for builtin)",
+                               check="finite")  # fmt: skip
+    background: float = option(1.0, flag=None)  # white, as the NeRF-synthetic evaluation
+
+    def check_section(self, fail) -> None:
+        if self.contract not in ("auto", "on", "off"):
+            raise fail("contract", f"must be one of auto, on, off, got {self.contract!r}")
+        if not (math.isfinite(self.background) and 0 <= self.background <= 1):
+            raise fail("background", f"must be in [0, 1], got {self.background}")
+        if not (math.isfinite(self.aabb) and self.aabb >= 0):
+            raise fail("aabb", f"must be finite and >= 0 (0: automatic), got {self.aabb}")
+        for name in ("near", "far"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and (v > 0 or (name == "near" and v == 0))):
+                rule = ">= 0" if name == "near" else "positive"
+                raise fail(name, f"must be finite and {rule}, got {v}")
+        if self.near is not None and self.far is not None and not self.far > self.near:
+            raise fail("near", f"must be below far: need 0 <= near < far, got near={self.near}, "
+                       f"far={self.far}")  # fmt: skip
+
+
+@dataclass
+class SamplingConfig:
+    """Where along a ray the field is evaluated: stratified (and fine) samples, or marching the
+    occupancy grid; early termination."""
+
+    TITLE = "sampling and the occupancy grid"
+
     n_coarse: int = option(64, "coarse samples per ray", flag="--samples", check="positive")
     n_fine: int = option(0, flag=None)  # > 0: the fine network (--coarse-fine --fine-samples N)
-    view_dependence: bool = option(True, "colour depends on the viewing direction")
-    n_layers: int = option(8, "MLP layers", flag="--layers", check="positive")
-    width: int = option(256, "MLP width", check="positive")
-    skip: int = option(4, flag=None)
-    pos_freqs: int = option(10, "positional-encoding frequencies", check="nonnegative")
-    dir_freqs: int = option(4, "direction-encoding frequencies", check="nonnegative")
-    density_activation: str = option("softplus", flag=None)
-    hash_levels: int = option(16, "hash field: grid levels", check="positive")
-    hash_log2_size: int = option(19, "hash field: log2 of the rows per level", check="positive")
-    hash_base_res: int = option(16, flag=None)
-    hash_max_res: int | None = option(
-        None, "hash field: finest grid resolution (default 1024 for --field hash on a "
-        "COLMAP/LLFF capture: measured +0.4 dB on beer and +0.1 dB on fern against 2048, "
-        "docs/PERFORMANCE.md; else 2048)", check="positive",
-    )  # fmt: skip
-    hidden: int = option(64, "hash field MLP width", check="positive")
-    appearance_dim: int | None = option(
-        None, "hash field with a grid: a learned appearance code of this size per training "
-        "image, fed to the colour MLP (exposure / white balance changing between photos); "
-        "held-out views use the codes' mean; 0: none (default 16 on a COLMAP/LLFF capture: "
-        "measured +0.5 dB on beer, docs/PERFORMANCE.md; else 0)", check="nonnegative",
-    )  # fmt: skip
-    appearance_images: int = option(0, flag=None)  # codes: the training split's size, when set
-    pose_refine: bool = option(
-        False, "learn a small rotation and translation correction per training camera (poses "
-        "that are slightly off, e.g. COLMAP's); held-out cameras keep their given poses",
-    )  # fmt: skip
-    pose_lr: float = option(1e-3, "with --pose-refine: the corrections' learning rate (it "
-                            "decays with --lr's schedule)", check="positive")  # fmt: skip
-    pose_images: int = option(0, flag=None)  # pose refinement: the training split's size
-    distortion_loss: float = option(
-        0.0, "hash field with a grid: weight of mip-NeRF 360's distortion loss on each training "
-        "ray's compositing weights, which pulls a ray's weight into one short stretch (fewer "
-        "floaters in real captures; ray positions are normalised to s = t / (t + a) in "
-        "contracted scenes, a the inner half-size, else to (t - near) / (far - near)); 0: off",
-        check="nonnegative",
-    )  # fmt: skip
-    depth_loss: float = option(
-        0.0, "COLMAP captures with sparse points (world-space rays, not NDC): weight of a depth "
-        "prior at the points, a Huber loss (delta 0.1) on each observation ray's rendered depth "
-        "relative to the point's distance along it, over --depth-rays observations drawn per "
-        "step from the training images (geometry where the photos alone leave it open, e.g. an "
-        "untextured floor); 0: off", check="nonnegative",
-    )  # fmt: skip
-    depth_rays: int = option(
-        256, "with --depth-loss: observation rays rendered per step", check="positive"
+    t_threshold: float = option(
+        1e-4, "early ray termination below this transmittance (0: off)", check="finite"
     )
-    # volsdf: the Laplace scale (world units), its floor, learned or fixed; the eikonal weight
-    beta: float = option(0.1, "initial Laplace scale", check="positive", groups=VOLSDF)
-    beta_min: float = option(1e-4, "its floor", check="positive", groups=VOLSDF)
-    learn_beta: bool = option(True, "keep beta at --beta", negate="--fixed-beta", groups=VOLSDF)
-    beta_final: float = option(
-        0.0, "hash_sdf: anneal beta geometrically from --beta to this over --beta-anneal-steps "
-        "(then constant; replaces learning it); 0: off", check="nonnegative", groups=VOLSDF,
-    )  # fmt: skip
-    beta_anneal_steps: int = option(
-        5000, "hash_sdf: steps of the --beta-final schedule", check="positive", groups=VOLSDF
-    )
-    sdf_density: str = option(
-        "laplace", "hash_sdf: SDF-to-density conversion, laplace (VolSDF) or logistic (NeuS, "
-        "s = 1/beta)", groups=VOLSDF,
-    )  # fmt: skip
-    color_direction: str = option(
-        "view", "hash_sdf: the colour head's direction input, view (the viewing direction) or "
-        "reflect (it reflected about the SDF normal, plus n.v: Ref-NeRF's input for glossy "
-        "surfaces)", groups=VOLSDF,
-    )  # fmt: skip
-    eikonal_weight: float | None = option(
-        None, "weight of (|grad d| - 1)^2 (samples + random points); default 0.1 (volsdf), "
-        "0.01 (hash_sdf: measured +0.7 dB on lego, docs/PERFORMANCE.md)", check="finite",
-        groups=VOLSDF,
-    )  # fmt: skip
-    c2f_every: int = option(
-        0, "hash_sdf: steps between opening one more hash level (coarse to fine, from 4 "
-        "levels; 0: all levels at once, measured better on lego)", check="nonnegative",
-        groups=VOLSDF,
-    )  # fmt: skip
     grid_res: int | None = option(
         None, "occupancy grid cells per axis, even (default 128 with --field hash; 0: no grid, "
         "stratified/hierarchical samples instead)", check="nonnegative", groups=GRID,
@@ -187,57 +172,146 @@ class NeRFConfig:
         "for debugging; on: refuse a run that does not allow it)",
         choices=("auto", "on", "off"), groups=GRID,
     )  # fmt: skip
-    aabb: float = option(
-        0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
-        "built-in scene's own for builtin; with --contract on: of the inner cube, default the "
-        "camera centres' extent)", check="nonnegative",
-    )  # fmt: skip
-    contract: str = option(
-        "auto", "unbounded scene (hash field with a grid): space beyond the inner cube (--aabb) "
-        "is contracted into a shell around it (mip-NeRF 360), the grid lives in contracted "
-        "space, marching steps grow with distance and training composites onto random "
-        "backgrounds (auto: on for COLMAP/LLFF captures that are not forward-facing)",
-        choices=("auto", "on", "off"),
-    )  # fmt: skip
     march_cone: float = option(
         0.0, "with --contract on: marching steps grow as this x the distance, beyond "
         "march-step / cone (0: 1/256)", check="nonnegative", groups=GRID,
     )  # fmt: skip
-    near: float | None = option(None, "default 2 (the built-in scene's own for builtin)",
-                                check="finite")  # fmt: skip
-    far: float | None = option(None, "default 6 (the built-in scene's own for builtin)",
-                               check="finite")  # fmt: skip
-    background: float = option(1.0, flag=None)  # white, as the NeRF-synthetic evaluation
-    downscale: int = option(1, "image downscale factor", check="positive")
-    max_images: int = option(0, "training images used (0 = all)", check="nonnegative")
-    allow_outside_paths: bool = option(
-        False, "let the dataset's files name images outside its folder (absolute paths, '..', "
-        "symlinks out of it); refused by default",
+
+    def check_section(self, fail) -> None:
+        check_at_least(self, fail, 1, "n_coarse")
+        check_at_least(self, fail, 0, "n_fine")
+        if not 0.0 <= self.t_threshold < 1.0:
+            raise fail("t_threshold", f"must be in [0, 1), got {self.t_threshold}")
+        if not (math.isfinite(self.march_cone) and 0 <= self.march_cone <= 1):
+            raise fail("march_cone", f"must be in [0, 1], got {self.march_cone}")
+        if self.cuda_graph not in ("auto", "on", "off"):
+            raise fail("cuda_graph", f"must be one of auto, on, off, got {self.cuda_graph!r}")
+        if not self.grid_res:
+            return
+        if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
+            raise fail("grid_res", f"must be even, in [2, 1024], got {self.grid_res}")
+        check_at_least(self, fail, 1, "grid_every", "max_samples")
+        if not 0 < self.occ_threshold < 1:
+            raise fail("occ_threshold", f"must be in (0, 1), got {self.occ_threshold}")
+        if not (math.isfinite(self.march_step) and self.march_step >= 0):
+            raise fail("march_step", f"must be finite and >= 0, got {self.march_step}")
+        check_at_least(self, fail, 0, "grid_warmup", "target_samples", "round_samples")
+
+
+@dataclass
+class CaptureConfig:
+    """What photos need beyond renders: appearance codes, pose refinement, the distortion loss
+    and the depth prior."""
+
+    TITLE = "captures (appearance codes, pose refinement, extra losses)"
+
+    appearance_dim: int | None = option(
+        None, "hash field with a grid: a learned appearance code of this size per training "
+        "image, fed to the colour MLP (exposure / white balance changing between photos); "
+        "held-out views use the codes' mean; 0: none (default 16 on a COLMAP/LLFF capture: "
+        "measured +0.5 dB on beer, docs/PERFORMANCE.md; else 0)", check="nonnegative",
     )  # fmt: skip
-    images_on: str = option(
-        "auto", "where the training images live on a GPU run: device (gathered on the GPU), "
-        "host (host memory; each batch's pixels gathered there into pinned memory and copied: "
-        "GPU memory independent of the number of images) or auto (device while they take at most a "
-        "quarter of the free GPU memory)",
+    appearance_images: int = option(0, flag=None)  # codes: the training split's size, when set
+    pose_refine: bool = option(
+        False, "learn a small rotation and translation correction per training camera (poses "
+        "that are slightly off, e.g. COLMAP's); held-out cameras keep their given poses",
     )  # fmt: skip
-    builtin_size: int = option(48, "image size of the built-in scene", check="positive")
-    t_threshold: float = option(
-        1e-4, "early ray termination below this transmittance (0: off)", check="finite"
+    pose_lr: float = option(1e-3, "with --pose-refine: the corrections' learning rate (it "
+                            "decays with --lr's schedule)", check="positive")  # fmt: skip
+    pose_images: int = option(0, flag=None)  # pose refinement: the training split's size
+    distortion_loss: float = option(
+        0.0, "hash field with a grid: weight of mip-NeRF 360's distortion loss on each training "
+        "ray's compositing weights, which pulls a ray's weight into one short stretch (fewer "
+        "floaters in real captures; ray positions are normalised to s = t / (t + a) in "
+        "contracted scenes, a the inner half-size, else to (t - near) / (far - near)); 0: off",
+        check="nonnegative",
+    )  # fmt: skip
+    depth_loss: float = option(
+        0.0, "COLMAP captures with sparse points (world-space rays, not NDC): weight of a depth "
+        "prior at the points, a Huber loss (delta 0.1) on each observation ray's rendered depth "
+        "relative to the point's distance along it, over --depth-rays observations drawn per "
+        "step from the training images (geometry where the photos alone leave it open, e.g. an "
+        "untextured floor); 0: off", check="nonnegative",
+    )  # fmt: skip
+    depth_rays: int = option(
+        256, "with --depth-loss: observation rays rendered per step", check="positive"
     )
+
+    def check_section(self, fail) -> None:
+        if self.appearance_dim is not None and self.appearance_dim > 256:
+            raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
+        for name in ("distortion_loss", "depth_loss"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise fail(name, f"must be finite and >= 0, got {v}")
+        if not 1 <= self.depth_rays <= MAX_DEPTH_RAYS:
+            raise fail("depth_rays", f"must be in [1, {MAX_DEPTH_RAYS}], got {self.depth_rays}")
+        for name in ("appearance_images", "pose_images"):
+            if not 0 <= getattr(self, name) <= 10**6:
+                raise fail(name, f"must be in [0, 10^6], got {getattr(self, name)}")
+        if not (math.isfinite(self.pose_lr) and self.pose_lr > 0):
+            raise fail("pose_lr", f"must be finite and positive, got {self.pose_lr}")
+
+
+@dataclass
+class ValidationConfig:
+    """What a run scores and keeps while it trains."""
+
+    TITLE = "validation and snapshots"
+
     val_every: int = option(1000, "steps between validations", check="positive")
     val_images: int = option(2, "validation images scored", check="nonnegative")
-    ckpt_every: int = option(1000, "steps between checkpoints", check="positive")
     chunk: int = option(8192, flag=None)  # rays per chunk when rendering whole images
-    max_seconds: float = option(
-        0.0, "stop after this much training time in this invocation (a resume gets a fresh "
-        "budget; 0: run all --iters)", check="nonnegative",
-    )  # fmt: skip
     snapshots: str = option(
         "", "keep a copy of the checkpoint when the training time reaches each of these seconds "
         "(e.g. 15,60,300; RUN/snapshots/t60s.pt) for time-to-quality curves",
     )  # fmt: skip
+
+    def check_section(self, fail) -> None:
+        check_at_least(self, fail, 1, "val_every", "chunk")
+        check_at_least(self, fail, 0, "val_images")
+        if self.snapshots:
+            from .loop import parse_snapshots
+
+            try:
+                parse_snapshots(self.snapshots)
+            except ValueError as e:
+                raise fail("snapshots", str(e)) from None
+
+
+# a NeRF run's sections, in the order its --help shows them (the fields' own: fields/settings.py)
+NERF_LOOP = with_defaults(
+    LoopConfig,
+    lr=option(None, "5e-4 (mlp), 1e-2 (hash)", check="positive"),
+    lr_final=option(
+        None,
+        "lr decays exponentially to this at lr_decay_steps (default lr/10 (mlp), lr/20)",
+        check="positive",
+    ),  # fmt: skip
+)
+SECTIONS = (DataConfig, NERF_LOOP, SceneConfig, SamplingConfig, MLPConfig, HashConfig,
+            SDFDensityConfig, CaptureConfig, ValidationConfig)  # fmt: skip
+
+
+@dataclass
+class NeRFConfig(*reversed(SECTIONS)):
+    """Every setting of a NeRF (or VolSDF) run, its default and its help, in sections (each a
+    dataclass declared once: the loop's is shared with the other kinds of run, the fields'
+    live with the fields, fields/settings.py); the flags of `warpnerf train nerf|volsdf` and of
+    the NeRF demos are built from them (warpnerf.options), shown section by section. Values left
+    None (and aabb/march_step 0) are filled in from the data and the field by :meth:`resolve`,
+    called once by :meth:`validate` at the start of training; the result is saved, flat, in the
+    run's config.json (the same keys as before the sections)."""
+
+    preset: str = preset_option("the built-in scene")
+    batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
+    field: str = option(
+        "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
+        "volsdf: neural SDF with VolSDF's density (see `train volsdf`); hash_sdf: hash-grid SDF "
+        "with VolSDF's density on the occupancy grid", choices=FIELDS,
+    )  # fmt: skip
+    view_dependence: bool = option(True, "colour depends on the viewing direction")
     tf32: bool = option(False, "TF32 matrix products on CUDA (kernels stay float32)")
-    seed: int = option(0, "random seed", check="seed")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
     model: str = option(MODEL, flag=None)  # the kind of run (train/methods.py); older runs lack it
     # the field's own settings (its traits' ``options``), saved by name; {} for the built-in fields
@@ -328,8 +402,9 @@ class NeRFConfig:
         return self.scene["ndc"] if self.scene else None
 
     def check_values(self, where: str | None = None):
-        """The checks of :meth:`validate` that need neither the data nor the device: counts,
-        sizes, choices, ranges, the seed and a saved ``scene``. ``where`` None: messages name the
+        """The checks of :meth:`validate` that need neither the data nor the device: each
+        section's own (``check_section``; every section's, whichever field reads it: the saved
+        config is untrusted), then those across sections. ``where`` None: messages name the
         command-line flags; else the file ``where`` and the config field."""
 
         from ..jsonio import field_error, is_device
@@ -337,82 +412,42 @@ class NeRFConfig:
         def fail(name: str, rule: str):
             return field_error(where, name, rule)
 
-        for name in ("iters", "batch", "n_coarse", "n_layers", "width", "val_every",
-                     "ckpt_every", "chunk", "builtin_size", "downscale"):  # fmt: skip
-            value = getattr(self, name)
-            if value < 1:
-                raise fail(name, f"must be >= 1, got {value}")
-        for name in ("n_fine", "pos_freqs", "dir_freqs", "skip", "lr_decay_steps"):
-            if getattr(self, name) < 0:
-                raise fail(name, f"must be >= 0, got {getattr(self, name)}")
-        for name in ("pos_freqs", "dir_freqs"):  # 2^64 * coordinates stays finite in float32
-            if getattr(self, name) > 64:
-                raise fail(name, f"must be at most 64, got {getattr(self, name)}")
-        if self.holdout < 0 or self.holdout == 1:
-            raise fail("holdout", f"must be 0 (none) or >= 2, got {self.holdout}")
-        if not 0 <= self.seed < 2**31:
-            raise fail("seed", f"must be an integer in [0, 2^31), got {self.seed}")
-        choices = {"field": FIELDS, "ndc": ("auto", "on", "off"),
-                   "density_activation": ("relu", "softplus"), "data_format": FORMATS,
-                   "sdf_density": ("laplace", "logistic"),
-                   "color_direction": ("view", "reflect"),
-                   "images_on": ("auto", "device", "host"),
-                   "contract": ("auto", "on", "off"), "preset": PRESET_NAMES}  # fmt: skip
-        for name, allowed in choices.items():
-            if (v := getattr(self, name)) not in allowed:
-                raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
+        if self.field not in FIELDS:
+            raise fail("field", f"must be one of {', '.join(FIELDS)}, got {self.field!r}")
+        traits = self.traits
+        for section in SECTIONS:
+            section.check_section(self, fail)
+        check_at_least(self, fail, 1, "batch")
+        if self.preset not in PRESET_NAMES:
+            raise fail("preset", f"must be one of {', '.join(PRESET_NAMES)}, got {self.preset!r}")
         if self.model != MODEL:
             raise fail("model", f"must be {MODEL!r} (a NeRF/VolSDF run), got {self.model!r}")
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
-        traits = self.traits
-        if self.appearance_dim:
-            if not traits.captures or self.grid_res == 0:  # (None: the default grid)
-                raise fail("appearance_dim", f"appearance codes need {_fields(captures=True)} "
-                           f"with an occupancy grid (--grid-res > 0), not --field {self.field} "
-                           f"--grid-res {self.grid_res}")  # fmt: skip
-            if self.appearance_dim > 256:
-                raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
-        if not (math.isfinite(self.distortion_loss) and self.distortion_loss >= 0):
-            raise fail("distortion_loss", f"must be finite and >= 0, got {self.distortion_loss}")
+        # across sections: what the field's traits allow
+        if self.appearance_dim and (not traits.captures or self.grid_res == 0):
+            raise fail("appearance_dim", f"appearance codes need {_fields(captures=True)} with "
+                       f"an occupancy grid (--grid-res > 0), not --field {self.field} "
+                       f"--grid-res {self.grid_res}")  # fmt: skip
         if self.distortion_loss and (not traits.captures or self.grid_res == 0):
             raise fail(
                 "distortion_loss",
                 f"needs {_fields(captures=True)} with an occupancy grid "
                 f"(--grid-res > 0), not --field {self.field} --grid-res {self.grid_res}",
             )
-        if not (math.isfinite(self.depth_loss) and self.depth_loss >= 0):
-            raise fail("depth_loss", f"must be finite and >= 0, got {self.depth_loss}")
-        if not 1 <= self.depth_rays <= MAX_DEPTH_RAYS:
-            raise fail("depth_rays", f"must be in [1, {MAX_DEPTH_RAYS}], got {self.depth_rays}")
         if self.depth_loss and traits.geometry != "density":
             raise fail("depth_loss", f"needs a NeRF field ({_fields(geometry='density')}), not "
                        f"--field {self.field}")  # fmt: skip
-        if not 0 <= self.appearance_images <= 10**6:
-            raise fail("appearance_images", f"must be in [0, 10^6], got {self.appearance_images}")
-        if not 0 <= self.pose_images <= 10**6:
-            raise fail("pose_images", f"must be in [0, 10^6], got {self.pose_images}")
         if self.pose_refine and traits.geometry == "sdf":  # (their positions carry no gradient)
             raise fail("pose_refine", f"is for NeRF fields ({_fields(geometry='density')}), not "
                        f"--field {self.field}")  # fmt: skip
         if traits.geometry == "sdf":
-            if not (self.beta > 0 and 0 < self.beta_min <= self.beta):
-                raise fail("beta_min", f"must be in (0, beta]: got beta-min {self.beta_min}, "
-                           f"beta {self.beta}")  # fmt: skip
-            if self.beta_final > 0 and not self.beta_min <= self.beta_final <= self.beta:
-                raise fail("beta_final", f"must be in [beta_min, beta] = [{self.beta_min}, "
-                           f"{self.beta}] (or 0: off), got {self.beta_final}")  # fmt: skip
             if not traits.beta_schedule and (self.beta_final > 0 or self.sdf_density != "laplace"
                                              or self.color_direction != "view"):  # fmt: skip
                 raise fail("field", "--beta-final, --sdf-density and --color-direction need "
                            f"{_fields(beta_schedule=True)}")  # fmt: skip
             if self.color_direction == "reflect" and not self.view_dependence:
                 raise fail("color_direction", "reflect needs view dependence")
-            if self.beta_anneal_steps < 1:
-                raise fail("beta_anneal_steps", f"must be >= 1, got {self.beta_anneal_steps}")
-            ew = self.eikonal_weight
-            if ew is not None and not (math.isfinite(ew) and ew >= 0):
-                raise fail("eikonal_weight", f"must be finite and >= 0, got {ew}")
         if traits.options is not None:  # typed, no unknown names (the saved config: untrusted)
             from ..jsonio import check_fields
 
@@ -422,33 +457,8 @@ class NeRFConfig:
             raise fail("field_options", f"must be empty: --field {self.field} has no options")
         if traits.check is not None:
             traits.check(self, fail)
-        if traits.hash:
-            from ..ops.encoding import HashGrid
-
-            if self.hash_max_res is not None:  # (None: resolved from the data, checked then)
-                try:
-                    HashGrid(**self._grid_kwargs())
-                except ValueError as e:
-                    raise UserError(f"{where + ': ' if where else ''}hash grid: {e}") from None
-            if self.hidden < 1:
-                raise fail("hidden", f"must be >= 1, got {self.hidden}")
-        if self.grid_res:
-            if not traits.grid:
-                raise fail("grid_res", f"needs {_fields(grid=True)} (set --grid-res 0 otherwise)")
-            if self.grid_res < 2 or self.grid_res % 2 or self.grid_res > 1024:
-                raise fail("grid_res", f"must be even, in [2, 1024], got {self.grid_res}")
-            for name in ("grid_every", "max_samples"):
-                if getattr(self, name) < 1:
-                    raise fail(name, "must be >= 1")
-            if not 0 < self.occ_threshold < 1:
-                raise fail("occ_threshold", f"must be in (0, 1), got {self.occ_threshold}")
-            if not (math.isfinite(self.march_step) and self.march_step >= 0):
-                raise fail("march_step", f"must be finite and >= 0, got {self.march_step}")
-            for name in ("grid_warmup", "target_samples", "round_samples"):
-                if getattr(self, name) < 0:
-                    raise fail(name, f"must be >= 0, got {getattr(self, name)}")
-        if not (math.isfinite(self.march_cone) and 0 <= self.march_cone <= 1):
-            raise fail("march_cone", f"must be in [0, 1], got {self.march_cone}")
+        if self.grid_res and not traits.grid:
+            raise fail("grid_res", f"needs {_fields(grid=True)} (set --grid-res 0 otherwise)")
         if self.contract == "on":
             if not traits.captures or self.grid_res == 0:
                 raise fail("contract", f"needs {_fields(captures=True)} with an occupancy grid, "
@@ -458,32 +468,6 @@ class NeRFConfig:
                            "(pass --ndc off)")  # fmt: skip
         elif self.contract == "off" and self.march_cone > 0:
             raise fail("march_cone", "needs --contract on")
-        if not 0.0 <= self.t_threshold < 1.0:
-            raise fail("t_threshold", f"must be in [0, 1), got {self.t_threshold}")
-        for name in ("max_seconds", "val_images", "max_images"):
-            if not getattr(self, name) >= 0:
-                raise fail(name, f"must be >= 0, got {getattr(self, name)}")
-        if self.snapshots:
-            from .loop import parse_snapshots
-
-            try:
-                parse_snapshots(self.snapshots)
-            except ValueError as e:
-                raise fail("snapshots", str(e)) from None
-        if not (math.isfinite(self.background) and 0 <= self.background <= 1):
-            raise fail("background", f"must be in [0, 1], got {self.background}")
-        if not (math.isfinite(self.aabb) and self.aabb >= 0):
-            raise fail("aabb", f"must be finite and >= 0 (0: automatic), got {self.aabb}")
-        for name in ("near", "far", "lr", "lr_final"):
-            v = getattr(self, name)
-            if v is not None and not (math.isfinite(v) and (v > 0 or (name == "near" and v == 0))):
-                rule = ">= 0" if name == "near" else "positive"
-                raise fail(name, f"must be finite and {rule}, got {v}")
-        if self.near is not None and self.far is not None and not self.far > self.near:
-            raise fail("near", f"must be below far: need 0 <= near < far, got near={self.near}, "
-                       f"far={self.far}")  # fmt: skip
-        if self.scene is not None:
-            _check_scene(self.scene, lambda rule: fail("scene", rule))
         return self
 
     def validate(self, scene: dict | None = None):
@@ -510,14 +494,6 @@ class NeRFConfig:
         if not (self.lr > 0 and self.lr_final > 0):
             raise UserError("--lr and --lr-final must be positive")
         return self
-
-    def _grid_kwargs(self) -> dict:
-        return dict(
-            n_levels=self.hash_levels,
-            log2_size=self.hash_log2_size,
-            base_res=self.hash_base_res,
-            max_res=self.hash_max_res,
-        )
 
     def aabb_box(self):
         """The scene box [6]: with NDC rays [-a, a]^2 x [-1, 1] (z = 1 is infinity), with

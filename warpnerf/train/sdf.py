@@ -38,10 +38,19 @@ from ..io import (
     load_weights,
     write_json,
 )
-from ..options import option
+from ..options import check_at_least, option, with_defaults
 from .logs import TensorBoardLog
-from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
-from .presets import PRESET_NAMES
+from .loop import (
+    LoopConfig,
+    LoopSettings,
+    Task,
+    adam,
+    claim_run,
+    lock_run,
+    resume_checks,
+    run_loop,
+)
+from .presets import PRESET_NAMES, preset_option
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
 
@@ -52,30 +61,30 @@ CHECKPOINT = "checkpoint.pt"
 OUTPUTS = ("config.json", CHECKPOINT, "history.json", "metrics.json", "mesh.ply", "mesh.png")
 
 
+# the loop's section (shared by every kind of run) with this one's defaults
+SDF_LOOP = with_defaults(
+    LoopConfig, iters=2000, ckpt_every=500,
+    lr=option(None, "Adam's learning rate: 1e-3 (mlp), 1e-2 (hash)", check="positive"),
+    lr_final=option(None, flag=None),  # reached at lr_decay_steps; lr / 10 (resolved, saved)
+    max_seconds=option(0.0, "stop after this much training time (0: run all --iters)",
+                       check="nonnegative"),
+)  # fmt: skip
+
+
 @dataclass
-class SDFConfig:
+class SDFConfig(SDF_LOOP):
     """Every setting of a neural-SDF fit, its default and help (`warpnerf train sdf` builds its
-    flags from these fields: warpnerf.options)."""
+    flags from these fields: warpnerf.options); the loop's section is :class:`LoopConfig`."""
 
     points: str = option(
         "builtin", "FILE.npz (verts|points [, normals]) or FILE.ply, or builtin (a torus)"
     )
     field: str = option("mlp", "mlp (positional encoding) or hash (hash-grid SDF)",
                         choices=FIELDS)  # fmt: skip
-    preset: str = option(
-        "default", "sizes: cpu (the built-in torus in under a minute on 2 CPU cores; sets the "
-        "flags marked --preset cpu, flags given explicitly win) or default/gpu (the defaults)",
-        choices=PRESET_NAMES,
-    )  # fmt: skip
-    iters: int = option(2000, "total steps", check="positive")
+    preset: str = preset_option("the built-in torus")
     batch: int = option(4096, "surface points per step", check="positive")
     # eikonal points per step (half uniform in the box, half near the points); the CLI: = batch
     n_random: int = option(4096, flag=None)
-    lr: float | None = option(None, "Adam's learning rate: 1e-3 (mlp), 1e-2 (hash)",
-                              check="positive")  # fmt: skip
-    # None / 0: resolved by the first invocation (:meth:`resolve`) and saved
-    lr_final: float | None = option(None, flag=None)  # reached at lr_decay_steps; lr / 10
-    lr_decay_steps: int = option(0, flag=None)  # the first invocation's iters
     eikonal_weight: float = option(0.1, "weight of (|grad f| - 1)^2", check="finite")
     normal_weight: float = option(1.0, "weight of the normal term, when normals are given",
                                   check="finite")  # fmt: skip
@@ -101,10 +110,6 @@ class SDFConfig:
                                          "samples, d: distance to the nearest point",
                                          check="nonnegative")  # fmt: skip
     resolution: int = option(128, "marching-cubes grid at the end", check="positive")
-    ckpt_every: int = option(500, "steps between checkpoints", check="positive")
-    max_seconds: float = option(0.0, "stop after this much training time (0: run all --iters)",
-                                check="nonnegative")  # fmt: skip
-    seed: int = option(0, "random seed", check="seed")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
     model: str = option(MODEL, flag=None)
 
@@ -126,19 +131,30 @@ class SDFConfig:
         name the command-line flags, else the file ``where`` and the config field."""
         from ..jsonio import field_error, is_device
 
+        def fail(name: str, rule: str):
+            return field_error(where, name, rule)
+
         if self.preset not in PRESET_NAMES:
             raise field_error(where, "preset", f"must be one of {', '.join(PRESET_NAMES)}, got "
                               f"{self.preset!r}")  # fmt: skip
         if self.field not in FIELDS:
             raise field_error(where, "field", f"must be one of {', '.join(FIELDS)}, got "
                               f"{self.field!r}")  # fmt: skip
-        for name in ("iters", "batch", "n_random", "n_layers", "width", "ckpt_every",
-                     "hash_width", "hash_levels", "hash_base_res", "hash_max_res"):  # fmt: skip
-            if getattr(self, name) < 1:
-                raise field_error(where, name, f"must be >= 1, got {getattr(self, name)}")
-        for name in ("pos_freqs", "skip", "lr_decay_steps"):
-            if getattr(self, name) < 0:
-                raise field_error(where, name, f"must be >= 0, got {getattr(self, name)}")
+        LoopConfig.check_section(self, fail)
+        check_at_least(
+            self,
+            fail,
+            1,
+            "batch",
+            "n_random",
+            "n_layers",
+            "width",
+            "hash_width",
+            "hash_levels",
+            "hash_base_res",
+            "hash_max_res",
+        )
+        check_at_least(self, fail, 0, "pos_freqs", "skip")
         if self.pos_freqs > 64:  # 2^64 * coordinates stays finite in float32
             raise field_error(where, "pos_freqs", f"must be at most 64, got {self.pos_freqs}")
         d_in = 3 * (1 + 2 * self.pos_freqs)
@@ -148,12 +164,6 @@ class SDFConfig:
                               "connection")  # fmt: skip
         if not 8 <= self.resolution <= 1024:
             raise field_error(where, "resolution", f"must be in [8, 1024], got {self.resolution}")
-        for name in ("lr", "lr_final"):
-            if getattr(self, name) is None:  # resolved by the run
-                continue
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise field_error(where, name, f"must be positive and finite, got "
-                                  f"{getattr(self, name)}")  # fmt: skip
         if self.field == "hash":
             try:
                 self.hash_grid()
@@ -163,13 +173,11 @@ class SDFConfig:
                                 f"hash_max_res): {e}") from None  # fmt: skip
         if not 0 <= self.hash_c2f <= 1:
             raise field_error(where, "hash_c2f", f"must be in [0, 1], got {self.hash_c2f}")
-        for name in ("eikonal_weight", "normal_weight", "max_seconds", "fd_step",
+        for name in ("eikonal_weight", "normal_weight", "fd_step",
                      "hash_distance_weight"):  # fmt: skip
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise field_error(where, name, f"must be finite and >= 0, got {v}")
-        if not 0 <= self.seed < 2**31:
-            raise field_error(where, "seed", f"must be an integer in [0, 2^31), got {self.seed}")
         if not is_device(self.device):
             raise field_error(where, "device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
         if self.model != MODEL:
