@@ -70,11 +70,13 @@ def main():
             rows.append({"weight": w, "val_psnr": m["psnr"], "val_ssim": m["ssim"],
                          "val_distortion": spread, "train_wall_s": train_s})  # fmt: skip
             print(json.dumps(rows[-1]), flush=True)
-    print("| --distortion-loss | val PSNR | val SSIM | val rays' distortion | wall s |")
-    print("|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['weight']:g} | {r['val_psnr']:.2f} | {r['val_ssim']:.4f} | "
-              f"{r['val_distortion']:.5f} | {r['train_wall_s']:.0f} |")  # fmt: skip
+    from warpnerf.bench import markdown_rows
+
+    print(markdown_rows(rows, [
+        ("--distortion-loss", "{weight:g}"), ("val PSNR", "{val_psnr:.2f}"),
+        ("val SSIM", "{val_ssim:.4f}"), ("val rays' distortion", "{val_distortion:.5f}"),
+        ("wall s", "{train_wall_s:.0f}"),
+    ]))  # fmt: skip
     if a.json:
         from warpnerf.io import write_json
 

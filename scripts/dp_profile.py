@@ -21,22 +21,15 @@ buffer's size and the all-reduce's bus bandwidth on it alone (data-parallel only
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
-import sys
 import time
 
 
 def main():
-    from warpnerf.cli.parser import split_command
+    from warpnerf.cli.parser import step_tool_args
 
-    own, train_argv = split_command(sys.argv[1:])
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--warm", type=int, default=200)
-    p.add_argument("--steps", type=int, default=100)
-    p.add_argument("--json", default=None)
-    a = p.parse_args(own)
+    a, train_argv = step_tool_args(__doc__, 200, 100)
     if train_argv[:2] not in (["train", "nerf"], ["train", "volsdf"]):
         raise SystemExit("after --, give a `train nerf ...` or `train volsdf ...` command line")
 

@@ -23,7 +23,6 @@ G-GPU config against the 1-GPU config with the same per-GPU batch (T/G) is
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
@@ -245,11 +244,9 @@ def commit() -> str:
 
 
 def main():
-    from warpnerf.cli.parser import split_command
+    from warpnerf.cli.parser import tool_parser
 
-    argv, flags = split_command(sys.argv[1:])
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
+    p, sub, argv, flags = tool_parser(__doc__)
     r = sub.add_parser("run")
     r.add_argument("out")
     r.add_argument("--name", required=True)

@@ -6,7 +6,7 @@
 # Usage: DATA=.gpu/lego SECS=120 bash scripts/gpu_before_after.sh   (writes $OUT/before_after.md)
 source "$(dirname "$0")/_gpu_ab.sh"  # OUT, DATA, run_version
 SECS=${SECS:-120}
-args="train nerf --data $DATA --field hash --device cuda --tf32 --batch 4096 --target-samples 262144 --iters 100000 --max-seconds $SECS --val-images 0 --quiet"
+args="train nerf --data $DATA --field hash --device cuda --tf32 --batch 4096 --target-samples 262144 --iters 100000 --max-seconds $SECS --val-images 0 --quiet --no-tensorboard"
 for v in ${ORDER:-base new}; do
   rm -rf /tmp/ba_$v
   run_version $v $args --out /tmp/ba_$v > "$OUT/train_$v.json" 2>> "$OUT/log.txt" || echo "train $v failed" | tee -a "$OUT/log.txt"

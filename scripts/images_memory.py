@@ -80,11 +80,13 @@ def main():
                      "step_ms": step_ms, "make_s": made_s})  # fmt: skip
         print(rows[-1], flush=True)
         del task, model, opt, train, ds, images
-    print("| images | W x H | images on | host GiB | peak GPU MiB | step ms |")
-    print("|---|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {r['images']} | {r['width']}x{r['height']} | {r['images_on']} | "
-              f"{r['host_gib']:.1f} | {r['peak_gpu_mib']:.0f} | {r['step_ms']:.1f} |")  # fmt: skip
+    from warpnerf.bench import markdown_rows
+
+    print(markdown_rows(rows, [
+        ("images", "{images}"), ("W x H", "{width}x{height}"), ("images on", "{images_on}"),
+        ("host GiB", "{host_gib:.1f}"), ("peak GPU MiB", "{peak_gpu_mib:.0f}"),
+        ("step ms", "{step_ms:.1f}"),
+    ]))  # fmt: skip
     if a.json:
         from warpnerf.io import write_json
 

@@ -110,13 +110,15 @@ def main():
         r = one_run(train_argv, refine, perturbed, a.iters, a.seed)
         rows.append(r)
         print(json.dumps(r), flush=True)
-    print("| poses | refinement | val PSNR | rotation error (deg) | translation error |")
-    print("|---|---|---|---|---|")
-    for r in rows:
-        print(f"| {'perturbed' if r['perturbed'] else 'true'} | "
-              f"{'on' if r['pose_refine'] else 'off'} | {r['val_psnr']:.2f} | "
-              f"{r['rot_err_deg_before']:.3f} -> {r['rot_err_deg_after']:.3f} | "
-              f"{r['trans_err_before']:.4f} -> {r['trans_err_after']:.4f} |")  # fmt: skip
+    from warpnerf.bench import markdown_rows
+
+    print(markdown_rows(rows, [
+        ("poses", lambda r: "perturbed" if r["perturbed"] else "true"),
+        ("refinement", lambda r: "on" if r["pose_refine"] else "off"),
+        ("val PSNR", "{val_psnr:.2f}"),
+        ("rotation error (deg)", "{rot_err_deg_before:.3f} -> {rot_err_deg_after:.3f}"),
+        ("translation error", "{trans_err_before:.4f} -> {trans_err_after:.4f}"),
+    ]))  # fmt: skip
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"rot_deg": a.rot_deg, "trans": a.trans, "argv": train_argv, "rows": rows},

@@ -13,23 +13,17 @@ from __future__ import annotations
 
 import json
 import statistics
-import sys
 import time
 
 
 def main():
-    from warpnerf.cli.parser import split_command
+    from warpnerf.cli.parser import step_tool_args
 
-    own, train_argv = split_command(sys.argv[1:])
-    import argparse
+    def own(p):
+        p.add_argument("--cprofile", type=int, default=50,
+                       help="steps run under cProfile for the host side (0: none)")  # fmt: skip
 
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--warm", type=int, default=300)
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--json", default=None)
-    p.add_argument("--cprofile", type=int, default=50,
-                   help="steps run under cProfile for the host side (0: none)")  # fmt: skip
-    a = p.parse_args(own)
+    a, train_argv = step_tool_args(__doc__, 300, 50, add=own)
 
     import torch
     from torch.profiler import ProfilerActivity, profile

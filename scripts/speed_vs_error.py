@@ -12,6 +12,7 @@ import argparse
 import json
 import math
 
+from warpnerf.bench import label_axes
 from warpnerf.io import atomic_path, write_json
 
 
@@ -51,11 +52,13 @@ def plot(paths, png, curves=()):
             ax.plot([pt["render_ms"]], [pt["psnr"]], "s", label=pt["label"])
     ax.axvline(10.0, color="gray", ls=":", lw=1)
     ax.set_xscale("log")
-    ax.set_xlabel("render time per 400x400 frame (ms, H100, median)")
-    ax.set_ylabel("val PSNR (dB)")
-    ax.set_title("lego, hash field: render speed against error")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    label_axes(
+        ax,
+        "render time per 400x400 frame (ms, H100, median)",
+        "val PSNR (dB)",
+        "lego, hash field: render speed against error",
+        "lower right",
+    )
     if curves:
         ax = axes[1]
         for c in curves:
@@ -64,11 +67,14 @@ def plot(paths, png, curves=()):
             ax.plot(h["val_seconds"], h["val_psnr"], "o-", label=label)
         ax.axhline(33.0, color="gray", ls=":", lw=1)
         ax.axhline(35.0, color="gray", ls=":", lw=1)
-        ax.set_xlabel("training time (s, H100; validation excluded)")
-        ax.set_ylabel("val PSNR during training (dB, 2 images)")
-        ax.set_title("lego 400x400, hash field: with and without the grid")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        label_axes(
+            ax,
+            "training time (s, H100; validation excluded)",
+            "val PSNR during training (dB, 2 images)",
+            "lego 400x400, hash field: with and without the grid",
+            "lower right",
+            minor=False,
+        )
     fig.tight_layout()
     with atomic_path(png) as tmp:
         fig.savefig(tmp, dpi=110)

@@ -12,19 +12,11 @@ Warp calls that synchronise (none on the training path: launches are asynchronou
 
 from __future__ import annotations
 
-import argparse
-import sys
-
 
 def main():
-    from warpnerf.cli.parser import split_command
+    from warpnerf.cli.parser import step_tool_args
 
-    own, train_argv = split_command(sys.argv[1:])
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--warm", type=int, default=200)
-    p.add_argument("--steps", type=int, default=20)
-    p.add_argument("--json", default=None)
-    a = p.parse_args(own)
+    a, train_argv = step_tool_args(__doc__, 200, 20)
 
     import torch
 

@@ -20,12 +20,12 @@ compilation and the grid's warm-up, and excludes validation and snapshot writing
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import tempfile
 from pathlib import Path
 
+from warpnerf.bench import label_axes
 from warpnerf.io import atomic_path, write_json
 
 
@@ -97,11 +97,13 @@ def plot(paths, png, title):
         ax.plot([r["budget_s"] for r in rows], [r["psnr"] for r in rows], "o-", color=c,
                 label=d["label"])  # fmt: skip
     log_x(ax)
-    ax.set_xlabel("training seconds (wall clock, compilation and grid warm-up included)")
-    ax.set_ylabel("val PSNR (dB)")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    label_axes(
+        ax,
+        "training seconds (wall clock, compilation and grid warm-up included)",
+        "val PSNR (dB)",
+        title,
+        "lower right",
+    )
     if geo:
         ax = axes[1]
         for d, c in zip(data, colors):
@@ -111,11 +113,13 @@ def plot(paths, png, title):
                         color=c, label=d["label"])  # fmt: skip
         log_x(ax)
         ax.set_yscale("log")
-        ax.set_xlabel("training seconds")
-        ax.set_ylabel("mesh Chamfer distance (world units)")
-        ax.set_title("geometry against the analytic shapes")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, loc="upper right")
+        label_axes(
+            ax,
+            "training seconds",
+            "mesh Chamfer distance (world units)",
+            "geometry against the analytic shapes",
+            "upper right",
+        )
     fig.tight_layout()
     with atomic_path(png) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
@@ -144,29 +148,22 @@ def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geome
 
 
 def main():
-    import sys
 
-    from warpnerf.cli.parser import split_command
+    from warpnerf.cli.parser import tool_parser
 
-    argv, train_argv = split_command(sys.argv[1:])
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
+    p, sub, argv, train_argv = tool_parser(__doc__)
     r = sub.add_parser("run")
     r.add_argument("dir")
     r.add_argument("--budgets", default="5,15,30,60,120,300")
-    r.add_argument("--label", default=None)
-    r.add_argument("--images", type=int, default=0, help="val images (0: all)")
-    r.add_argument("--chunk", type=int, default=None)
-    r.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
-    r.add_argument("--mesh-resolution", type=int, default=384)
     e = sub.add_parser("eval")
     e.add_argument("run")
     e.add_argument("out")
-    e.add_argument("--label", default=None)
-    e.add_argument("--images", type=int, default=0, help="val images (0: all)")
-    e.add_argument("--chunk", type=int, default=None)
-    e.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
-    e.add_argument("--mesh-resolution", type=int, default=384)
+    for q in (r, e):  # how the snapshots are scored
+        q.add_argument("--label", default=None)
+        q.add_argument("--images", type=int, default=0, help="val images (0: all)")
+        q.add_argument("--chunk", type=int, default=None)
+        q.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
+        q.add_argument("--mesh-resolution", type=int, default=384)
     q = sub.add_parser("plot")
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)

@@ -19,7 +19,10 @@ import torch
 from . import reference
 from .ops import render_packed, stratified_samples
 
-__all__ = ["run_bench", "composite_bytes", "measure_copy_bandwidth", "KERNELS"]
+__all__ = [
+    "run_bench", "composite_bytes", "measure_copy_bandwidth", "KERNELS", "markdown_rows",
+    "label_axes",
+]  # fmt: skip
 
 KERNELS = ("composite", "march", "encoding", "sphere-trace", "all")
 
@@ -451,6 +454,28 @@ def _family(row) -> str:
     return {"hash_encode": "encoding", "sphere_trace": "sphere-trace"}.get(k, k)
 
 
+def markdown_rows(rows, columns) -> str:
+    """A Markdown table of ``rows`` (dicts): ``columns`` is a list of (header, cell), a cell a
+    format string over the row's keys ("{psnr:.2f}") or a function of the row."""
+    lines = ["| " + " | ".join(h for h, _ in columns) + " |", "|---" * len(columns) + "|"]
+    for r in rows:
+        cells = [f(r) if callable(f) else f.format(**r) for _, f in columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def label_axes(
+    ax, xlabel: str, ylabel: str, title: str, legend: str = "lower right", minor: bool = True
+) -> None:
+    """The measuring tools' style of a matplotlib plot: labels, title, a light grid (on the
+    minor ticks too when ``minor``) and a small legend at ``legend``."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both" if minor else "major", alpha=0.3)
+    ax.legend(fontsize=8, loc=legend)
+
+
 def markdown_table(result) -> str:
     """One Markdown table per kernel family present in ``result["rows"]``."""
     lines = [
@@ -461,11 +486,7 @@ def markdown_table(result) -> str:
         rows = [r for r in result["rows"] if _family(r) == fam]
         if not rows:
             continue
-        lines += ["", "| kernel | " + " | ".join(c for c, _ in cols) + " |"]
-        lines.append("|---" * (len(cols) + 1) + "|")
-        for r in rows:
-            cells = [f(r) if callable(f) else f.format(**r) for _, f in cols]
-            lines.append(f"| {r['kernel']} | " + " | ".join(cells) + " |")
+        lines += ["", markdown_rows(rows, [("kernel", "{kernel}"), *cols])]
     return "\n".join(lines)
 
 

@@ -18,32 +18,12 @@ import numpy as np
 
 # The files warpnerf writes into run and output folders (atomic outputs, manifests, the folder
 # lock, no links followed, special files refused): warpnerf/files.py, re-exported here.
-from .files import (
-    LOCK,
-    MANIFEST,
-    adopt,
-    atomic_path,
-    check_foreign,
-    make_folder,
-    output_lock,
-    owned_files,
-    read_regular,
-    record,
-    remove_own,
-)
+from . import files as _files
+from .files import *  # noqa: F403 (re-exported: the names of warpnerf/files.py)
+from .files import atomic_path
 
 __all__ = [
-    "atomic_path",
-    "MANIFEST",
-    "LOCK",
-    "owned_files",
-    "adopt",
-    "check_foreign",
-    "remove_own",
-    "output_lock",
-    "make_folder",
-    "read_regular",
-    "record",
+    *_files.__all__,
     "json_safe",
     "json_dumps",
     "write_json",

@@ -56,25 +56,19 @@ def _dist(sdf_fn, p):
     return out[0] if isinstance(out, tuple) else out
 
 
-def sphere_trace_fn(
-    sdf_fn,
-    origins: torch.Tensor,  # [n, 3]
-    directions: torch.Tensor,  # [n, 3] unit length
-    near,  # float or [n]
-    far,  # float or [n]
-    *,
-    eps: float = 1e-4,
-    omega: float = 1.0,
-    max_iters: int = 256,
-    normal_eps: float = 1e-4,
-) -> Trace:
-    """Sphere-traces ``sdf_fn(points [m, 3]) -> sdf [m]`` (or ``(sdf, ids)``) along rays.
+def sphere_trace_fn(sdf_fn, origins, directions, near, far, **kw) -> Trace:
+    """Sphere-traces ``sdf_fn(points [m, 3]) -> sdf [m]`` (or ``(sdf, ids)``) along rays
+    ``origins`` [n, 3], ``directions`` [n, 3] (unit length) from ``near`` to ``far`` (floats or
+    [n]); ``kw``: ``eps`` (1e-4), ``omega`` (1.0), ``max_iters`` (256), ``normal_eps`` (1e-4),
+    as :func:`sphere_trace_steps` takes them.
 
     Same algorithm as :func:`warpnerf.ops.sphere_trace` (see kernels/sphere_trace.py for the
     statuses, the over-relaxation fallback and the failure modes); only the rays still marching
     are evaluated at each step, so the callable sees shrinking batches.
     """
-    kw = dict(eps=eps, omega=omega, max_iters=max_iters, normal_eps=normal_eps)
+    allowed = {"eps", "omega", "max_iters", "normal_eps"}
+    if set(kw) - allowed:
+        raise TypeError(f"sphere_trace_fn: unknown arguments {sorted(set(kw) - allowed)}")
     return sphere_trace_steps(sdf_fn, origins, directions, near, far, **kw)[0]
 
 

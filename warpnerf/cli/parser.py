@@ -25,7 +25,14 @@ from .train import (
 from .view import cmd_view, view_flags
 
 # the command line, and the helpers the tools in scripts/ may use
-__all__ = ["main", "build_parser", "split_command", "nerf_task_from_argv"]
+__all__ = [
+    "main",
+    "build_parser",
+    "split_command",
+    "step_tool_args",
+    "tool_parser",
+    "nerf_task_from_argv",
+]
 
 # the runs eval, render and export read (the NeRF runner: any --field)
 RADIANCE_RUNS = "train nerf or train volsdf"
@@ -205,6 +212,31 @@ def split_command(argv: list) -> tuple:
         return list(argv), []
     i = argv.index("--")
     return list(argv[:i]), list(argv[i + 1 :])
+
+
+def tool_parser(doc: str, argv=None) -> tuple:
+    """(parser, its subcommands, the tool's own arguments, the train command line after
+    ``--``) of a measuring tool with subcommands (scripts/time_to_quality.py, dp_scaling.py);
+    ``doc``: its docstring (the first paragraph is the description)."""
+    own, train_argv = split_command(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    return p, p.add_subparsers(dest="cmd", required=True), own, train_argv
+
+
+def step_tool_args(doc: str, warm: int, steps: int, argv=None, add=None) -> tuple:
+    """(its own parsed flags, the train command line after ``--``) of a tool that measures
+    training steps (scripts/profile_train_step.py, sync_sites.py, dp_profile.py): ``--warm``
+    untimed steps, then ``--steps`` measured ones, ``--json`` the file of its results;
+    ``add(parser)`` adds the tool's own flags. ``doc``: the tool's docstring (its first
+    paragraph is the description); ``argv``: default ``sys.argv[1:]``."""
+    own, train_argv = split_command(sys.argv[1:] if argv is None else argv)
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    p.add_argument("--warm", type=int, default=warm, help=f"untimed steps first (default {warm})")
+    p.add_argument("--steps", type=int, default=steps, help=f"steps measured (default {steps})")
+    p.add_argument("--json", default=None, help="write the results as JSON here")
+    if add is not None:
+        add(p)
+    return p.parse_args(own), train_argv
 
 
 def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):

@@ -56,6 +56,18 @@ def _cell_geometry(aabb, res: int):
     return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
 
 
+def _check_rays_and_bits(origins, directions, res, bits) -> tuple:
+    """(n_rays, device) of a march's rays (float32 [n, 3] on one device) after checking them and
+    the grid's packed ``bits`` (uint8 [res^3 / 8] on the same device); ValueError otherwise."""
+    _bridge.check_float("origins", origins, (None, 3), torch.float32)
+    n_rays, dev = origins.shape[0], origins.device
+    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
+    _check_res(res)
+    if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
+        raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
+    return n_rays, dev
+
+
 def _check_res(res: int, n_cells: int | None = None):
     if isinstance(res, bool) or not isinstance(res, int) or res < 2 or res % 2 or res > 1024:
         raise ValueError(f"grid resolution must be an even int in [2, 1024], got {res!r}")
@@ -199,12 +211,7 @@ def march_rays(
     from warpnerf.kernels import occupancy as K
 
     wp = _bridge._wp()
-    _bridge.check_float("origins", origins, (None, 3), torch.float32)
-    n_rays, dev = origins.shape[0], origins.device
-    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
-    _check_res(res)
-    if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
-        raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
+    n_rays, dev = _check_rays_and_bits(origins, directions, res, bits)
     if isinstance(dt, torch.Tensor) or not (dt > 0 and dt < float("inf")):
         raise ValueError(f"need dt > 0 (a finite float), got {dt}")
     max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
@@ -381,12 +388,7 @@ def march_rays_contracted(
     from warpnerf.kernels import occupancy as K
 
     wp = _bridge._wp()
-    _bridge.check_float("origins", origins, (None, 3), torch.float32)
-    n_rays, dev = origins.shape[0], origins.device
-    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
-    _check_res(res)
-    if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
-        raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
+    n_rays, dev = _check_rays_and_bits(origins, directions, res, bits)
     for name, v, ok in (("a", a, a > 0), ("dt", dt, dt > 0), ("cone", cone, cone >= 0)):
         if isinstance(v, torch.Tensor) or not (ok and v < float("inf")):
             raise ValueError(f"need a finite float {name} ({'>= 0' if name == 'cone' else '> 0'})"

@@ -70,10 +70,17 @@ def march_rays(
     cell = (ijk[..., 0] * res + ijk[..., 1]) * res + ijk[..., 2]
     valid = (s < t1[:, None]) & (k >= kb[:, None]) & (kb[:, None] >= 0)
     keep = valid & unpack_bits(bits)[cell]
+    return _pack_kept(s, e, k, keep, max_samples)
+
+
+def _pack_kept(s, e, k, keep, max_samples):
+    """(Samples, k_next) of the lattice intervals [s, e] [n_rays, L] (lattice indices ``k``) kept
+    by the mask ``keep``, the first ``max_samples`` of each ray; a ray stopped by the cap
+    continues after its last sample (its next call may find none), else k_next is -1."""
+    n_rays, dev = keep.shape[0], keep.device
     keep = keep & (torch.cumsum(keep.long(), 1) <= max_samples)
     counts = keep.sum(1)
-    last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if n_lat else counts - 1
-    # a ray stopped by the cap continues after its last sample (its next call may find none)
+    last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if s.shape[1] else counts - 1
     k_next = torch.where(counts == max_samples, last + 1, -1).to(torch.int32)
     starts = torch.cumsum(counts, 0) - counts
     ray_indices = torch.arange(n_rays, device=dev).repeat_interleave(counts).to(torch.int32)
@@ -123,14 +130,7 @@ def march_rays_contracted(
     k = torch.arange(s.shape[1], device=dev).expand_as(s)
     kb = torch.zeros(n_rays, device=dev, dtype=torch.long) if k_begin is None else k_begin.long()
     keep = valid & (k >= kb[:, None]) & (kb[:, None] >= 0) & unpack_bits(bits)[cell]
-    keep = keep & (torch.cumsum(keep.long(), 1) <= max_samples)
-    counts = keep.sum(1)
-    last = torch.where(keep, k, torch.full_like(k, -1)).amax(1) if s.shape[1] else counts - 1
-    k_next = torch.where(counts == max_samples, last + 1, -1).to(torch.int32)
-    starts = torch.cumsum(counts, 0) - counts
-    ray_indices = torch.arange(n_rays, device=dev).repeat_interleave(counts).to(torch.int32)
-    info = torch.stack([starts, counts], -1).to(torch.int32)
-    return Samples(s[keep], e[keep], ray_indices, info), k_next
+    return _pack_kept(s, e, k, keep, max_samples)
 
 
 def live_samples(samples, sigmas, t_threshold):
