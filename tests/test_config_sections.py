@@ -161,3 +161,44 @@ def test_a_field_registers_the_sections_it_reads():
     finally:
         FIELDS.pop("toy_hash", None)
         FIELD_TRAITS.pop("toy_hash", None)
+
+
+def _config(*argv):
+    from warpnerf.cli.train import nerf_config_from_args
+
+    return nerf_config_from_args(build_parser().parse_args(["train", *argv, "--out", "x"]))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["nerf", "--field", "mlp", "--hash-levels", "8"], "--hash-levels: hash-grid encoding "
+         "settings, read by --field hash, hash_sdf, not by --field mlp"),
+        (["nerf", "--field", "hash", "--width", "64", "--layers", "3"], "--layers, --width: MLP"),
+        (["volsdf", "--field", "hash_sdf", "--pos-freqs", "4"], "--pos-freqs: MLP network"),
+        (["volsdf", "--field", "volsdf", "--hidden", "32"], "--hidden: hash-grid encoding"),
+    ],
+)  # fmt: skip
+def test_a_section_the_field_does_not_read_is_refused_on_the_command_line(argv, message):
+    """Flags of a field section the chosen field does not read would be saved and ignored."""
+    with pytest.raises(UserError, match=message):
+        _config(argv[0], "--data", "builtin", *argv[1:])
+
+
+def test_the_sections_a_field_reads_are_accepted():
+    assert _config("nerf", "--data", "builtin", "--field", "hash", "--hash-levels", "8",
+                   "--hidden", "32").hash_levels == 8  # fmt: skip
+    cfg = _config("volsdf", "--data", "builtin", "--field", "volsdf", "--fixed-beta",
+                  "--width", "48")  # fmt: skip
+    assert (cfg.learn_beta, cfg.width) == (False, 48)
+    assert _config("volsdf", "--data", "builtin", "--pos-freqs", "6").pos_freqs == 6  # its default
+    register_field("toy_hash2", FieldTraits(in_box=True, config=(HashConfig,)))(lambda c: None)
+    try:
+        assert _config("nerf", "--data", "builtin", "--field", "toy_hash2", "--hash-levels",
+                       "4").hash_levels == 4  # fmt: skip
+        with pytest.raises(UserError, match="--width: MLP network settings, read by --field "
+                           "mlp, volsdf, not by --field toy_hash2"):  # fmt: skip
+            _config("nerf", "--data", "builtin", "--field", "toy_hash2", "--width", "8")
+    finally:
+        FIELDS.pop("toy_hash2", None)
+        FIELD_TRAITS.pop("toy_hash2", None)

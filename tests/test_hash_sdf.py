@@ -321,12 +321,13 @@ def test_color_direction_flag(tmp_path, capsys):
     from warpnerf.cli.parser import main
     from warpnerf.train.nerf import load_run
 
-    tiny = ["--data", "builtin", "--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res",
-            "16", "--grid-res", "8", "--builtin-size", "16", "--batch", "64", "--val-images", "0",
+    tiny = ["--data", "builtin", "--builtin-size", "16", "--batch", "64", "--val-images", "0",
             "--quiet", "--iters", "2"]  # fmt: skip
+    hashed = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16",
+              "--grid-res", "8"]  # fmt: skip
     run = tmp_path / "r"
-    assert main(["train", "volsdf", *tiny, "--field", "hash_sdf", "--color-direction", "reflect",
-                 "--out", str(run)]) == 0  # fmt: skip
+    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", "--color-direction",
+                 "reflect", "--out", str(run)]) == 0  # fmt: skip
     cfg, model, _ = load_run(run)
     assert cfg.color_direction == "reflect" and model.field.reflect
     assert main(["train", "volsdf", *tiny, "--field", "volsdf", "--color-direction", "reflect",

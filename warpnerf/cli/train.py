@@ -9,7 +9,7 @@ from ..errors import UserError
 from ..fields.model import field_traits, fields_with
 from ..fields.settings import VOLSDF
 from ..io import json_dumps
-from ..options import CHECKS, add_flags, apply_preset, from_flags
+from ..options import CHECKS, add_flags, apply_preset, flag_of, from_flags
 from ..train.box_fit import BoxFitConfig
 from ..train.nerf_config import (
     FINE_SAMPLES,
@@ -156,7 +156,33 @@ def nerf_config_from_args(args):
     if given:
         flags = ", ".join("--" + n.replace("_", "-") for n in given)
         raise UserError(f"{flags}: options of another field, not of --field {kw['field']}")
+    _refuse_unread_sections(args, cls, kw["field"])
     return cls(**kw)
+
+
+def _refuse_unread_sections(args, cls, field: str) -> None:
+    """A UserError for flags given of a field's config section (fields/settings.py) that
+    ``field`` does not read (its traits' ``config``), e.g. --hash-levels with --field mlp:
+    they would be saved and silently ignored. Given: not None and not the default."""
+    from ..fields.model import FIELD_TRAITS
+
+    reads = field_traits(field).config
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+    for section in dict.fromkeys(s for t in FIELD_TRAITS.values() for s in t.config):
+        if section in reads:
+            continue
+        given = [
+            f.metadata["negate"] or flag_of(f)
+            for f in dataclasses.fields(section)
+            if f.metadata.get("flag") is not None
+            and getattr(args, f.name, None) not in (None, defaults.get(f.name))
+        ]
+        if given:
+            readers = [n for n, t in FIELD_TRAITS.items() if section in t.config]
+            raise UserError(
+                f"{', '.join(given)}: {section.TITLE} settings, read by --field "
+                f"{', '.join(readers)}, not by --field {field}"
+            )
 
 
 def _field_option_classes() -> list:

@@ -11,15 +11,16 @@ renderers of train/nerf.py take.
 
 Adding a field: write the module (one new file in ``warpnerf/fields/``), then one builder::
 
-    @register_field("myfield", FieldTraits(in_box=True, lr=1e-3))
+    @register_field("myfield", FieldTraits(in_box=True, lr=1e-3, config=(MLPConfig,)))
     def _my_field(cfg):
         return RadianceModel(MyField(cfg.width).to(cfg.device))
 
 and ``--field myfield`` trains it (the config's choices come from this registry). The field's
 :class:`FieldTraits` are what the rest of the library knows of it: whether it is a density or an
 SDF, whether it lives in the scene box, takes the hash flags or the occupancy grid, its
-learning-rate defaults. Code asks the traits (``field_traits(name)``, ``cfg.traits``), never the
-field's name.
+learning-rate defaults, the built-in config sections it reads (``config``: ``--width`` is
+MLPConfig's; the command line refuses a section's flags for a field that does not read it).
+Code asks the traits (``field_traits(name)``, ``cfg.traits``), never the field's name.
 """
 
 from __future__ import annotations
