@@ -10,9 +10,10 @@ import sys
 
 import pytest
 
-ARGS = ("--data builtin --builtin-size 12 --batch 96 --samples 16 --layers 2 --width 16 "
-        "--pos-freqs 3 --dir-freqs 1 --near 1 --far 4 --val-every 3 --val-images 1 "
-        "--ckpt-every 3 --lr 5e-3 --no-tensorboard --quiet").split()  # fmt: skip
+ARGS = ("--data builtin --builtin-size 12 --batch 96 --samples 16 --near 1 --far 4 "
+        "--val-every 3 --val-images 1 --ckpt-every 3 --lr 5e-3 --no-tensorboard "
+        "--quiet").split()  # fmt: skip
+MLP = "--layers 2 --width 16 --pos-freqs 3 --dir-freqs 1".split()  # (the MLP fields' flags)
 
 
 def _port() -> int:
@@ -23,7 +24,9 @@ def _port() -> int:
 
 def _train(out, extra, ranks: int, resume=False, iters=6, model="nerf"):
     cmd = ["train", model, "--out", str(out), "--iters", str(iters)]
-    cmd = cmd + (["--resume"] if resume else ARGS) + list(extra)  # (extra overrides ARGS)
+    hashed = any(a in ("hash", "hash_sdf") for a in extra)  # (no MLP flags: refused there)
+    base = ARGS + ([] if hashed else MLP)
+    cmd = cmd + (["--resume"] if resume else base) + list(extra)  # (extra overrides ARGS)
     env = dict(os.environ, WARPNERF_DIST_TIMEOUT="120", OMP_NUM_THREADS="1")
     if ranks == 1:
         argv = [sys.executable, "-m", "warpnerf.cli", *cmd]

@@ -134,3 +134,47 @@ def test_an_exported_capture_trains_as_the_capture_it_came_from(tmp_path, capsys
     assert main(["train", "nerf", "--data", str(out.parent), *flags, "--allow-outside-paths",
                  "--out", str(tmp_path / "c")]) == 2  # fmt: skip
     assert "warpnerf_scene" in capsys.readouterr().err and not (tmp_path / "c").exists()
+
+
+def test_a_downscaled_run_exports_the_images_it_trained_on(tmp_path, capsys):
+    """A run trained with --downscale 2 (the capture's files are full size): the export's
+    frames point at images of the size its intrinsics describe, and the nerfstudio loader reads
+    back the run's own cameras and pixels (was: downscaled intrinsics beside full-size files)."""
+    from warpnerf.data import load_nerfstudio
+    from warpnerf.data._images import read_image
+    from warpnerf.train.nerf import load_data, load_run
+
+    from .test_capture import _colmap_capture, _object_cameras
+
+    _colmap_capture(tmp_path / "cap", _object_cameras(8))
+    flags = ["--field", "hash", "--hash-levels", "2", "--hash-log2-size", "8", "--hash-max-res",
+             "16", "--hidden", "8", "--grid-res", "8", "--batch", "32", "--iters", "2",
+             "--val-images", "0", "--quiet", "--no-tensorboard", "--holdout", "0",
+             "--downscale", "2"]  # fmt: skip
+    run = tmp_path / "run"
+    assert main(["train", "nerf", "--data", str(tmp_path / "cap"), *flags, "--out",
+                 str(run)]) == 0  # fmt: skip
+    out = tmp_path / "ns" / "transforms.json"
+    out.parent.mkdir()
+    assert main(["export", str(run), "cameras", "--out", str(out)]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    cfg, _, _ = load_run(run, "cpu")
+    train = load_data(cfg, "train")
+    assert res["images_written"] == res["frames"] >= len(train)
+    doc = json.loads(out.read_text())
+    doc["frames"] = [fr for fr in doc["frames"] if fr["split"] == "train"]
+    out.write_text(json.dumps(doc))  # the train cameras alone, read back as one split
+    assert len(doc["frames"]) == len(train)
+    for fr in doc["frames"]:
+        img = read_image(out.parent / fr["file_path"])
+        assert img.shape[:2] == (fr["h"], fr["w"]) == (train.height, train.width)
+    back = load_nerfstudio(out.parent, holdout=0)
+    assert torch.allclose(back.intrinsics.float(), train.intrinsics.float(), atol=1e-4)
+    assert torch.allclose(back.images, train.images, atol=1.5 / 255)
+    # the same run without --downscale points at the capture's own files
+    full = tmp_path / "full"
+    assert main(["train", "nerf", "--data", str(tmp_path / "cap"), *flags[:-2], "--out",
+                 str(full)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["export", str(full), "cameras", "--out", str(tmp_path / "f.json")]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["images_written"] == 0

@@ -13,7 +13,9 @@ the image of a short step along it, so NDC runs work too).
 Cameras: the run's training (and validation) cameras, OpenGL camera-to-world in the frame the run
 trains in, with per-frame intrinsics and image paths relative to the JSON; a capture's
 world-to-normalised transform is recorded as nerfstudio's ``applied_transform``. Datasets without
-image files (the built-in scene) get their images written beside the JSON.
+image files (the built-in scene), and runs trained on downscaled copies of their files
+(``--downscale``), get the images the run trained on written beside the JSON: every frame's
+intrinsics and size describe its file.
 """
 
 from __future__ import annotations
@@ -112,9 +114,21 @@ def _normals(fn, x: torch.Tensor, h: float, chunk: int = 1 << 16) -> torch.Tenso
     return torch.cat(out) if out else torch.zeros(0, 3, device=x.device)
 
 
+def _image_size(path) -> tuple | None:
+    """(width, height) from an image file's header (nothing decoded); None if unreadable."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except Exception:  # (the loader read it a moment ago; then: the run's images are written)
+        return None
+
+
 def export_cameras(run, out, splits=("train", "val")) -> dict:
-    """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras (and the images of a
-    dataset without image files in ``images/`` beside it); returns a summary. Every target is
+    """Writes a nerfstudio ``transforms.json`` (``out``) of the run's cameras (and, in
+    ``images/`` beside it, the images the run trained on where they are no file of that size:
+    the built-in scene, a run with ``--downscale``); returns a summary. Every target is
     checked before anything is written: a file warpnerf did not write there (the JSON or an
     image), or a link in place of ``images/``, is refused with nothing written."""
     from .train.nerf import load_data, load_run, with_refined_poses
@@ -133,9 +147,12 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
             continue  # no such split
         for i in range(ds.images.shape[0]):
             fx, fy, cx, cy = (float(v) for v in ds.intrinsics[i])
-            if i < len(ds.paths):
+            trained = (ds.width, ds.height)  # the run's pixels (after --downscale)
+            if i < len(ds.paths) and _image_size(ds.paths[i]) == trained:
                 path = os.path.relpath(Path(ds.paths[i]).resolve(), out.parent.resolve())
-            else:  # no image file (the built-in scene): written beside the JSON
+            else:  # no image file (the built-in scene), or one of another size than the run
+                # trained on (--downscale): the run's images, written beside the JSON, so that
+                # every frame's intrinsics describe its file
                 path = f"images/{split}_{i:03d}.png"
                 images.append((path, (ds.images[i].clamp(0, 1) * 255 + 0.5).to(torch.uint8)))
             frames.append({
