@@ -141,6 +141,27 @@ def test_a_new_kind_of_run_is_one_registry_entry(runs, capsys):
         with pytest.raises(ValueError, match="registered already"):
             register_method(toy)
 
+        @dataclass
+        class OutConfig:  # a field named like the generated command's --out
+            out: str = option("x", "where")
+
+        METHODS["toy2"] = Method(
+            "toy2",
+            ("toy2",),
+            "toy 2",
+            "box",
+            open_run=toy.open_run,
+            open_task=toy.open_task,
+            config=OutConfig,
+            train=train_toy,
+        )
+        try:
+            with pytest.raises(ValueError, match=r"method 'toy2' \(OutConfig\) has fields "
+                               "named like `train toy2`'s own flags: out"):  # fmt: skip
+                main(["train", "toy", "--help"])
+        finally:
+            METHODS.pop("toy2", None)
+
         class ToyTask:
             method = "toy"
             volume = object()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 
@@ -38,6 +39,10 @@ __all__ = [
 RADIANCE_RUNS = "train nerf or train volsdf"
 
 
+# what a generated `train <command>` sets itself (flags and argparse defaults)
+_COMMAND_DESTS = {"out", "resume", "quiet", "func", "method", "subparser", "command", "model"}
+
+
 def _registered_train_commands(tsub) -> None:
     """`train <command>` of every registered method with a config and a trainer (methods
     added after the built-in ones): the config's flags, --out, --resume, --quiet."""
@@ -51,6 +56,12 @@ def _registered_train_commands(tsub) -> None:
             if command in taken:
                 continue
             taken.add(command)
+            clash = sorted({f.name for f in dataclasses.fields(method.config)} & _COMMAND_DESTS)
+            if clash:  # (a developer's mistake: say which, rather than argparse's conflict)
+                raise ValueError(
+                    f"the config of method {method.name!r} ({method.config.__name__}) has "
+                    f"fields named like `train {command}`'s own flags: {', '.join(clash)}"
+                )
             tm = tsub.add_parser(command, help=method.help or f"train a {method.what}")
             add_flags(tm, method.config)
             tm.add_argument("--out", required=True, help="run folder")
