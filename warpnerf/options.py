@@ -205,27 +205,26 @@ def add_flags(
     lands under the field's name. The flags of a config section with a ``TITLE`` (see
     :func:`section_declaring`) are shown together, under that title or ``titles(section)``."""
     defaults, notes = defaults or {}, notes or {}
-    target, sections = parser, {}
+    sections = {}
     for f in _fields(cls, groups, include, exclude):
         m, kind = f.metadata, _kind(f)
         section = section_declaring(cls, f.name)
-        if section is not None and isinstance(target, argparse.ArgumentParser):
-            if section not in sections:  # the section's flags shown together
+        group = parser  # where the flag goes: its section's group (shown together) or the parser
+        if section is not None and isinstance(parser, argparse.ArgumentParser):
+            if section not in sections:
                 title = titles(section) if titles else section.TITLE
-                sections[section] = target.add_argument_group(title)
-            parser = sections[section]
-        else:
-            parser = target
+                sections[section] = parser.add_argument_group(title)
+            group = sections[section]
         default = defaults.get(f.name, _default(f))
         help_ = m["help"]
         kw = dict(dest=f.name, help=help_)
         if kind == "bool":
             if m["negate"]:
                 kw.update(action="store_false", default=default)
-                parser.add_argument(m["negate"], **kw)
+                group.add_argument(m["negate"], **kw)
                 continue
             action = argparse.BooleanOptionalAction if default else "store_true"
-            parser.add_argument(flag_of(f), action=action, default=default, **kw)
+            group.add_argument(flag_of(f), action=action, default=default, **kw)
             continue
         if (kind, m["check"]) not in CHECKS:
             raise TypeError(f"{cls.__name__}.{f.name}: no command-line type for {kind!r}")
@@ -248,7 +247,7 @@ def add_flags(
                 kw["help"] = f"{help_} (default {default})" if help_ else f"default {default}"
         if f.name in notes:
             kw["help"] = f"{kw['help']}; {notes[f.name]}" if kw["help"] else notes[f.name]
-        parser.add_argument(flag_of(f), **kw)
+        group.add_argument(flag_of(f), **kw)
 
 
 def from_flags(cls, args, *, groups=(), include=None, exclude=()) -> dict:
