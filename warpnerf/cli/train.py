@@ -146,43 +146,41 @@ def nerf_config_from_args(args):
     opts = field_traits(kw["field"]).options  # the chosen field's own flags
     if opts is not None:
         kw["field_options"] = from_flags(opts, args)
-    given = [  # another field's flags given (None: not given; a bool flag: not its default)
-        f.name
-        for t in _field_option_classes()
-        if t is not opts
-        for f in dataclasses.fields(t)
-        if getattr(args, f.name, None) not in (None, f.default)
-    ]
-    if given:
-        flags = ", ".join("--" + n.replace("_", "-") for n in given)
-        raise UserError(f"{flags}: options of another field, not of --field {kw['field']}")
-    _refuse_unread_sections(args, cls, kw["field"])
+    _refuse_other_fields_flags(args, cls, kw["field"])
     return cls(**kw)
 
 
-def _refuse_unread_sections(args, cls, field: str) -> None:
-    """A UserError for flags given of a field's config section (fields/settings.py) that
-    ``field`` does not read (its traits' ``config``), e.g. --hash-levels with --field mlp:
-    they would be saved and silently ignored. Given: not None and not the default."""
+def _refuse_other_fields_flags(args, cls, field: str) -> None:
+    """A UserError for flags given that ``field`` does not read: another field's own options
+    (its traits' ``options``) or a built-in field section (fields/settings.py) outside its
+    traits' ``config``, e.g. --hash-levels with --field mlp: they would be saved and silently
+    ignored. Given: not None and not the default."""
     from ..fields.model import FIELD_TRAITS
 
-    reads = field_traits(field).config
+    def readers(part) -> list:
+        return [n for n, t in FIELD_TRAITS.items() if part in (t.options, *t.config)]
+
+    mine = field_traits(field)
     defaults = {f.name: f.default for f in dataclasses.fields(cls)}
-    for section in dict.fromkeys(s for t in FIELD_TRAITS.values() for s in t.config):
-        if section in reads:
+    parts = [*(t.options for t in FIELD_TRAITS.values() if t.options),
+             *(s for t in FIELD_TRAITS.values() for s in t.config)]  # fmt: skip
+    for part in dict.fromkeys(parts):
+        if part in (mine.options, *mine.config):
             continue
         given = [
             f.metadata["negate"] or flag_of(f)
-            for f in dataclasses.fields(section)
+            for f in dataclasses.fields(part)
             if f.metadata.get("flag") is not None
-            and getattr(args, f.name, None) not in (None, defaults.get(f.name))
+            and getattr(args, f.name, None) not in (None, defaults.get(f.name, f.default))
         ]
-        if given:
-            readers = [n for n, t in FIELD_TRAITS.items() if section in t.config]
-            raise UserError(
-                f"{', '.join(given)}: {section.TITLE} settings, read by --field "
-                f"{', '.join(readers)}, not by --field {field}"
-            )
+        if not given:
+            continue
+        flags, by = ", ".join(given), ", ".join(readers(part))
+        if getattr(part, "TITLE", None):
+            raise UserError(f"{flags}: {part.TITLE} settings, read by --field {by}, not by "
+                            f"--field {field}")  # fmt: skip
+        raise UserError(f"{flags}: options of another field (--field {by}), not of --field "
+                        f"{field}")  # fmt: skip
 
 
 def _field_option_classes() -> list:
