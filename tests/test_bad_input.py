@@ -230,7 +230,7 @@ def _fails_cleanly(argv, capsys, needles, status=2) -> str:
 CASES = [
     # datasets through train nerf: missing, malformed JSON, matrices, non-finite, sizes, empty
     (_train("nope"), ["nope", "not found"]),
-    (_train("afile"), ["afile", "not found"]),
+    (_train("afile"), ["afile", "not a dataset folder; give the dataset's folder"]),
     (_train("emptydir"), ["emptydir", "transforms_train.json", "transforms.json"]),
     (_train("bl_badjson"), ["bl_badjson/transforms_train.json", "not valid JSON"]),
     (_train("ns_badjson"), ["ns_badjson/transforms.json", "not valid JSON"]),

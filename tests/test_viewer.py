@@ -400,13 +400,13 @@ def test_live_viewer_of_every_task(tmp_path, monkeypatch):
     write_box_folder(tmp_path / "scene", n_views=3, size=8, name="transforms_train.json")
     assert main(["train", "box", "--data", str(tmp_path / "scene"), "--out", str(tmp_path / "b"),
                  "--iters", "2", "--frames", "0", "--quiet", "--samples", "8", "--viewer",
-                 "--viewer-port", str(_free_port())]) == 0  # fmt: skip
+                 "--no-viewer-wait", "--viewer-port", str(_free_port())]) == 0  # fmt: skip
     pts = tmp_path / "p.npz"
     ang = np.random.default_rng(0).normal(size=(300, 3))
     np.savez(pts, points=(ang / np.linalg.norm(ang, axis=1, keepdims=True)).astype("f4"))
     assert main(["train", "sdf", "--points", str(pts), "--out", str(tmp_path / "s"), "--iters",
                  "2", "--batch", "64", "--resolution", "8", "--width", "16", "--layers", "2",
-                 "--pos-freqs", "2", "--quiet", "--viewer",
+                 "--pos-freqs", "2", "--quiet", "--viewer", "--no-viewer-wait",
                  "--viewer-port", str(_free_port())]) == 0  # fmt: skip
     assert len(frames) == 2 and all(f.shape == (8, 8, 3) for f in frames)
 

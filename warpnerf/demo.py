@@ -25,6 +25,7 @@ from .train.box_fit import (
     render_box_views,
     write_spiral,
 )
+from .train.provenance import output_provenance
 
 __all__ = ["GT_BOX", "CAMERA_RADIUS", "FOV_X", "run_demo", "write_spiral"]
 
@@ -81,6 +82,7 @@ def run_demo(
         "device": str(dev),
         "config": cfg.to_dict()
         | {"size": size, "n_views": n_views, "frames": frames, "video_size": video_size},
+        "provenance": output_provenance(dev),  # (the software and device, as eval's metrics)
     }
     write_json(out / "metrics.json", metrics)
     return metrics

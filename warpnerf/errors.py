@@ -17,17 +17,19 @@ class UserError(Exception):
 
 class Interrupted(Exception):
     """Training stopped by SIGINT/SIGTERM after saving a checkpoint at ``step``; the CLI exits
-    with 128 + signum."""
+    with 128 + signum. ``resume``: the command that continues the run (the `train` command sets
+    it, e.g. ``warpnerf train volsdf --out RUN --resume --iters 3000``); None: a generic one."""
 
-    def __init__(self, signum: int, step: int, run):
+    def __init__(self, signum: int, step: int, run, resume: str | None = None):
+        self.signum, self.step, self.run, self.resume = signum, step, run, resume
+        super().__init__(signum, step, run)
+
+    def __str__(self) -> str:
         import signal
 
-        self.signum, self.step, self.run = signum, step, run
-        name = signal.Signals(signum).name
-        super().__init__(
-            f"{name} at step {step}: checkpoint saved in {run}; continue with "
-            f"`warpnerf train ... --out {run} --resume --iters N`"
-        )
+        name = signal.Signals(self.signum).name
+        how = self.resume or f"warpnerf train KIND --out {self.run} --resume --iters N"
+        return f"{name} at step {self.step}: checkpoint saved in {self.run}; continue with `{how}`"
 
 
 class Diverged(Exception):

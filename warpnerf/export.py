@@ -34,10 +34,12 @@ __all__ = ["export_pointcloud", "export_cameras"]
 
 @torch.no_grad()
 def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: float = 0.5,
-                      device=None) -> dict:  # fmt: skip
-    """Writes the point cloud PLY ``out``; returns a summary dict."""
+                      device=None, progress: bool = False) -> dict:  # fmt: skip
+    """Writes the point cloud PLY ``out``; returns a summary dict. ``progress``: the views
+    rendered, on stderr (:class:`~warpnerf.train.progress.Progress`)."""
     from .mesh import write_ply
     from .train.nerf import dataset_rays, load_data, load_run, render_rays_of, with_refined_poses
+    from .train.progress import Progress
 
     if not 1 <= stride <= 64:
         raise UserError(f"--stride must be in [1, 64], got {stride}")
@@ -55,6 +57,7 @@ def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: fl
     keep_px[::stride, ::stride] = True
     keep_px = keep_px.reshape(-1)
     pts, cols = [], []
+    bar = Progress(len(pick), "export pointcloud", unit="view", enabled=progress)
     for i in pick:
         o, d = dataset_rays(cfg, ds, image=i)
         sel = keep_px.to(o.device)
@@ -64,6 +67,8 @@ def export_pointcloud(run, out, views: int = 0, stride: int = 2, min_opacity: fl
         z = r["depth"][ok] / r["opacity"][ok]
         pts.append(o[ok] + d[ok] * z.unsqueeze(-1))
         cols.append(r["rgb"][ok])
+        bar.update()
+    bar.close()
     p = torch.cat(pts) if pts else torch.zeros(0, 3)
     c = torch.cat(cols) if cols else torch.zeros(0, 3)
     if len(p) == 0:
@@ -176,4 +181,5 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
         write_image(out.parent / rel, img.numpy())
     write_json(out, json_safe(doc))
     frame = "normalised (applied_transform)" if cfg.scene is not None else "data"
-    return {"out": str(out), "frames": len(frames), "images_written": len(images), "frame": frame}
+    return {"out": str(out), "frames": len(frames), "images_written": len(images),
+            "images_folder": str(folder) if images else None, "frame": frame}  # fmt: skip

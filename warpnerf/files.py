@@ -20,7 +20,8 @@ warpnerf wrote earlier is bounded by the bytes actually read, never by ``st_size
   live outputs). Manifests of earlier versions (one JSON object ``{name: [size, mtime_ns]}``) are
   read as well and appended to. Records are not fsynced one by one: a record lost in a power cut
   only makes its file count as foreign (refused, never deleted).
-- The folder lock (:data:`LOCK`, :func:`output_lock`) and the folders warpnerf makes inside a run
+- The folder lock (:data:`LOCK`, :func:`output_lock`; :func:`lock_holder` probes it; the lock
+  file is removed when its holder ends) and the folders warpnerf makes inside a run
   (:func:`make_folder`: ``eval_*``, ``render_*``, ``snapshots``, export's ``images``), checked with
   ``lstat`` to be real folders.
 
@@ -49,6 +50,7 @@ __all__ = [
     "check_foreign",
     "remove_own",
     "output_lock",
+    "lock_holder",
     "make_folder",
     "read_regular",
 ]
@@ -409,6 +411,9 @@ def remove_own(folder, names) -> list:
 
 
 _HELD: dict = {}
+_LOCK_TRIES = 50  # opens of a lock file that its holder removed meanwhile, before giving up
+_BUSY_TRIES = 5  # tries of a held lock, _BUSY_WAIT apart (a probe holds it for microseconds)
+_BUSY_WAIT = 0.02
 
 
 @contextlib.contextmanager
@@ -418,7 +423,12 @@ def output_lock(folder, what: str = "output folder"):
     into the same folder gets a :class:`UserError` naming the holder's pid instead of mixing two
     runs' files. The lock is the OS's (``flock``): it is released on every exit path, a crash or
     SIGKILL included, so a lock file left by a dead process is stale by construction and simply
-    taken over. Re-entrant within one process."""
+    taken over. At the end of the block (refused or finished) the lock file is removed while it
+    is still held, if it is still the file this process locked, and so is ``folder`` when this
+    call made it and it is empty: a refusal leaves nothing behind. A locker checks, once it holds
+    the lock, that the file it locked is still the one in the folder (a holder that finished
+    may have removed it meanwhile) and otherwise locks the one there now. Re-entrant within one
+    process."""
     folder = Path(folder)
     key = str(folder.resolve())
     if key in _HELD:
@@ -428,26 +438,16 @@ def output_lock(folder, what: str = "output folder"):
         finally:
             _HELD[key] -= 1
         return
-    folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK
-    try:
-        fd = _open(path, os.O_RDWR | os.O_CREAT, "lock file", 0o644)
-    except OSError as e:
-        raise _user_error(f"{path}: cannot create the lock file ({e.strerror or e})") from None
-    if os.fstat(fd).st_nlink != 1:  # a hard link to a file elsewhere: never truncated
-        os.close(fd)
-        raise _user_error(f"{path}: the lock file has other names (hard links); warpnerf "
-                          "refuses to write it (remove it)")  # fmt: skip
-    try:
-        _try_lock(fd)
-    except BlockingIOError:
-        os.lseek(fd, 0, os.SEEK_SET)
-        holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-        os.close(fd)
-        raise _user_error(
-            f"{folder}: this {what} is in use by another warpnerf process (pid {holder}); wait "
-            "for it to finish or choose another output"
-        ) from None
+    made = False
+    for _ in range(_LOCK_TRIES):
+        made = _make_lock_folder(folder) or made
+        fd = _open_lock(path, what, folder)
+        if fd is not None:
+            break
+    else:
+        raise _user_error(f"{path}: the lock file keeps disappearing (removed by another "
+                          "process as it is opened); try again")  # fmt: skip
     try:
         os.ftruncate(fd, 0)
         os.lseek(fd, 0, os.SEEK_SET)
@@ -456,7 +456,113 @@ def output_lock(folder, what: str = "output folder"):
         yield
     finally:
         _HELD.pop(key, None)
-        os.close(fd)  # closing the descriptor releases the lock
+        try:
+            if _same_file(fd, path):  # (never a file that replaced ours: only ours goes)
+                os.unlink(path)  # still held: a process that opened it finds it gone, retries
+        except OSError:  # (Windows: an open file cannot be removed; it stays, stale)
+            pass
+        finally:
+            os.close(fd)  # closing the descriptor releases the lock
+        if made:
+            with contextlib.suppress(OSError):  # (only when empty: nothing of anyone's goes)
+                os.rmdir(folder)
+
+
+def _make_lock_folder(folder: Path) -> bool:
+    """Makes ``folder`` (and its parents) if missing; whether this call made ``folder`` itself."""
+    try:
+        os.mkdir(folder)
+    except FileExistsError:
+        return False
+    except FileNotFoundError:
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.mkdir(folder)
+        except FileExistsError:
+            return False
+    return True
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``path`` (not followed if a link) is the open file ``fd``."""
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return False
+    held = os.fstat(fd)
+    return (st.st_dev, st.st_ino) == (held.st_dev, held.st_ino) and stat.S_ISREG(st.st_mode)
+
+
+def _open_lock(path: Path, what: str, folder: Path) -> int | None:
+    """The descriptor of the lock file ``path``, opened (created if needed) and locked; None
+    when the file it locked is no longer the one in the folder (its holder removed it as it was
+    opened: try again). :class:`UserError` when another process holds it."""
+    try:
+        fd = _open(path, os.O_RDWR | os.O_CREAT, "lock file", 0o644)
+    except FileNotFoundError:  # the folder went (an empty one removed by its last holder)
+        return None
+    except OSError as e:
+        raise _user_error(f"{path}: cannot create the lock file ({e.strerror or e})") from None
+    try:
+        links = os.fstat(fd).st_nlink
+        if links > 1:  # a hard link to a file elsewhere: never truncated
+            raise _user_error(f"{path}: the lock file has other names (hard links); warpnerf "
+                              "refuses to write it (remove it)")  # fmt: skip
+        for busy in range(_BUSY_TRIES):
+            try:
+                _try_lock(fd)
+                break
+            except BlockingIOError:
+                if busy + 1 == _BUSY_TRIES:
+                    os.lseek(fd, 0, os.SEEK_SET)
+                    holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+                    raise _user_error(
+                        f"{folder}: this {what} is in use by another warpnerf process (pid "
+                        f"{holder}); wait for it to finish or choose another output"
+                    ) from None
+                import time
+
+                time.sleep(_BUSY_WAIT)  # (a reader's probe of the lock: lock_holder)
+        if not _same_file(fd, path):  # removed (or replaced) before we locked it
+            os.close(fd)
+            return None
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+        raise
+    return fd
+
+
+def lock_holder(folder) -> str | None:
+    """The pid (as the lock file says it) of another process holding ``folder``'s lock (a
+    training holds its run folder's), or None when nobody else holds it. A probe: a shared lock
+    taken without waiting and given back at once (a writer that meets it tries again), never the
+    lock file created; a link or a special file in its place counts as no lock."""
+    folder = Path(folder)
+    with contextlib.suppress(OSError):
+        if str(folder.resolve()) in _HELD:
+            return None
+    from .errors import UserError
+
+    try:
+        fd = _open(folder / LOCK, os.O_RDONLY, "lock file")
+    except (OSError, UserError):  # absent, a link, a special file, unreadable
+        return None
+    try:
+        try:
+            import fcntl
+        except ImportError:  # Windows: no probe
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return os.read(fd, 64).decode(errors="replace").strip() or "?"
+        except OSError:
+            return None
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
 
 
 def _try_lock(fd: int) -> None:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import os
+import re
 import sys
 
 from ..errors import UserError, exit_status
@@ -23,7 +25,7 @@ from .train import (
     cmd_train_nerf,
     cmd_train_sdf,
 )  # fmt: skip
-from .view import cmd_view, view_flags
+from .view import cmd_view, view_flags, viewer_after_training
 
 # the command line, and the helpers the tools in scripts/ may use
 __all__ = [
@@ -33,6 +35,8 @@ __all__ = [
     "step_tool_args",
     "tool_parser",
     "nerf_task_from_argv",
+    "CommandParser",
+    "version_line",
 ]
 
 # the runs eval, render and export read (the NeRF runner: any --field)
@@ -70,11 +74,124 @@ def _registered_train_commands(tsub) -> None:
             tm.set_defaults(func=cmd_train_method, method=method, subparser=tm)
 
 
+class CommandParser(argparse.ArgumentParser):
+    """The parser of the ``warpnerf`` command and of each of its subcommands (argparse makes the
+    subparsers of a parser's own class). An argument error is one line on stderr, ``warpnerf
+    train nerf: error: argument --iters: ...``, exit status 2, as the library's errors are (the
+    usage is left to ``--help``, which stays whole); an unknown flag is reported by the deepest
+    subcommand given, with its nearest flag ("did you mean --iters?"), also when a required
+    flag is missing too; an invalid choice names the nearest one."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._argv = list(sys.argv[1:] if args is None else args)  # (what this parser reads)
+        return super().parse_known_args(args, namespace)
+
+    def parse_args(self, args=None, namespace=None):
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:  # (argparse hands a subcommand's unknown arguments up to the top parser)
+            leaf = _chosen(self, ns)
+            leaf.error(leaf.unrecognized(extras))
+        return ns
+
+    def error(self, message):
+        if message.startswith("the following arguments are required") and not _subcommands(self):
+            # a typo of a required flag's name leaves it missing: the typo is the error
+            argv = getattr(self, "_argv", [])
+            argv = argv[: argv.index("--")] if "--" in argv else argv
+            unknown = [a for a in argv if self._unknown_flag(a)]
+            if unknown:
+                message = self.unrecognized(unknown)
+        elif (m := _INVALID_CHOICE.search(message)) is not None:
+            # (the choices quoted, or bare as newer Pythons write them)
+            choices = re.findall(r"'([^']*)'", m.group(2)) or m.group(2).split(", ")
+            near = _nearest(m.group(1), choices)
+            if near is not None:
+                message = f"{message}; did you mean {near!r}?"
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def unrecognized(self, extras: list) -> str:
+        """The error of arguments this parser does not know, with the nearest flag to the first
+        unknown flag among them."""
+        message = f"unrecognized arguments: {' '.join(extras)}"
+        # (names compared without their dashes, which would make any two flags look alike)
+        flags = [s[2:] for a in self._actions for s in a.option_strings if s.startswith("--")]
+        for arg in extras:
+            if arg.startswith("--") and len(arg) > 2:
+                near = _nearest(arg[2:].split("=", 1)[0], flags)
+                if near is not None:
+                    return f"{message}; did you mean --{near}?"
+        return message
+
+    def _unknown_flag(self, arg: str) -> bool:
+        """Whether ``arg`` is a long flag this parser has no flag for (nor one it abbreviates)."""
+        if not arg.startswith("--") or len(arg) <= 2:
+            return False
+        name = arg.split("=", 1)[0]
+        return not any(s.startswith(name) for s in self._option_string_actions)
+
+
+_INVALID_CHOICE = re.compile(r"invalid choice: '([^']*)' \(choose from (.*)\)$")
+
+
+def _nearest(word: str, candidates: list) -> str | None:
+    """The candidate closest to ``word`` (letter case ignored), or None when none is close."""
+    lower = {c.lower(): c for c in candidates}
+    near = difflib.get_close_matches(word.lower(), list(lower), n=1, cutoff=0.6)
+    return lower[near[0]] if near else None
+
+
+def _subcommands(parser):
+    """The subcommands action of ``parser``, or None."""
+    return next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+
+
+def _chosen(parser, ns):
+    """The deepest subcommand's parser that the parsed ``ns`` chose below ``parser``."""
+    while (sub := _subcommands(parser)) is not None and getattr(ns, sub.dest, None) in sub.choices:
+        parser = sub.choices[getattr(ns, sub.dest)]
+    return parser
+
+
+def version_line() -> str:
+    """What ``warpnerf --version`` prints: warpnerf's version and those of Warp, PyTorch and
+    Python (the installed distributions' metadata; nothing is imported)."""
+    import platform
+    from importlib import metadata
+
+    def version(dist):
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            return None
+
+    from .. import __version__
+
+    own = version("warpnerf") or __version__
+    warp, torch = version("warp-lang") or "not installed", version("torch") or "not installed"
+    return f"warpnerf {own} (warp {warp}, torch {torch}, Python {platform.python_version()})"
+
+
+class _Version(argparse.Action):
+    """``--version``: prints :func:`version_line` and exits 0."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):  # fmt: skip
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(version_line())
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="warpnerf",
         description="Differentiable volume rendering with NVIDIA Warp kernels and PyTorch.",
     )
+    p.add_argument(
+        "--version", action=_Version,
+        help="print the versions of warpnerf, Warp, PyTorch and Python and exit",
+    )  # fmt: skip
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     d = sub.add_parser(
@@ -201,7 +318,7 @@ def main(argv=None) -> int:
         if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
                             "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
-        with _sigterm_exits(), recorded:
+        with _sigterm_exits(), recorded, viewer_after_training(args):  # (train --viewer)
             return args.func(args)
 
     code = exit_status(f"warpnerf {args.command}", run)

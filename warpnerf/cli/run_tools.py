@@ -3,6 +3,8 @@ scene)."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +33,55 @@ def _renders(run, command: str) -> None:
                         f"(use {', '.join(tools)})")  # fmt: skip
 
 
+@contextlib.contextmanager
+def _training_note(run, command: str):
+    """While another process (a training) holds ``run``'s lock, one note on stderr when the
+    command reads the run's checkpoint: the run is still training, by whom, and the step read.
+    The lock stops a second writer only; reading a run that trains is allowed (its checkpoints
+    are replaced whole), but what is read is the step saved last, not the end of the run."""
+    from ..io import lock_holder, watch_checkpoint_reads
+
+    pid = lock_holder(run) if run is not None and Path(run).is_dir() else None
+    if pid is None:
+        yield
+        return
+    top, said = Path(run).resolve(), []
+
+    def note(path, ckpt) -> None:
+        where = Path(path).resolve()
+        if said or (top != where and top not in where.parents):
+            return
+        said.append(True)
+        print(f"warpnerf {command}: note: {run} is still training (lock held by pid {pid}); "
+              f"reading its checkpoint at step {ckpt.get('step')}", file=sys.stderr)  # fmt: skip
+
+    with watch_checkpoint_reads(note):
+        yield
+
+
+def _same_path(a, b) -> bool:
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
+def _reads_run(cmd):
+    """A tool on ``args.run`` (eval, render, mesh, export): says when that run is still
+    training (:func:`_training_note`)."""
+
+    @functools.wraps(cmd)
+    def tool(args) -> int:
+        run, out = getattr(args, "run", None), getattr(args, "out", None)
+        if run is not None and out and _same_path(run, out):  # (eval --out RUN: its own lock
+            run = None  # refuses it, in one line)
+        with _training_note(run, cmd.__name__.removeprefix("cmd_")):
+            return cmd(args)
+
+    return tool
+
+
+@_reads_run
 def cmd_eval(args) -> int:
     from ..train.nerf_eval import evaluate_geometry, evaluate_run
 
@@ -41,7 +92,8 @@ def cmd_eval(args) -> int:
         _check_clean(args.clean)
         print(json_dumps(evaluate_geometry(args.run, args.geometry, args.mesh_resolution,
                                            args.geometry_points, device, clean=args.clean,
-                                           views=args.geometry_views)))  # fmt: skip
+                                           views=args.geometry_views,
+                                           progress=not args.quiet)))  # fmt: skip
         return 0
     if args.clean is not None:
         raise UserError("--clean needs --geometry (eval) or the mesh command")
@@ -61,12 +113,17 @@ def cmd_eval(args) -> int:
         round_samples=args.round_samples,
         render_half=True if args.half else None,
         renderer=args.renderer,
+        progress=not args.quiet,
     )
     keys = ("split", "step", "n_images", "renderer", "psnr", "ssim", "render_ms_median")
-    print(json_dumps({k: m[k] for k in keys}))
+    sub = f"eval_{args.split}" + ("_sphere" if args.renderer == "sphere" else "")
+    folder = Path(args.out) if args.out else Path(args.run) / sub  # (evaluate_run's)
+    print(json_dumps({**{k: m[k] for k in keys}, "out": str(folder),
+                      "metrics_json": str(folder / "metrics.json")}))  # fmt: skip
     return 0
 
 
+@_reads_run
 def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
@@ -83,6 +140,7 @@ def cmd_render(args) -> int:
         args.size,
         device=_device(args.device) if args.device else None,
         renderer=args.renderer,
+        progress=not args.quiet,
     )
     print(json_dumps(res))
     return 0
@@ -92,8 +150,8 @@ class _MeshSource(NamedTuple):
     fn: Callable  # points [n, 3] on ``device`` -> field values [n]
     lower: list
     upper: list
-    level: float  # marching cubes' level of ``fn``
-    shown_level: float  # the level the user asked for (NeRF: a density)
+    level: float | None  # marching cubes' level of ``fn`` (None: a density chosen from the grid)
+    shown_level: float | None  # the level the user asked for (NeRF: a density)
     what: str
     back: Callable | None  # vertices -> the data's own units
     device: str  # where the grid is evaluated and marched: --device, else the run's device
@@ -156,10 +214,11 @@ def _clean_and_decimate(v, f, clean, decimate):
     return v, f, rep
 
 
+@_reads_run
 def cmd_mesh(args) -> int:
     import time
 
-    from ..mesh import extract_mesh, level_hint, screenshot, vertex_colors, write_ply
+    from ..mesh import density_level, extract_mesh, level_hint, screenshot, vertex_colors, write_ply
 
     if args.resolution < 8 or args.resolution > 1024:
         raise UserError(f"--resolution must be in [8, 1024], got {args.resolution}")
@@ -176,13 +235,26 @@ def cmd_mesh(args) -> int:
     fn, lo, hi, level, shown_level, what, back, dev, field, density, cams = _mesh_source(args)
     if args.colors and field is None:
         raise UserError(f"--colors needs a NeRF or VolSDF run (a radiance field); {what} has none")
+    chosen = {}
+    if level is None:  # a NeRF run without --level: the density where its rays stop, from the grid
+
+        def level(vals):
+            chosen["level"], chosen["why"] = density_level(-vals, args.resolution, lo, hi)
+            return -chosen["level"]
+
+    from ..train.progress import Progress
+
     t0 = time.perf_counter()
     try:
-        v, f, vals = extract_mesh(fn, lo, hi, args.resolution, level, device=dev,
-                                  return_values=True)  # fmt: skip
+        with Progress(args.resolution**3, "mesh: field on the grid", unit="pt", unit_scale=True,
+                      enabled=not args.quiet) as bar:  # fmt: skip
+            v, f, vals = extract_mesh(bar.counting(fn), lo, hi, args.resolution, level,
+                                      device=dev, return_values=True)  # fmt: skip
     except ValueError as e:
         raise UserError(f"{what}: {e}") from None
     secs = time.perf_counter() - t0
+    if chosen:  # (said in the result's JSON: "level" and "level_rule")
+        shown_level = chosen["level"]
     if len(f) == 0:
         hint = level_hint(-vals if density else vals, density)  # range seen, a level to try
         raise UserError(f"{what}: no surface at level {shown_level} inside the box {lo} .. {hi}: "
@@ -209,7 +281,11 @@ def cmd_mesh(args) -> int:
     v, f, post = _clean_and_decimate(v, f, clean, args.decimate)  # (the field's own frame)
     post = {**cull, **post, "faces_extracted": n_faces}
     post_secs = time.perf_counter() - t1
-    rgb = vertex_colors(field, fn, v, dev) if args.colors else None  # of the final vertices
+    rgb = None
+    if args.colors:  # of the final vertices (fn: 6 points a vertex, its normal)
+        with Progress(6 * len(v), "mesh: vertex colours", unit="pt", unit_scale=True,
+                      enabled=not args.quiet) as bar:  # fmt: skip
+            rgb = vertex_colors(field, bar.counting(fn), v, dev)
     if back is not None:  # normalised frame -> the data's own units
         v = back(v).astype(np.float32)
         keep = np.isfinite(v).all(1)  # NDC vertices at infinity
@@ -241,12 +317,15 @@ def cmd_mesh(args) -> int:
         "level": shown_level,
         "seconds": secs,
     }
+    if chosen:  # the level the run's densities chose, and why (--level sets it)
+        res["level_rule"] = f"{chosen['why']}; --level sets it"
     if "clean" in post or args.decimate is not None:
         res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))
     return 0
 
 
+@_reads_run
 def cmd_export(args) -> int:
     from ..export import export_cameras, export_pointcloud
 
@@ -257,7 +336,8 @@ def cmd_export(args) -> int:
         if not args.out.endswith(".ply"):
             raise UserError(f"--out must be a .ply file, got {args.out}")
         res = export_pointcloud(args.run, args.out, args.views, args.stride, args.min_opacity,
-                                _device(args.device) if args.device else None)  # fmt: skip
+                                _device(args.device) if args.device else None,
+                                progress=not args.quiet)  # fmt: skip
     else:
         res = export_cameras(args.run, args.out)
     print(json_dumps(res))

@@ -14,6 +14,7 @@ from ..train.nerf_eval import RENDERERS
 __all__ = ["EvalConfig", "RenderConfig", "MeshConfig", "ExportConfig", "RUN_DEVICE"]
 
 RUN_DEVICE = "cpu or cuda (default: the run's device)"
+QUIET = "no progress on stderr (default: a bar on a terminal, else a line every 10 s)"
 SPLITS = ("train", "val", "test")
 CLEAN_HELP = ("drop floating pieces: connected components with less than MIN_FRACTION of the "
               "surface area (MIN_FRACTION default 0.01; give it after RUN)")  # fmt: skip
@@ -52,6 +53,7 @@ class EvalConfig:
     clean: float | None = option(None, "with --geometry: also the figures after cleaning; "
                                  + CLEAN_HELP, check="finite", const=0.01,
                                  metavar="MIN_FRACTION")  # fmt: skip
+    quiet: bool = option(False, QUIET)
 
 
 @dataclass
@@ -66,6 +68,7 @@ class RenderConfig:
     device: str | None = option(None, RUN_DEVICE)
     renderer: str = option("volume", "SDF runs: sphere-trace the surface (into "
                            "RUN/render_PATH_sphere) or volume", choices=RENDERERS)  # fmt: skip
+    quiet: bool = option(False, QUIET)
 
 
 @dataclass
@@ -74,7 +77,11 @@ class MeshConfig:
 
     sdf: str | None = option(None, "SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
     resolution: int = option(256, "grid nodes per axis")
-    level: float | None = option(None, "0 for SDFs; density for runs (10)", check="finite")
+    level: float | None = option(None, "0 for SDFs; density for NeRF runs: default from the run, "
+                                 "the median density where lines through the grid reach opacity "
+                                 "0.5 as rays (the depth it renders), at most the peak density "
+                                 "nine in ten of those lines reach (no holes)",
+                                 check="finite")  # fmt: skip
     bounds: float | None = option(None, "half-size of the cube", check="positive")
     out: str = option("", "mesh.ply (a PNG screenshot goes beside it)", required=True)
     device: str | None = option(None, "where to evaluate and march (default: the run's device; "
@@ -91,6 +98,7 @@ class MeshConfig:
                                     "0 < R < 1 (after --clean, before --colors)",
                                     check="finite", metavar="R")  # fmt: skip
     no_screenshot: bool = option(False, "no PNG screenshot beside the .ply")
+    quiet: bool = option(False, QUIET)
 
 
 @dataclass
@@ -103,3 +111,4 @@ class ExportConfig:
     stride: int = option(2, "pointcloud: every Nth pixel", check="positive")
     min_opacity: float = option(0.5, "pointcloud: rays kept", check="finite")
     device: str | None = option(None, "pointcloud: " + RUN_DEVICE)
+    quiet: bool = option(False, QUIET)

@@ -40,7 +40,7 @@ import torch
 from ..errors import UserError
 from ._arrays import load_npy
 from ._images import read_all, read_image
-from .blender import _area_downscale, _composite
+from .blender import _area_downscale, _composite, data_root
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
 from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, holdout_indices, register_format
@@ -316,7 +316,7 @@ def apply_transform(transform: np.ndarray, c2w: np.ndarray) -> np.ndarray:
 
 
 def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
-    root = Path(root)
+    root = data_root(root)  # (DIR/poses_bounds.npy: DIR)
     if not root.is_dir():
         raise UserError(f"{root}: data folder not found")
     found = detect_capture(root)
@@ -405,7 +405,7 @@ def reprojection_errors(root, max_observations: int = 200_000, seed: int = 0) ->
     sparse points or observations."""
     from .cameras import camera_rays
 
-    model = find_model(Path(root))
+    model = find_model(data_root(root))
     cams, images, points = read_model(model)
     ims = sorted(images.values(), key=lambda im: im.name)
     cam_idx, xys, xyz = [], [], []
@@ -520,7 +520,7 @@ def load_capture(root, split: str = "train", fmt: str | None = None, **options) 
 
 
 def _load(req: LoadRequest, fmt: str | None) -> Dataset:
-    root, downscale = req.root, req.downscale
+    root, downscale = data_root(req.root), req.downscale
     sc = _scene(root, fmt, downscale)
     idx = req.select(len(sc["names"]), root)
     bg = req.bg

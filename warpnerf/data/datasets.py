@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import UserError
 from . import capture as _capture  # noqa: F401  (registers colmap, llff)
 from . import nerfstudio as _nerfstudio  # noqa: F401  (registers nerfstudio)
-from .blender import _read_json, check_folder, has_nerfstudio_fields
+from .blender import _read_json, check_folder, data_root, has_nerfstudio_fields
 from .dataset import HOLDOUT, REGISTRY, Dataset, FormatChoices, LoadRequest, is_capture
 
 __all__ = ["load_dataset", "detect_format", "data_summary", "FORMATS"]
@@ -104,7 +104,7 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
     images named outside the folder are allowed (``--allow-outside-paths``)."""
     if fmt not in FORMATS:
         raise UserError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    root = Path(root)
+    root = Path(root) if str(root) == "builtin" else data_root(root)  # (an index file: its folder)
     fmt = detect_format(root) if fmt == "auto" else fmt
     if is_capture(fmt):
         info = _capture.capture_summary(root, fmt, downscale, holdout)

@@ -65,7 +65,8 @@ class Method:
     ``renders``: eval, render and export take it (cameras and images: the NeRF pipeline);
     ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
-    and upper corners, the marched level and the level asked for, back: vertices -> the data's
+    and upper corners, the marched level and the level asked for (both None: a density level
+    the command chooses from the grid), back: vertices -> the data's
     units or None, field for --colors or None, density: fn is minus a density, cameras: a
     callable giving the training cameras in the mesh's frame (or None), or None: what the
     default cleaning culls by). A method
@@ -172,7 +173,9 @@ def _open_nerf(run, device=None) -> Opened:
 
 def _nerf_mesh(o: Opened, bounds, level) -> dict:
     """A NeRF/VolSDF run's surface: an SDF field's zero level set, else the density's level set
-    (default 10) marched as -density at -level (inside negative, like an SDF)."""
+    marched as -density at -level (inside negative, like an SDF); with no level given, level
+    and shown_level are None: the command chooses the density from the grid
+    (:func:`warpnerf.mesh.density_level`)."""
     cfg, field = o.cfg, o.model.field
     b = bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
     back = None
@@ -191,9 +194,9 @@ def _nerf_mesh(o: Opened, bounds, level) -> dict:
         level = level or 0.0
         return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,
                     what=cfg.field, density=False)  # fmt: skip
-    level = 10.0 if level is None else level
-    return dict(out, fn=lambda p: -field.density(p.to(cfg.device))[0], level=-level,
-                shown_level=level, what="nerf", density=True)  # fmt: skip
+    return dict(out, fn=lambda p: -field.density(p.to(cfg.device))[0],
+                level=None if level is None else -level, shown_level=level, what="nerf",
+                density=True)  # fmt: skip
 
 
 def _nerf_task(task) -> Opened:

@@ -98,6 +98,7 @@ def evaluate_run(
     out_dir=None,
     snapshot: float | None = None,
     renderer: str = "volume",
+    progress: bool = False,
     **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
@@ -108,7 +109,8 @@ def evaluate_run(
     speed-versus-error sweep. ``snapshot``: the run's snapshot at that many training seconds
     (``train --snapshots``) instead of its last checkpoint. ``renderer="sphere"`` (SDF runs)
     sphere-traces the surface instead (:func:`sphere_traced_rays_of`; default folder
-    RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction)."""
+    RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction).
+    ``progress``: images done on stderr (:class:`~warpnerf.train.progress.Progress`)."""
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
@@ -140,19 +142,23 @@ def evaluate_run(
         remove_own(out_dir, sorted({p.name for p in out_dir.glob(f"{split}_*.png")} - set(names)))
         sphere = (render.get("chunk") or True) if renderer == "sphere" else None
         which = CHECKPOINT if snapshot is None else snapshot_name(float(snapshot))
-        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere, which)
+        return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere, which,
+                         progress)  # fmt: skip
 
 
-def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=CHECKPOINT):
+def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=CHECKPOINT,
+              progress=False):  # fmt: skip
     """``sphere``: None (volume rendering), else sphere tracing (the --chunk given, or True);
     ``which``: the checkpoint file evaluated (metrics.json names it, its step, and the software
     and device of the evaluation: :func:`~warpnerf.train.provenance.environment`)."""
     from .nerf import dataset_rays
+    from .progress import Progress
     from .provenance import command_now, environment
 
     with_ssim = min(ds.height, ds.width) >= 11  # the 11x11 window must fit
     rows, t0 = [], time.perf_counter()
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
+    bar = Progress(n, f"eval {split}", unit="image", enabled=progress)
     for i in range(n):
         sync()
         tr = time.perf_counter()
@@ -188,6 +194,8 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=
             out_dir / f"{split}_{i:03d}.png",
             torch.cat([torch.as_tensor(x) for x in side], 1).numpy(),
         )
+        bar.update()
+    bar.close()
     metrics = {
         "split": split,
         "step": ckpt["step"],  # the checkpoint's
@@ -241,13 +249,14 @@ PATHS = ("spiral", "orbit")  # the built-in camera paths of `render --path`
 
 @torch.no_grad()
 def render_run(run, path: str = "spiral", frames: int | None = None, size=None, device=None, fps=20,
-               renderer: str = "volume"):  # fmt: skip
+               renderer: str = "volume", progress: bool = False):  # fmt: skip
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
     RUN/render_{path}/ (RUN/render_{path}_sphere/ with ``renderer="sphere"``: SDF runs'
     surfaces sphere-traced). ``size`` = (W, H), default the training resolution. ``path``:
     "spiral", "orbit" or a camera-path file saved by the viewer (its keyframes, field of view,
     frame count and the near/far the viewer rendered each keyframe with; ``frames`` overrides
-    the count; output in RUN/render_{file stem}/)."""
+    the count; output in RUN/render_{file stem}/). ``progress``: frames done on stderr
+    (:class:`~warpnerf.train.progress.Progress`)."""
     cfg, model, _ = load_run(run, device)
     _check_renderer(renderer, model, cfg)
     user_path = None
@@ -288,7 +297,7 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     with output_lock(out_dir, "render folder"):
         check_foreign([out_dir / x for x in names])
         return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer,
-                              windows)  # fmt: skip
+                              windows, progress)  # fmt: skip
 
 
 def _path_windows(user_path, frames: int, model, cfg, train):
@@ -309,33 +318,59 @@ def _path_windows(user_path, frames: int, model, cfg, train):
     return np.array([rule(c[:3, 3]) for c in user_path.cameras(frames).double().numpy()])
 
 
+def frames_per_batch(w: int, h: int, frames: int, chunk: int | None) -> int:
+    """How many frames of ``w`` x ``h`` render together: as many as fill one rendering chunk
+    (at least one). Small frames (the CPU preset's 32x32: 1024 rays) rendered one at a time
+    make every step of the pipeline a tiny batch (the SDF view's sphere tracing: ~60 dependent
+    steps a frame, each a few dozen small ops), and on a CPU that per-call cost, not the
+    arithmetic, was most of the time; each ray's result does not depend on the other rays of
+    its call, so the frames are the same."""
+    if not chunk:
+        return 1
+    return max(1, min(frames, int(chunk) // max(w * h, 1)))
+
+
 def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume",
-                   windows=None):  # fmt: skip
+                   windows=None, progress=False):  # fmt: skip
     import copy
 
+    from .progress import Progress
+
     rgbs, depths, geo, t0, scale = [], [], [], time.perf_counter(), None
-    for f in range(frames):
-        o, d = camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera())
-        fc = cfg
-        if windows is not None:  # this frame's near/far (a viewer's camera path)
-            fc = copy.copy(cfg)
-            fc.near, fc.far = float(windows[f][0]), float(windows[f][1])
-        if renderer == "sphere":
-            out = sphere_traced_rays_of(model, fc, o, d)
-        else:
-            out = render_rays_of(model, fc, o, d, chunk=cfg.chunk)
-        rgb = to_uint8(out["rgb"].reshape(h, w, 3).cpu())
-        dep, opa = out["depth"].reshape(h, w).cpu(), out["opacity"].reshape(h, w).cpu()
-        if scale is None:  # the first frame that shows a surface sets it for the video
-            scale = depth_scale(cfg, dep, opa)
-        dep = _depth_image(dep, opa, scale or cfg.far).numpy()
-        write_image(out_dir / f"rgb_{f:03d}.png", rgb)
-        write_image(out_dir / f"depth_{f:03d}.png", dep)
-        rgbs.append(rgb)
-        depths.append(dep)
-        if model.kind == "sdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
-            geo.append(to_uint8(_geometry_image(model.coarse, cfg, o, d).reshape(h, w, 3)))
-            write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
+    # frames rendered together (:func:`frames_per_batch`); one at a time with per-frame near/far
+    per = 1 if windows is not None else frames_per_batch(w, h, frames, cfg.chunk)
+    bar = Progress(frames, "render", unit="frame", enabled=progress)
+    with bar:
+        for f0 in range(0, frames, per):
+            fs = range(f0, min(f0 + per, frames))
+            rays = [camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera()) for f in fs]
+            o, d = (torch.cat(x) for x in zip(*rays))
+            fc = cfg
+            if windows is not None:  # this frame's near/far (a viewer's camera path)
+                fc = copy.copy(cfg)
+                fc.near, fc.far = float(windows[f0][0]), float(windows[f0][1])
+            if renderer == "sphere":
+                out = sphere_traced_rays_of(model, fc, o, d)
+            else:
+                out = render_rays_of(model, fc, o, d, chunk=cfg.chunk)
+            if model.kind == "sdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
+                shaded = _geometry_image(model.coarse, cfg, o, d)
+            for i, f in enumerate(fs):
+                px = slice(i * w * h, (i + 1) * w * h)
+                rgb = to_uint8(out["rgb"][px].reshape(h, w, 3).cpu())
+                dep = out["depth"][px].reshape(h, w).cpu()
+                opa = out["opacity"][px].reshape(h, w).cpu()
+                if scale is None:  # the first frame that shows a surface sets it for the video
+                    scale = depth_scale(cfg, dep, opa)
+                dep = _depth_image(dep, opa, scale or cfg.far).numpy()
+                write_image(out_dir / f"rgb_{f:03d}.png", rgb)
+                write_image(out_dir / f"depth_{f:03d}.png", dep)
+                rgbs.append(rgb)
+                depths.append(dep)
+                if model.kind == "sdf":
+                    geo.append(to_uint8(shaded[px].reshape(h, w, 3)))
+                    write_image(out_dir / f"geometry_{f:03d}.png", geo[-1])
+                bar.update()
     mp4 = True
     for name, seq in (("rgb", rgbs), ("depth", depths), ("geometry", geo)):
         if not seq:
@@ -612,7 +647,7 @@ def _materials_breakdown(v, f, ref, points, cfg) -> dict:
 
 def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None,
                       clean: float | None = None, views: int = 10,
-                      snapshot: float | None = None):  # fmt: skip
+                      snapshot: float | None = None, progress: bool = False):  # fmt: skip
     """Accuracy, completeness and Chamfer distance of an SDF run's surface against a reference,
     and the rendered depth's error where the reference is analytic.
 
@@ -636,9 +671,11 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
     Depth error (:func:`depth_error`, "materials" only: a point cloud has no ray hits, so the
     depth figures are None): on the first ``views`` val images (0: all), rendered by the run.
     ``snapshot``: the run's snapshot at that many training seconds instead of its last
-    checkpoint.
+    checkpoint. ``progress``: the marching-cubes grid's evaluation on stderr
+    (:class:`~warpnerf.train.progress.Progress`).
     """
     from ..mesh import extract_mesh
+    from .progress import Progress
 
     if not 8 <= resolution <= 1024:
         raise UserError(f"--mesh-resolution must be in [8, 1024], got {resolution}")
@@ -654,8 +691,10 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
     analytic = reference == "materials"
     ref = materials_reference(points) if analytic else _load_reference(reference)
     a, field = cfg.aabb, model.field
-    v, f = extract_mesh(lambda p: field.sdf(p.to(cfg.device)), [-a] * 3, [a] * 3, resolution,
-                        0.0, device=cfg.device)  # fmt: skip
+    with Progress(resolution**3, "eval geometry: SDF grid", unit="pt", unit_scale=True,
+                  enabled=progress) as bar:  # fmt: skip
+        v, f = extract_mesh(bar.counting(lambda p: field.sdf(p.to(cfg.device))), [-a] * 3,
+                            [a] * 3, resolution, 0.0, device=cfg.device)  # fmt: skip
     if len(f) == 0:
         raise UserError(f"{run}: the SDF has no zero level set inside its box; nothing to compare")
     below = MATERIALS_BELOW if analytic else None

@@ -29,6 +29,7 @@ from ..io import write_json
 __all__ = [
     "RUN_INFO",
     "environment",
+    "output_provenance",
     "git_commit",
     "device_name",
     "command_line",
@@ -189,6 +190,12 @@ def environment(device) -> dict:
         "device": str(device),
         "device_name": device_name(device),
     }
+
+
+def output_provenance(device) -> dict:
+    """The ``provenance`` block of an output's metrics.json (eval's, the demo's): the command
+    line and time (:func:`command_now`) with the software and device (:func:`environment`)."""
+    return {**command_now(), **environment(device)}
 
 
 def _session(device, step: int, iters: int, dist) -> dict:

@@ -605,9 +605,11 @@ class Viewer:
             signal.signal(signum, prev or signal.SIG_DFL)
             signal.raise_signal(signum)
 
-    def tick(self) -> None:
+    def tick(self, weights=contextlib.nullcontext) -> None:
         """Live training: renders at most one frame, in the caller's thread; frames are spaced
-        so that rendering takes at most about a fifth of the time while someone watches."""
+        so that rendering takes at most about a fifth of the time while someone watches.
+        ``weights()``: a context manager open while a frame renders (the task's
+        :meth:`~warpnerf.train.loop.Task.eval_weights`: ``--ema``'s averaged weights)."""
         if not self._clients or self._signalled:
             return
         now = time.perf_counter()
@@ -618,12 +620,38 @@ class Viewer:
             return
         t0 = time.perf_counter()
         try:
-            with signals_to(self._on_signal):
+            with signals_to(self._on_signal), weights():
                 self._render_job(job)
         except Exception as e:  # a bad camera from a browser must not stop the training
             self._failed(job, e)
         self._last_frame_seconds = time.perf_counter() - t0
         self._last_tick_frame = time.perf_counter()
+
+    def render_in_background(self) -> None:
+        """A live viewer whose training has ended: from now on frames render in a background
+        thread, as ``warpnerf view``'s do (nobody calls :meth:`tick` any more)."""
+        if self._thread is None and not self._closed:
+            self._signalled = False
+            self._thread = threading.Thread(target=self._render_loop, daemon=True)
+            self._thread.start()
+
+    def serve_until_stopped(self, exit_after: float | None = None) -> str:
+        """Serves (frames render in the background) until Ctrl-C or SIGTERM, or ``exit_after``
+        seconds; then closes the viewer. Returns why it stopped: "signal" or "timeout"."""
+        stop = threading.Event()
+        self.render_in_background()
+        why = "timeout"
+        try:
+            with signals_to(lambda *_: stop.set()):  # Ctrl-C, SIGTERM: stop in order
+                t0 = time.perf_counter()
+                while not stop.wait(0.1):
+                    if exit_after is not None and time.perf_counter() - t0 >= exit_after:
+                        break
+                else:
+                    why = "signal"
+        finally:
+            self.close()
+        return why
 
     def rendering(self) -> bool:
         """Whether the render thread is still running (after :meth:`close`: a frame stuck in
