@@ -35,6 +35,8 @@ from warpnerf.train.nerf_config import (
     ValidationConfig,
     VolSDFConfig,
 )
+from warpnerf.train.recipe import LEGACY as RECIPE_LEGACY
+from warpnerf.train.recipe import RecipeConfig
 from warpnerf.train.sdf import SDFConfig
 
 OLD_RUNS = Path(__file__).parent / "data" / "runs_986359d"
@@ -94,10 +96,15 @@ def test_nerf_config_is_its_sections_and_saves_the_old_flat_keys():
         assert issubclass(NeRFConfig, section)
         for f in dataclasses.fields(section):
             assert f.name in names
-    # config.json: the keys a run written by 986359d has, plus the kind of run and field options
+    # config.json: the keys a run written by 986359d has, plus the kind of run, field options
+    # and the training recipe's section (issue 44), which an old run reads as it trained
+    recipe = {f.name for f in dataclasses.fields(RecipeConfig)}
+    assert recipe == set(RECIPE_LEGACY)
     for run in ("nerf_mlp", "nerf_hash"):
         old = json.loads((OLD_RUNS / run / "config.json").read_text())
-        assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"}
+        assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"} | recipe
+        loaded = NeRFConfig.from_dict(old, "config.json")
+        assert {k: getattr(loaded, k) for k in recipe} == RECIPE_LEGACY
     cfg = NeRFConfig(field="hash", hash_levels=8, hash_max_res=256)
     assert section_of(cfg, HashConfig).grid_kwargs() == dict(
         n_levels=8, log2_size=19, base_res=16, max_res=256

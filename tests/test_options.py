@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # those a --preset sets too, train/presets.py)
 _NERF_UNSET = ("data", "iters", "device", *preset_fields(NERF_PRESETS))
 COMMANDS = {
-    "nerf": (NeRFConfig, GRID, _NERF_UNSET),
+    "nerf": (NeRFConfig, GRID, (*_NERF_UNSET, "field")),  # (--field not given: auto)
     "volsdf": (VolSDFConfig, VOLSDF, _NERF_UNSET),
     "sdf": (SDFConfig, (), ("points", "iters", "device", *preset_fields(SDF_PRESETS))),
     "box": (BoxFitConfig, (), ("iters",)),

@@ -72,9 +72,13 @@ def test_explicit_flags_win_even_at_the_default_value():
 
 @pytest.mark.parametrize("preset", [None, "default", "gpu"])
 def test_default_and_gpu_presets_are_the_defaults(preset):
+    """On a CPU the default preset is the configs' defaults; gpu is them with the measured GPU
+    recipe of its table (the default on CUDA, tests/test_recipe_losses.py)."""
     argv = ["--field", "hash"] + (["--preset", preset] if preset else [])
     cfg = _nerf(*argv)
     want = dataclasses.replace(NeRFConfig(field="hash", device=cfg.device), preset=cfg.preset)
+    if preset == "gpu":
+        want = dataclasses.replace(want, **NERF_PRESETS["gpu"]["hash"])
     assert cfg == want
     assert cfg.preset == (preset or "default")
 
@@ -148,13 +152,15 @@ def test_cpu_hint_rule():
 
 
 def test_cli_prints_the_hint_once_on_stderr(tmp_path, monkeypatch, capsys):
-    """GPU-sized defaults on the CPU: one line on stderr before training (the trainer replaced
+    """GPU-sized defaults on the CPU: one line on stderr after the first step (the trainer replaced
     by a recorder: a real step at these sizes takes seconds); none with --preset cpu."""
     import warpnerf.train.nerf as nerf
 
     def record(cfg, *a, **kw):
         for hook in kw.get("hooks", []):  # (the loop's start: config and data checked)
             hook.on_start(None, 0)
+        for hook in kw.get("hooks", []):  # (the note speaks after the first step)
+            hook.on_step(1, {"step": [1], "seconds": [5.0]}, 1e-3)
         print(json.dumps({"preset": cfg.preset}))
         return {"step": [1], "psnr": [0.0], "val_psnr": [], "seconds": [0.0]}
 

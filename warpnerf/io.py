@@ -29,7 +29,9 @@ __all__ = [
     "write_json",
     "save_checkpoint",
     "load_checkpoint",
+    "watch_checkpoint_reads",
     "load_weights",
+    "load_tensors",
     "zip_directory",
     "check_overlap",
     "write_image",
@@ -123,7 +125,23 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
     for k in keys:  # the entries every run kind shares, of the form the loop writes
         if k in _ENTRIES and not _ENTRIES[k][0](ckpt[k]):
             raise UserError(f"{path}: entry {k!r} must be {_ENTRIES[k][1]}, got {_show(ckpt[k])}")
+    for watcher in tuple(_READ_WATCHERS):
+        watcher(path, ckpt)
     return ckpt
+
+
+_READ_WATCHERS: list = []
+
+
+@contextlib.contextmanager
+def watch_checkpoint_reads(fn):
+    """Calls ``fn(path, checkpoint)`` after each checkpoint :func:`load_checkpoint` reads in the
+    block (the CLI's note that a run it reads is still training, with the step it read)."""
+    _READ_WATCHERS.append(fn)
+    try:
+        yield
+    finally:
+        _READ_WATCHERS.remove(fn)
 
 
 def load_weights(module, state, path, what: str = "weights") -> None:
@@ -145,6 +163,39 @@ def load_weights(module, state, path, what: str = "weights") -> None:
             f"{path}: its {what} do not match the run's config.json (was the config edited, or "
             f"the checkpoint copied from another run?): {detail}"
         ) from None
+
+
+def load_tensors(targets: dict, saved, path, what: str) -> None:
+    """Copies a checkpoint's dict of tensors ``saved`` (untrusted) into ``targets`` (name ->
+    tensor, in place), all or nothing: a :class:`UserError` naming ``path`` and ``what`` unless
+    ``saved`` is a dict of exactly the names of ``targets``, each a tensor of its target's shape
+    and dtype whose values are all finite."""
+    import torch
+
+    from .errors import UserError
+
+    def fail(detail: str):
+        return UserError(f"{path}: its {what} do not match the run's config.json ({detail})")
+
+    if not isinstance(saved, dict):
+        raise fail(f"expected a dict of tensors, got {_show(saved)}")
+    names = [k for k in saved if not isinstance(k, str)]
+    if names:
+        raise fail(f"a key that is not a name: {_show(names[0])}")
+    missing, extra = sorted(set(targets) - set(saved)), sorted(set(saved) - set(targets))
+    if missing or extra:
+        show = lambda ks: ", ".join(ks[:3]) + (" ..." if len(ks) > 3 else "")  # noqa: E731
+        raise fail("; ".join(([f"missing {show(missing)}"] if missing else [])
+                             + ([f"unexpected {show(extra)}"] if extra else [])))  # fmt: skip
+    for k, t in targets.items():
+        v = saved[k]
+        if not isinstance(v, torch.Tensor) or v.dtype != t.dtype or v.shape != t.shape:
+            raise fail(f"{k!r} must be a {t.dtype} tensor of shape {list(t.shape)}, got {_show(v)}")
+        if v.is_floating_point() and not bool(torch.isfinite(v).all()):
+            raise fail(f"{k!r} holds values that are not finite")
+    with torch.no_grad():
+        for k, t in targets.items():
+            t.copy_(saved[k])
 
 
 def _check_optimizer_state(opt) -> None:

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 
-from ..errors import UserError
+from ..errors import Interrupted, UserError
 from ..fields.model import field_traits, fields_with
 from ..fields.settings import VOLSDF
 from ..io import json_dumps
@@ -20,10 +21,13 @@ from ..train.nerf_config import (
 from ..train.presets import (
     NERF_PRESETS,
     SDF_PRESETS,
+    checkpoint_bytes,
     cpu_hint,
+    default_field,
     preset_fields,
     preset_help,
     preset_values,
+    resolved_preset,
 )
 from ..train.sdf import SDFConfig
 from ._common import (
@@ -45,9 +49,26 @@ def cmd_train_method(args) -> int:
     method = args.method
     _check_out(args.out)
     cfg = method.config(**from_flags(method.config, args))
-    res = method.train(cfg, args.out, resume=args.resume, progress=not args.quiet)
+    with _resume_hint(args, getattr(cfg, "iters", None)):
+        res = method.train(cfg, args.out, resume=args.resume, progress=not args.quiet)
     print(json_dumps(res))
     return 0
+
+
+@contextlib.contextmanager
+def _resume_hint(args, iters):
+    """An :class:`Interrupted` training's message names the command that continues it: this
+    `train` subcommand with the run and the --iters it was aiming at."""
+    import shlex
+
+    try:
+        yield
+    except Interrupted as e:
+        if e.resume is None:
+            n = iters if isinstance(iters, int) and iters > 0 else "N"
+            e.resume = (f"warpnerf train {args.model} --out {shlex.quote(str(e.run))} --resume "
+                        f"--iters {n}")  # fmt: skip
+        raise
 
 
 def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
@@ -57,8 +78,9 @@ def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
     ``report(result)`` printed as JSON."""
     _check_out(args.out)
     cfg, device = _resumed(args, cls) if args.resume else new_config(args)
-    res = train(cfg, device, resume=args.resume, progress=not args.quiet,
-                tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
+    with _resume_hint(args, cfg.iters):
+        res = train(cfg, device, resume=args.resume, progress=not args.quiet,
+                    tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
     print(json_dumps(report(res)))
     return 0
 
@@ -81,7 +103,8 @@ def cmd_train_box(args) -> int:
     return _train_command(args, BoxFitConfig, new_config, train)
 
 
-# Flags a resume may carry; every other train-nerf flag is fixed by the run's config.json.
+# Flags a resume may change; every other train flag is fixed by the run's config.json (given
+# again, it must equal the saved value: _resume_device).
 _RESUME_FLAGS = {
     "out",
     "resume",
@@ -96,39 +119,142 @@ _RESUME_FLAGS = {
     "tensorboard",  # watching a training changes nothing in it
     "log_every",
     "viewer",
+    "viewer_wait",
     "host",
     "port",
 }
 
 
-def _resume_device(args):
+def _resume_device(args, cls):
     """Checks a --resume command line; returns the --device override (None: the run's own).
 
-    Only --iters, --device and --max-seconds may differ from the defaults of the subcommand that
-    was used (the run's saved config holds everything else)."""
+    Only --iters, --device and --max-seconds (and the watching flags) may change; any other flag
+    given must equal the run's saved config (``cls``'s defaults for keys an older run lacks):
+    repeating the command that started the run, --preset included, is accepted, and a flag whose
+    value differs is refused by name, with the saved value and the one given."""
     if args.iters is None:
         raise UserError("--resume needs --iters (the total number of steps to reach)")
-    # the subcommand's own parser (set as a default by cli.parser): its defaults, unparsed
-    defaults = args.subparser.parse_args(["--out", "x"])
-    fixed = [
-        k for k, v in vars(args).items() if k not in _RESUME_FLAGS and v != getattr(defaults, k, v)
-    ]
-    if fixed:
-        flags = {a.dest: a.option_strings[0] for a in args.subparser._actions if a.option_strings}
-        names = ", ".join(sorted(flags.get(k, "--" + k.replace("_", "-")) for k in fixed))
-        raise UserError(
-            f"with --resume the run's saved config is used; drop {names} "
-            "(only --iters, --device and --max-seconds may change)"
-        )
+    given = [k for k in _given_dests(args) if k not in _RESUME_FLAGS]
+    if given:
+        saved = _saved_config(args.out)  # ({}: no run there, or no readable config: "drop")
+        changed = [(k, _saved_value(k, saved, cls) if saved else _UNKNOWN) for k in given]
+        changed = [(k, s) for k, s in changed if not _same(k, getattr(args, k), s)]
+        if changed:
+            flags = {a.dest: a.option_strings[0] for a in args.subparser._actions
+                     if a.option_strings}  # fmt: skip
+            names = ", ".join(
+                flags.get(k, "--" + k.replace("_", "-"))
+                + ("" if s is _UNKNOWN else f" (saved {_show(s)}, given {_show(getattr(args, k))})")
+                for k, s in sorted(changed, key=lambda ks: flags.get(ks[0], ks[0]))
+            )
+            raise UserError(
+                f"with --resume the run's saved config is used; drop {names} "
+                "(only --iters, --device and --max-seconds may change; flags equal to the saved "
+                "ones may stay)"
+            )
     _existing(args.out, "training run to continue (--out RUN --resume)")
     return _device(args.device) if args.device else None
+
+
+_UNKNOWN = object()  # a saved value that cannot be known (no readable config.json)
+_PATHS = ("data", "points")  # flags naming a file or folder: equal when they name the same one
+
+
+def _given_dests(args) -> list:
+    """The flags (their dests) given on a `train` command line: those whose value differs from
+    the subcommand's default, and those written out on the command line being run (a flag given
+    at its default value; read from the recorded command when it is this `train` command)."""
+    # the subcommand's own parser (set as a default by cli.parser): its defaults, unparsed
+    defaults = args.subparser.parse_args(["--out", "x"])
+    given = {k for k, v in vars(args).items() if v != getattr(defaults, k, v)}
+    from ..train.provenance import current_command
+
+    argv = current_command()[1:]
+    at = [i for i in range(len(argv) - 1) if argv[i : i + 2] == ["train", args.model]]
+    if at:
+        opts = {s: a.dest for a in args.subparser._actions for s in a.option_strings}
+        for tok in argv[at[0] + 2 :]:
+            if tok == "--":
+                break
+            if tok.split("=", 1)[0] in opts:
+                given.add(opts[tok.split("=", 1)[0]])
+    return [k for k in vars(args) if k in given]
+
+
+def _saved_value(dest: str, saved: dict, cls):
+    """What the run's saved config (a dict) holds for the flag ``dest`` of a `train` command,
+    in the flag's terms; ``cls``'s default for a key an older run lacks."""
+    defaults = _defaults(cls)
+    if dest == "coarse_fine":  # (train nerf|volsdf: the fine network, n_fine > 0)
+        return (saved.get("n_fine", defaults.get("n_fine")) or 0) > 0
+    if dest == "fine_samples":
+        return saved.get("n_fine", defaults.get("n_fine"))
+    if dest in defaults or dest in saved:
+        return saved.get(dest, defaults.get(dest))
+    opts = saved.get("field_options")  # a field's own flags (train nerf|volsdf)
+    if isinstance(opts, dict) and dest in opts:
+        return opts[dest]
+    for o in _field_option_classes():
+        if dest in _defaults(o):
+            return _defaults(o)[dest]
+    return _UNKNOWN
+
+
+def _defaults(cls) -> dict:
+    """{field: default} of a config dataclass (its factories called)."""
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            out[f.name] = f.default_factory()
+    return out
+
+
+def _same(dest: str, given, saved) -> bool:
+    """Whether a flag's value given on --resume equals the saved one: numbers by value (1 and
+    1.0), lists and tuples by items, paths (--data, --points) when they name the same file."""
+    import math
+    from pathlib import Path
+
+    if saved is _UNKNOWN:
+        return False
+    if dest == "preset":  # (gpu is another name of default)
+        given, saved = ("default" if v == "gpu" else v for v in (given, saved))
+    if dest == "fine_samples" and saved == 0:
+        return True  # (no fine network: the flag changes nothing)
+    if isinstance(given, (list, tuple)) and isinstance(saved, (list, tuple)):
+        return len(given) == len(saved) and all(_same("", a, b) for a, b in zip(given, saved))
+    if isinstance(given, bool) or isinstance(saved, bool):
+        return isinstance(given, bool) and isinstance(saved, bool) and given == saved
+    if isinstance(given, (int, float)) and isinstance(saved, (int, float)):
+        return math.isclose(given, saved, rel_tol=1e-9, abs_tol=0.0) or given == saved
+    if given == saved:
+        return True
+    if dest in _PATHS and isinstance(given, str) and isinstance(saved, str):
+        if "builtin" in (given, saved):  # (the built-in scene: a name, not a path)
+            return False
+        try:
+            return Path(given).expanduser().resolve() == Path(saved).expanduser().resolve()
+        except (OSError, RuntimeError, ValueError):
+            return False
+    return False
+
+
+def _show(value) -> str:
+    """A value as the command line writes it."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)
 
 
 def _resumed(args, cls) -> tuple:
     """(config, device) of `train ... --resume`: the class's defaults with the loop's --iters
     and --max-seconds from the command line (the trainer reads the rest from the run's saved
     config), and the --device override (None: the run's own)."""
-    device = _resume_device(args)
+    device = _resume_device(args, cls)
     return cls(iters=args.iters, max_seconds=args.max_seconds), device
 
 
@@ -139,10 +265,15 @@ def nerf_config_from_args(args):
     cls = VolSDFConfig if args.model == "volsdf" else NeRFConfig
     kw = from_flags(cls, args, groups=_GROUPS[args.model])
     kw["n_fine"] = args.fine_samples  # (None: not given, the preset's or FINE_SAMPLES)
+    kw["device"] = _device(args.device or cls.device)
+    # --field auto: the hash field on CUDA, the paper's MLP on a CPU; --preset default on CUDA:
+    # the measured GPU recipe (presets.NERF_PRESETS["gpu"]), saved as "gpu"
+    auto = "auto" if cls is NeRFConfig else cls.field
+    kw["field"] = default_field(kw.get("field") or auto, kw["device"])
+    kw["preset"] = resolved_preset(kw["preset"], kw["device"])
     # the preset's sizes for the flags not given (explicit flags win)
     kw = apply_preset(kw, preset_values(NERF_PRESETS, kw["preset"], kw["field"]))
     kw["n_fine"] = (kw["n_fine"] or FINE_SAMPLES) if args.coarse_fine else 0
-    kw["device"] = _device(args.device or cls.device)
     opts = field_traits(kw["field"]).options  # the chosen field's own flags
     if opts is not None:
         kw["field_options"] = from_flags(opts, args)
@@ -192,19 +323,28 @@ def _field_option_classes() -> list:
 
 class _CpuNote:
     """A loop hook printing one line on stderr when a CPU run meets GPU-sized settings
-    (train/presets.py: cpu_hint). It speaks at the loop's start, once the config and the data
-    have been checked: a user mistake stays a one-line error with no note before it."""
+    (train/presets.py: cpu_hint). It speaks after the first step, with that step's measured
+    time and the checkpoint's size (counted at the loop's start, once the config and the data
+    have been checked: a user mistake stays a one-line error with no note before it)."""
 
     def __init__(self, cfg, command: str):
         self.cfg, self.command = cfg, command
+        self.start, self.bytes = None, None
 
     def on_start(self, task, step: int) -> None:
-        line = cpu_hint(self.cfg, self.command)
-        if line:
-            print(line, file=sys.stderr, flush=True)
+        if cpu_hint(self.cfg, self.command) is None:
+            return  # (no note: nothing to measure)
+        self.start = step
+        self.bytes = checkpoint_bytes(task) if task is not None else None
 
     def on_step(self, step: int, history: dict, lr: float) -> None:
-        pass
+        if self.start is None or step != self.start + 1:
+            return
+        secs = history.get("seconds") or []
+        first = secs[-1] - (secs[-2] if len(secs) > 1 else 0.0) if secs else None
+        line = cpu_hint(self.cfg, self.command, first_step=first, checkpoint=self.bytes)
+        if line:
+            print(line, file=sys.stderr, flush=True)
 
     def on_validation(self, step: int, figures: dict, task) -> None:
         pass
@@ -248,10 +388,11 @@ def cmd_train_nerf(args) -> int:
     main = dist is None or dist.main
     # (only rank 0 prints: the other ranks' lines would repeat its own)
     notes = [] if args.resume else [_CpuNote(cfg, f"warpnerf train {args.model}")]
-    hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
-                      device=device, hooks=(live_hooks(args) + notes) if main else [],
-                      tensorboard=tensorboard_every(args), dist=dist,
-                      log=print if main else _silent)  # fmt: skip
+    with _resume_hint(args, cfg.iters):
+        hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
+                          device=device, hooks=(live_hooks(args) + notes) if main else [],
+                          tensorboard=tensorboard_every(args), dist=dist,
+                          log=print if main else _silent)  # fmt: skip
     if dist is not None:  # (every rank finished: they leave the group together)
         dist.close()
     if not main:
@@ -347,9 +488,12 @@ def _nerf_flags(tn, model: str) -> None:
                     help=f"fine samples per ray (default {FINE_SAMPLES}; {fine})")  # fmt: skip
     tn.add_argument("--quiet", action="store_true", help="no progress bar")
     watch_flags(tn)
-    unset = ("iters", "device", *_NERF_PRESET)
+    # `train nerf --field` not given: auto (nerf_config_from_args: hash on CUDA, mlp on a CPU)
+    auto = ("field",) if model == "nerf" else ()
+    unset = ("iters", "device", *_NERF_PRESET, *auto)
     add_flags(tn, cls, groups=_GROUPS[model], exclude=("data",), unset=unset,
-              notes=preset_help(NERF_PRESETS), titles=_section_title)  # fmt: skip
+              defaults={k: "auto" for k in auto}, notes=preset_help(NERF_PRESETS),
+              titles=_section_title)  # fmt: skip
     from ..fields.model import FIELD_TRAITS
 
     taken = {a.dest for a in tn._actions}

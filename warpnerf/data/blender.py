@@ -28,7 +28,7 @@ from ._paths import OPT_IN, outside_reason
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format
 
-__all__ = ["load_blender", "find_transforms", "detect_blender"]
+__all__ = ["load_blender", "find_transforms", "detect_blender", "data_root", "INDEX_FILES"]
 
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 _NERFSTUDIO_KEYS = ("fl_x", "w", "h", "camera_model")
@@ -42,9 +42,32 @@ def find_transforms(root: Path, split: str) -> Path:
     raise UserError(f"{root}: no transforms_{split}.json or transforms.json found")
 
 
+# a format's own index file, which names its dataset's folder: given instead of the folder
+# (``--data lego/transforms_train.json``), it stands for the folder that holds it
+INDEX_FILES = ("transforms.json", "transforms_train.json", "transforms_val.json",
+               "transforms_test.json", "poses_bounds.npy")  # fmt: skip
+
+
+def data_root(path) -> Path:
+    """The dataset folder ``path`` names: the path itself, or the folder of a format's index
+    file given in its place (:data:`INDEX_FILES`: ``DIR/transforms.json`` -> ``DIR``). Any other
+    file is a UserError asking for the folder; a path that does not exist comes back as it is
+    (the loaders say it is not found). Every loader's folder goes through it."""
+    p = Path(path)
+    if p.is_file():
+        if p.name in INDEX_FILES:
+            return p.parent
+        raise UserError(
+            f"{p}: a file, not a dataset folder; give the dataset's folder (the one holding "
+            "transforms*.json, the COLMAP model sparse/0/ or poses_bounds.npy)"
+        )
+    return p
+
+
 def check_folder(root) -> Path:
-    """``root`` as a Path; UserError unless it is a folder whose files can be listed and read."""
-    root = Path(root)
+    """``root`` as a Path (an index file: its folder, see :func:`data_root`); UserError unless it
+    is a folder whose files can be listed and read."""
+    root = data_root(root)
     if not root.is_dir():
         raise UserError(f"{root}: data folder not found")
     if not os.access(root, os.R_OK | os.X_OK):
@@ -182,6 +205,7 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
     mats = check_poses(mats, path, lambda j: f"frames[{indices[j]}].transform_matrix")
     bg, downscale = req.bg, req.downscale
     raws = {}  # j -> (the file's (h, w), its path), filled by the reading threads
+    alphas = {}  # j -> whether the file has an alpha channel (req.alpha)
 
     def read_one(j):
         i = indices[j]
@@ -190,7 +214,12 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
         hw = img.shape[:2]
         if hw[0] < downscale or hw[1] < downscale:  # (checked for the first in order below)
             return img[:0, :0, :3]
-        return _area_downscale(_composite(img, bg), downscale).astype(np.float32)
+        rgb = _composite(img, bg)
+        if req.alpha:  # the alpha as a fourth channel (1 without one), split off by make_dataset
+            a = img[..., 3:] if img.shape[-1] == 4 else np.ones_like(img[..., :1])
+            alphas[j] = img.shape[-1] == 4
+            rgb = np.concatenate([rgb, a], -1)
+        return _area_downscale(rgb, downscale).astype(np.float32)
 
     first = None
 
@@ -218,12 +247,20 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
     images = read_all(list(range(len(indices))), read_one, check,
                       dtype=np.uint8 if req.uint8 else np.float32)  # fmt: skip
     paths = [str(raws[j][1]) for j in range(len(indices))]
+    if req.alpha and not any(alphas.values()):  # no file has alpha: none to keep
+        images = np.ascontiguousarray(images[..., :3])
     return images, mats, paths, first[0]
 
 
 def make_dataset(req: LoadRequest, images, c2w, intrinsics, paths, fmt: str) -> Dataset:
-    """A transforms-JSON loader's arrays as a :class:`Dataset`."""
+    """A transforms-JSON loader's arrays as a :class:`Dataset` (``images`` [N, H, W, 4]: the
+    last channel is the alpha, see :attr:`Dataset.alpha`)."""
+    alpha = None
+    if images.shape[-1] == 4:
+        alpha = torch.from_numpy(np.ascontiguousarray(images[..., 3]))
+        images = images[..., :3]
     return Dataset(
+        alpha=alpha,
         images=torch.from_numpy(np.ascontiguousarray(images)),
         c2w=torch.from_numpy(c2w).float(),
         intrinsics=torch.as_tensor(intrinsics, dtype=torch.float32),

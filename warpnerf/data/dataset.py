@@ -44,7 +44,7 @@ __all__ = [
 SPLITS = ("train", "val", "test")
 HOLDOUT = 8  # every 8th image is held out (the LLFF convention, also used by nerfstudio)
 
-_TENSORS = ("images", "c2w", "intrinsics", "distortion")
+_TENSORS = ("images", "alpha", "c2w", "intrinsics", "distortion")
 
 
 @dataclass
@@ -67,6 +67,12 @@ class Dataset:
         keypoints: COLMAP captures with sparse points (not NDC): the split's observations of
             them, {"cam" [K] int64, "px", "py" [K] float32 pixels, "xyz" [K, 3] float32
             normalised}, on the CPU; else None.
+        alpha: [N, H, W] the images' alpha (same dtype as ``images``: float32 in [0, 1] or
+            uint8), area-downscaled like them, when asked for (``LoadRequest.alpha``) and the
+            files have an alpha channel; else None. ``images`` stay composited onto the
+            request's background ``b``, so the pixel over another background ``c`` is
+            ``images + (1 - alpha) * (c - b)`` (exact: compositing and the area average are
+            linear).
 
     Code written against the dict the loaders used to return keeps working: ``ds["images"]``,
     ``ds.get("distortion")``, ``"ndc" in ds`` (true when the value is not None).
@@ -85,6 +91,7 @@ class Dataset:
     ndc: list | None = None
     indices: list | None = None
     keypoints: dict | None = None
+    alpha: torch.Tensor | None = None
 
     @property
     def height(self) -> int:
@@ -105,7 +112,7 @@ class Dataset:
             for k in _TENSORS
             if getattr(self, k) is not None
             and getattr(self, k).device != torch.device(device)
-            and (images or k != "images")
+            and (images or k not in ("images", "alpha"))
         }
         return dataclasses.replace(self, **moved) if moved else self
 
@@ -149,6 +156,7 @@ class LoadRequest:
             RGBA composites rounded to 1/255), e.g. a large training split kept in host memory.
         allow_outside: let the dataset's files name images outside its folder (absolute paths,
             ``..``, symlinks out of it); refused by default (``--allow-outside-paths``).
+        alpha: also return the images' alpha (:attr:`Dataset.alpha`) when the files have one.
     """
 
     root: Path
@@ -161,6 +169,7 @@ class LoadRequest:
     device: str = "cpu"
     uint8: bool = False
     allow_outside: bool = False
+    alpha: bool = False
 
     @classmethod
     def make(cls, root, split: str = "train", **options) -> LoadRequest:
@@ -181,6 +190,8 @@ class LoadRequest:
             raise UserError(f"holdout must be 0 (none) or >= 2, got {req.holdout!r}")
         if not isinstance(req.uint8, bool):
             raise UserError(f"uint8 must be True or False, got {req.uint8!r}")
+        if not isinstance(req.alpha, bool):
+            raise UserError(f"alpha must be True or False, got {req.alpha!r}")
         if not isinstance(req.allow_outside, bool):
             raise UserError(f"allow_outside must be True or False, got {req.allow_outside!r}")
         if not _positive_int(req.builtin_size):

@@ -34,6 +34,7 @@ import torch
 
 from ..render import render_marched_fixed
 from ._signals import nonfinite_flags
+from .losses import composite_target, eikonal_term, photometric, ray_mean
 
 __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
 
@@ -87,14 +88,14 @@ def unsupported(cfg, model, task) -> str | None:
 class _Shape:
     """One set of capacities: its static input buffers, and its graph once captured."""
 
-    def __init__(self, key: tuple, device, contract: bool):
+    def __init__(self, key: tuple, device, random_bg: bool):
         rays = key[0]
         self.key, self.runs, self.graph, self.out = key, 0, None, None
         # the batch's flat pixel indices (unused slots: 0), then the number of rays used
         self.inputs = torch.zeros(rays + 1, device=device, dtype=torch.int64)
         self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
         self.jitter = torch.zeros(rays, device=device, dtype=torch.float32)
-        self.bg = torch.zeros(rays, 3, device=device) if contract else None
+        self.bg = torch.zeros(rays, 3, device=device) if random_bg else None
         self.box = None  # an SDF field's eikonal points in [0, 1)^3 [batch, 3] (drawn per step)
 
 
@@ -155,7 +156,7 @@ class GraphStep:
     def _shape(self, key) -> _Shape:
         shape = self.shapes.pop(key, None)
         if shape is None:
-            shape = _Shape(key, self.device, self.task.cfg.contract == "on")
+            shape = _Shape(key, self.device, self.task.random_bg)
             while len(self.shapes) >= MAX_GRAPHS:
                 self.shapes.popitem(last=False)  # least recently used (its graph and pool go)
         self.shapes[key] = shape
@@ -270,34 +271,29 @@ class GraphStep:
             ray_images=cam if cfg.appearance_dim else None,
             distortion_s=task.distortion_map(),
         )  # fmt: skip
-        target = task.flat[flat]
-        if target.dtype == torch.uint8:
-            target = target.to(torch.float32).div_(255.0)
+        target, alpha = task.pixels(flat)
+        if shape.bg is not None:
+            target = composite_target(target, alpha, shape.bg, cfg.background)
         weight = active.to(out["rgb"].dtype)
         n_active = shape.n_active.to(out["rgb"].dtype)
-        mse = (((out["rgb"] - target) ** 2).sum(-1) * weight).sum() / (3.0 * n_active)
-        loss = mse
+        loss, mse = photometric(out["rgb"], target, cfg.photometric_loss, weight, n_active)
         stats = out["stats"]
         terms = {
-            "psnr": mse.detach(),
+            "psnr": mse,
             "samples_per_ray": stats[3].to(torch.float64) / shape.n_active.to(torch.float64),
             "dropped_samples": stats[1] + stats[4],
             "_marched": stats[0],
             "_live": stats[3],
         }
         if "distortion" in out:
-            dist_loss = (out["distortion"] * weight).sum() / n_active
+            dist_loss = ray_mean(out["distortion"], weight, n_active)
             terms["distortion"] = dist_loss.detach()
             loss = loss + cfg.distortion_loss * dist_loss
         if model.kind == "sdf":  # eikonal on the live samples and on random box points
             f = model.coarse
-            box_term = f.eikonal((shape.box * 2 - 1) * cfg.aabb)
-            aux = f.aux_losses().get("eikonal")
-            if aux is None:
-                eik = box_term
-            else:  # (no live sample anywhere: the box points' term alone, as the eager step)
-                n = f._aux_n["eikonal"]
-                eik = torch.where(n > 0, 0.5 * (aux + box_term), box_term)
+            aux = f.aux_losses().get("eikonal")  # (its count compared on the device)
+            count = None if aux is None else f._aux_n["eikonal"]
+            eik = eikonal_term(f, (shape.box * 2 - 1) * cfg.aabb, aux, count)
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         loss.backward()

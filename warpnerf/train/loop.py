@@ -219,6 +219,12 @@ class Task:
         when the task has none."""
         return None
 
+    def eval_weights(self):
+        """A context manager: while open, the task's model holds the weights a saved run is
+        shown with (NeRF with ``--ema``: the average), the trained ones restored exactly after
+        (the live viewer's frames; default: the trained weights, nothing to do)."""
+        return contextlib.nullcontext()
+
     def validation_text(self, history: dict) -> str:
         """The log line's text after a validation (default: the latest figures by name)."""
         return ", ".join(f"{k} {history[k][-1]:.2f}" for k in self.validation_keys)
@@ -535,19 +541,20 @@ def claim_run(run: Path, locks: contextlib.ExitStack, outputs, checkpoint: str) 
     check_foreign([run / n for n in (*outputs, RUN_INFO)])
 
 
-def adam(params, capturable: bool = False, **kw) -> torch.optim.Adam:
+def adam(params, capturable: bool = False, cls=torch.optim.Adam, **kw) -> torch.optim.Adam:
     """Adam, fused (one multi-tensor kernel per step instead of a dozen launches: the hash-field
     step is host-bound) when every parameter is a floating CUDA tensor; PyTorch's default
     implementation otherwise (CPU runs). Both compute the same update and share the state dict
     layout, so a checkpoint resumes on either. ``capturable`` (CUDA): the step can be captured in
-    a CUDA graph; its learning rate is then a device tensor (:func:`set_lr` writes into it)."""
+    a CUDA graph; its learning rate is then a device tensor (:func:`set_lr` writes into it).
+    ``cls``: a subclass of Adam built the same way (``train.optim.LazyAdam``)."""
     params = list(params)
     tensors = [p for g in params for p in (g["params"] if isinstance(g, dict) else [g])]
     fused = bool(tensors) and all(p.is_cuda and p.is_floating_point() for p in tensors)
     if capturable and fused:
         kw["lr"] = torch.tensor(float(kw.get("lr", 1e-3)), device=tensors[0].device)
-        return torch.optim.Adam(params, fused=True, capturable=True, **kw)
-    return torch.optim.Adam(params, fused=fused or None, **kw)
+        return cls(params, fused=True, capturable=True, **kw)
+    return cls(params, fused=fused or None, **kw)
 
 
 def one_step(task: Task, opt, params: list, step: int, dist=None) -> tuple:

@@ -16,8 +16,11 @@ from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
 from ..io import write_json
 from ..ops import random_pixels
+from .ema import KEY as EMA_KEY
+from .ema import WeightAverage
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
+from .losses import composite_target, eikonal_term, photometric, ray_mean
 from .nerf_config import MODEL as NERF_MODEL
 from .nerf_config import NeRFConfig, scene_settings
 from .nerf_run import (
@@ -35,6 +38,7 @@ from .nerf_run import (
     validate,
     with_refined_poses,
 )
+from .recipe import random_background, wants_alpha
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -53,22 +57,39 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     decides (a COLMAP/LLFF capture's poses: transform, NDC camera, near/far, box), then fills in
     and checks the config (:meth:`NeRFConfig.validate`). A loaded run has them in its
     config.json already."""
+    if cfg.scene is None and cfg.data != "builtin":  # DIR/transforms.json given: DIR
+        from ..data.blender import data_root
+
+        cfg.data = str(data_root(cfg.data))
     return cfg.validate(scene_settings(cfg))
 
 
-def _optimizer(cfg, params, poses=None, capturable=False):
+def _optimizer(cfg, params, poses=None, capturable=False, model=None):
     """Adam over ``params``; with pose corrections (``poses``, whose parameters are among
     ``params``) a second group for them at ``pose_lr`` (``lr_scale``: the loop's schedule
-    scales it with the main learning rate)."""
+    scales it with the main learning rate). The recipe's options (:mod:`~warpnerf.train.optim`,
+    they need ``model``): ``--sparse-adam``, the hash tables in a group of their own whose
+    entries without a gradient stay untouched (:class:`~warpnerf.train.optim.LazyAdam`);
+    ``--mlp-weight-decay W``, the MLPs' weight matrices in a group with L2 ``W``."""
     groups = params
     if poses is not None:
         own = {id(p) for p in poses.parameters()}
         rest = [p for p in params if id(p) not in own]
         scale = cfg.pose_lr / cfg.lr
         groups = [{"params": rest}, {"params": list(poses.parameters()), "lr_scale": scale}]
+    lazy = bool(getattr(cfg, "sparse_adam", False)) and model is not None
+    decay = float(getattr(cfg, "mlp_weight_decay", 0.0)) if model is not None else 0.0
+    cls = torch.optim.Adam
+    if lazy or decay > 0:
+        from .optim import LazyAdam, hash_tables, mlp_weights, split_groups
+
+        tables = hash_tables(model) if lazy else ()
+        weights = mlp_weights(model, skip=poses) if decay > 0 else ()
+        groups = split_groups(groups, tables, weights, decay)
+        cls = LazyAdam if tables else cls
     if cfg.traits.hash:  # instant-ngp's Adam: tiny eps (sparse, small table gradients)
-        return adam(groups, capturable, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
-    return adam(groups, capturable, lr=cfg.lr)
+        return adam(groups, capturable, cls=cls, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    return adam(groups, capturable, cls=cls, lr=cfg.lr)
 
 
 def train_nerf(
@@ -105,7 +126,7 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     if resume:
         if main:
             lock_run(run, locks)
-        saved_cfg, model, ckpt = load_run(run, device)
+        saved_cfg, model, ckpt = load_run(run, device, averaged=False)  # (trains the raw ones)
         if main:
             resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
         saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
@@ -121,7 +142,8 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
     if cfg.lr_decay_steps <= 0:
         cfg.lr_decay_steps = cfg.iters
     # Data first: a bad dataset stops the run before anything is written.
-    train = load_data(cfg, "train", cfg.images_on, uint8=True)  # (8-bit when kept on the host)
+    train = load_data(cfg, "train", cfg.images_on, uint8=True,  # (8-bit when kept on the host)
+                      alpha=wants_alpha(cfg))  # fmt: skip
     val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
     if model is None:
         if cfg.appearance_dim:  # one code per training image
@@ -183,6 +205,12 @@ class NeRFTask(Task):
         self.dist = dist  # data-parallel: this rank renders its share of each global batch
         self.n_img, self.h, self.w = train.images.shape[:3]
         self.flat = train.images.reshape(-1, 3)
+        # --random-background: each training ray seen over a random colour; the pixels of an
+        # RGBA dataset are re-composited onto it by their alpha (losses.composite_target)
+        self.random_bg = random_background(cfg, train)
+        self.flat_alpha = None
+        if self.random_bg and train.alpha is not None:
+            self.flat_alpha = train.alpha.reshape(-1)
         # images in host memory on a CUDA run (--images-on): each batch's pixels are gathered
         # on the host, by the indices drawn there, and copied without blocking
         self.host_images = self.flat.device.type == "cpu" and cfg.device.startswith("cuda")
@@ -192,6 +220,14 @@ class NeRFTask(Task):
         self.grid_gen = None
         if self.grid is not None:
             self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
+            # --view-cull: a new grid (a resumed one has its mask) empties the cells outside
+            # every training camera's frustum for good (OccupancyGrid.cull)
+            if getattr(cfg, "view_cull", False) and int(self.grid.n_updates) == 0:
+                culled = self.grid.cull(train.c2w, train.intrinsics, self.w, self.h,
+                                        distortion=train.distortion,
+                                        ndc=cfg.ndc_camera())  # fmt: skip
+                log(f"view culling: {culled:.1%} of the grid's cells lie outside every "
+                    "training camera's frustum")  # fmt: skip
         self.batch = cfg.batch
         self._kept = None  # data-parallel: the last step's global sample count (on the device)
         self.keypoints = None  # --depth-loss: the training split's sparse-point observations
@@ -205,6 +241,8 @@ class NeRFTask(Task):
                 )  # fmt: skip
             self.keypoints = {k: v.to(cfg.device) for k, v in kp.items()}
         self.graph = self._graph_step(log)
+        # --ema: tiny-cuda-nn's average of the weights, for validation, the viewer, the saved run
+        self.ema = WeightAverage(model, cfg.ema) if getattr(cfg, "ema", 0) > 0 else None
 
     def _graph_step(self, log):
         """The static-shape step (:mod:`~warpnerf.train.graph_step`) when ``--cuda-graph``
@@ -234,12 +272,15 @@ class NeRFTask(Task):
             else:
                 log(f"{run}: resumed on another device type; the grid's random stream restarts "
                     "from the seed (the continuation is not bit-exact)")  # fmt: skip
+        if self.ema is not None:  # (load_run checked that the checkpoint has it)
+            self.ema.load(ckpt.get(EMA_KEY), Path(run) / CHECKPOINT)
 
     def parameters(self):
         return list(self.model.parameters())
 
     def optimizer(self, params, lr):
-        return _optimizer(self.cfg, params, self.model.poses, capturable=self.graph is not None)
+        return _optimizer(self.cfg, params, self.model.poses, capturable=self.graph is not None,
+                          model=self.model)  # fmt: skip
 
     def train_step(self, step, opt, params):
         """The static-shape step captured in a CUDA graph (None: the eager one, as for the
@@ -282,7 +323,7 @@ class NeRFTask(Task):
         sl, jitter, scale, bg = slice(0, n), None, 1.0, None
         if grid is not None:  # the lattice jitter (and backgrounds), drawn for all the batch's rays
             jitter = torch.rand(n, device=cfg.device, generator=self.grid_gen)
-            if cfg.contract == "on":  # unbounded: no fixed colour behind the scene
+            if self.random_bg:  # (contracted: no fixed colour behind the scene)
                 bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
         if self.dist is not None:  # this rank's share
             sl = self.dist.share(n)
@@ -294,11 +335,7 @@ class NeRFTask(Task):
             idx = (idx[0][sl], idx[1][sl]) if self.host_images else idx[sl]
         if self.host_images:
             idx, idx_host = idx
-            target = torch.empty(idx_host.shape[0], 3, dtype=self.flat.dtype, pin_memory=True)
-            torch.index_select(self.flat, 0, idx_host, out=target)
-            target = target.to(cfg.device, non_blocking=True)
-            if target.dtype == torch.uint8:  # 8-bit host images: their float values on the GPU
-                target = target.to(torch.float32).div_(255.0)
+            target, alpha = self._pixels_on_host(idx_host)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False,  # (our own indices)
                             poses=model.poses)  # fmt: skip
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
@@ -322,16 +359,14 @@ class NeRFTask(Task):
                     terms["dropped_samples"] = 0
                 self._next_batch(n_kept)
         if not self.host_images:
-            target = self.flat[idx]
-            if target.dtype == torch.uint8:  # an 8-bit split held on the training device
-                target = target.to(torch.float32).div_(255.0)
-        loss_fine = torch.mean((out["rgb"] - target) ** 2)
-        if scale != 1.0:
-            loss_fine = loss_fine * scale
-        terms["psnr"] = loss_fine.detach()
-        loss = loss_fine
+            target, alpha = self.pixels(idx)
+        if bg is not None:
+            target = composite_target(target, alpha, bg, cfg.background)
+        loss_fine, mse = photometric(out["rgb"], target, cfg.photometric_loss)
+        terms["psnr"] = mse * scale
+        loss = loss_fine * scale
         if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
-            dist_loss = out["distortion"].mean() * scale
+            dist_loss = ray_mean(out["distortion"]) * scale
             terms["distortion"] = dist_loss.detach()
             loss = loss + cfg.distortion_loss * dist_loss
         if self.keypoints is not None:  # the depth prior at sparse points (the same on every
@@ -341,18 +376,49 @@ class NeRFTask(Task):
             loss = loss + cfg.depth_loss * depth_term
         coarse = out.get("rgb_coarse")
         if coarse is not None and coarse.requires_grad and model.fine is not None:
-            loss = loss + torch.mean((coarse - target) ** 2) * scale  # (scale 1: exact)
+            loss = loss + photometric(coarse, target, cfg.photometric_loss)[0] * scale
         if model.kind == "sdf":  # eikonal on the rendered samples and on random box points
             f = model.coarse
             box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
             if self.dist is None:
                 aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)
-                eik = f.eikonal(box) if aux is None else 0.5 * (aux + f.eikonal(box))
+                eik = eikonal_term(f, box, aux)
             else:  # (every rank draws the same box points: their term needs no exchange)
                 eik = self._dp_eikonal(model.eikonal_parts(), f.eikonal(box))
             loss = loss + cfg.eikonal_weight * eik
             terms["beta"] = f.beta.detach()
         return loss, terms
+
+    def pixels(self, idx):
+        """(colours [n, 3] float32, alpha [n] or None) of the training pixels ``idx`` (flat
+        indices into the split, on the images' device)."""
+        target = self.flat[idx]
+        if target.dtype == torch.uint8:  # an 8-bit split held on the training device
+            target = target.to(torch.float32).div_(255.0)
+        alpha = None
+        if self.flat_alpha is not None:
+            alpha = self.flat_alpha[idx]
+            if alpha.dtype == torch.uint8:
+                alpha = alpha.to(torch.float32).div_(255.0)
+        return target, alpha
+
+    def _pixels_on_host(self, idx_host):
+        """:meth:`pixels` of a split kept in host memory: gathered there into pinned memory and
+        copied to the device without blocking."""
+        dev = self.cfg.device
+        out = []
+        for flat in (self.flat, self.flat_alpha):
+            if flat is None:
+                out.append(None)
+                continue
+            v = torch.empty((idx_host.shape[0], *flat.shape[1:]), dtype=flat.dtype,
+                            pin_memory=True)  # fmt: skip
+            torch.index_select(flat, 0, idx_host, out=v)
+            v = v.to(dev, non_blocking=True)
+            if v.dtype == torch.uint8:  # 8-bit host images: their float values on the GPU
+                v = v.to(torch.float32).div_(255.0)
+            out.append(v)
+        return out[0], out[1]
 
     def batch_rays(self, cam, px, py):
         """Rays of a training batch's pixels (indices the task drew itself: no range check)."""
@@ -433,9 +499,18 @@ class NeRFTask(Task):
             self._next_batch(live)
         super().record(history, terms)
 
+    def after_step(self, step, history):
+        if self.ema is not None:  # (outside a captured step: one multi-tensor op, no sync)
+            self.ema.update(step)
+
+    def eval_weights(self):
+        """The averaged weights in place while open (``--ema``; the raw ones otherwise)."""
+        return self.ema.applied() if self.ema is not None else contextlib.nullcontext()
+
     def validate(self, step):
         keep = {}
-        psnr = validate(self.model, self.cfg, self.val, keep)
+        with self.eval_weights():  # (--ema: the average is what a saved run renders with)
+            psnr = validate(self.model, self.cfg, self.val, keep)
         if keep:  # the first image, for the TensorBoard log: prediction | truth, and depth
             rgb, depth = keep["rgb"], keep["depth"]
             self.val_images = {
@@ -473,4 +548,6 @@ class NeRFTask(Task):
         if self.graph is not None and self.graph.last is not None:  # a resume keeps the shapes
             state["static_shape"] = {"last": list(self.graph.last),
                                      "current": list(self.graph.current or ())}  # fmt: skip
+        if self.ema is not None:  # --ema: the averaged weights ("fields" keeps the raw ones)
+            state[EMA_KEY] = self.ema.state()
         return state

@@ -19,10 +19,12 @@ from ..fields.settings import HashConfig, MLPConfig, SDFDensityConfig
 from ..options import check_at_least, option, with_defaults
 from .loop import LoopConfig
 from .presets import PRESET_NAMES, preset_option
+from .recipe import LEGACY as RECIPE_LEGACY
+from .recipe import RecipeConfig
 
 __all__ = [
     "NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL", "DataConfig", "SceneConfig",
-    "SamplingConfig", "CaptureConfig", "ValidationConfig", "SECTIONS",
+    "SamplingConfig", "CaptureConfig", "ValidationConfig", "RecipeConfig", "SECTIONS",
 ]  # fmt: skip
 
 
@@ -290,7 +292,7 @@ NERF_LOOP = with_defaults(
     ),  # fmt: skip
 )
 SECTIONS = (DataConfig, NERF_LOOP, SceneConfig, SamplingConfig, MLPConfig, HashConfig,
-            SDFDensityConfig, CaptureConfig, ValidationConfig)  # fmt: skip
+            SDFDensityConfig, RecipeConfig, CaptureConfig, ValidationConfig)  # fmt: skip
 
 
 @dataclass
@@ -308,10 +310,12 @@ class NeRFConfig(*reversed(SECTIONS)):
     field: str = option(
         "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
         "volsdf: neural SDF with VolSDF's density (see `train volsdf`); hash_sdf: hash-grid SDF "
-        "with VolSDF's density on the occupancy grid", choices=FIELDS,
+        "with VolSDF's density on the occupancy grid (`train nerf` without --field: hash on "
+        "CUDA, mlp on a CPU)", choices=FIELDS,
     )  # fmt: skip
     view_dependence: bool = option(True, "colour depends on the viewing direction")
-    tf32: bool = option(False, "TF32 matrix products on CUDA (kernels stay float32)")
+    tf32: bool = option(True, "TF32 matrix products on CUDA (kernels stay float32; the field's "
+                        "matrix products only)")  # fmt: skip
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
     model: str = option(MODEL, flag=None)  # the kind of run (train/methods.py); older runs lack it
     # the field's own settings (its traits' ``options``), saved by name; {} for the built-in fields
@@ -329,7 +333,11 @@ class NeRFConfig(*reversed(SECTIONS)):
         expected form."""
         from ..jsonio import check_fields
 
-        cfg = cls(**check_fields(cls, d, where))
+        fields = check_fields(cls, d, where)
+        if isinstance(d, dict) and not any(k in d for k in RECIPE_LEGACY):
+            # a run from before the recipe's options: it trained without them
+            fields = {**RECIPE_LEGACY, **fields}
+        cfg = cls(**fields)
         return cfg.check_values(where)
 
     @property
@@ -459,6 +467,13 @@ class NeRFConfig(*reversed(SECTIONS)):
             traits.check(self, fail)
         if self.grid_res and not traits.grid:
             raise fail("grid_res", f"needs {_fields(grid=True)} (set --grid-res 0 otherwise)")
+        if self.grid_res == 0:  # (the renderers without the grid take one background colour)
+            for name, on in (("random_background", self.random_background == "on"),
+                             ("view_cull", self.view_cull)):  # fmt: skip
+                if on:
+                    raise fail(name, f"needs {_fields(grid=True)} with an occupancy grid "
+                               f"(--grid-res > 0), not --field {self.field} "
+                               f"--grid-res {self.grid_res}")  # fmt: skip
         if self.contract == "on":
             if not traits.captures or self.grid_res == 0:
                 raise fail("contract", f"needs {_fields(captures=True)} with an occupancy grid, "

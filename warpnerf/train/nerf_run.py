@@ -19,15 +19,16 @@ from ..render import render_chunks, render_marched, render_nerf
 from .nerf_config import MODEL, NeRFConfig
 
 __all__ = [
-    "load_run", "load_data", "images_stay_on_host", "with_refined_poses", "dataset_rays",
-    "render_rays_of", "distortion_coordinate", "surface_depth", "depth_scale",
+    "load_run", "load_data", "data_splits", "images_stay_on_host", "with_refined_poses",
+    "dataset_rays", "render_rays_of", "distortion_coordinate", "surface_depth", "depth_scale",
     "render_dataset_image", "validate", "psnr_of_mse", "CHECKPOINT",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
 
 
-def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: bool = False):
+def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: bool = False,
+              alpha: bool = False):  # fmt: skip
     """The run's dataset split (a :class:`~warpnerf.data.Dataset`) with its tensors on
     cfg.device (the built-in scene when cfg.data == "builtin"); ``images_on="host"`` keeps the
     images in host memory (a training batch's pixels are gathered there into pinned memory and
@@ -35,17 +36,63 @@ def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: 
     a quarter of the GPU's free memory (see :func:`images_stay_on_host`); None: the run's
     ``cfg.images_on``. ``uint8`` (the training split): images kept in host memory are 8-bit (a
     quarter of the memory; read so from the files with ``images_on="host"``, converted after
-    loading with "auto"), turned into float32 on the GPU per batch."""
+    loading with "auto"), turned into float32 on the GPU per batch. ``alpha``: keep the
+    images' alpha too (``Dataset.alpha``, where the files have one; moved and converted with
+    the images)."""
 
+    have = data_splits(cfg)
+    if have is not None and split not in have:  # (never another split's images in its place)
+        what = "the built-in scene" if cfg.data == "builtin" else "the data"
+        raise UserError(f"{cfg.data}: {what} has no '{split}' split (its splits: "
+                        f"{', '.join(have)}); choose one of those")  # fmt: skip
     images_on = cfg.images_on if images_on is None else images_on
     direct = uint8 and images_on == "host" and cfg.device.startswith("cuda")
-    ds = _load_split(cfg, split, uint8=direct)
+    ds = _load_split(cfg, split, uint8=direct, alpha=alpha)
     if direct or images_stay_on_host(cfg.device, ds.images, images_on):
-        images = ds.images.cpu()
-        if uint8 and images.dtype != torch.uint8:
-            images = (images.clamp_(0, 1) * 255).round_().to(torch.uint8)
-        return dataclasses.replace(ds, images=images).to(cfg.device, images=False)
+        kept = {}
+        for k in ("images", "alpha"):
+            v = getattr(ds, k)
+            if v is not None:
+                v = v.cpu()
+                if uint8 and v.dtype != torch.uint8:
+                    v = (v.clamp(0, 1) * 255).round_().to(torch.uint8)
+            kept[k] = v
+        return dataclasses.replace(ds, **kept).to(cfg.device, images=False)
     return ds.to(cfg.device)
+
+
+def data_splits(cfg: NeRFConfig) -> tuple | None:
+    """The splits the run's data has of its own: the built-in scene's train and val, the
+    Blender split files present (``transforms_{split}.json``), the splits a nerfstudio folder's
+    frames name (when every frame names one); None where every split loads (the hold-out rule
+    of a single ``transforms.json``, nerfstudio, COLMAP and LLFF: val and test are both the
+    held-out images, as documented) or the data cannot be read here (its loader says why)."""
+    from ..data.dataset import SPLITS
+
+    if cfg.data == "builtin":
+        return ("train", "val")
+    root = Path(cfg.data)
+    try:
+        if root.is_file():  # an index file named in place of its folder (DIR/transforms.json)
+            root = root.parent
+        if not root.is_dir():
+            return None
+        from ..data import detect_format
+
+        fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(root, "train")
+        if fmt == "blender":
+            have = tuple(s for s in SPLITS if (root / f"transforms_{s}.json").is_file())
+            return None if (root / "transforms.json").is_file() else have or None
+        if fmt == "nerfstudio":
+            from ..jsonio import read_json
+
+            frames = read_json(root / "transforms.json", "transforms file").get("frames")
+            named = [fr.get("split") if isinstance(fr, dict) else None for fr in frames]
+            if named and all(isinstance(n, str) and n in SPLITS for n in named):
+                return tuple(s for s in SPLITS if s in named)
+    except (UserError, OSError, AttributeError, TypeError):  # (the loader reports these)
+        return None
+    return None
 
 
 def with_refined_poses(model: RadianceModel, ds, split: str):
@@ -73,7 +120,7 @@ def images_stay_on_host(device, images: torch.Tensor, images_on: str) -> bool:
     return images.numel() * images.element_size() > free // 4
 
 
-def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False):
+def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False, alpha: bool = False):
     from ..data import load_dataset
 
     return load_dataset(
@@ -88,6 +135,7 @@ def _load_split(cfg: NeRFConfig, split: str, uint8: bool = False):
         device=cfg.device,
         uint8=uint8,
         allow_outside=cfg.allow_outside_paths,
+        alpha=alpha,
     )
 
 
@@ -221,10 +269,14 @@ def psnr_of_mse(mse: float) -> float:
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def load_run(run, device: str | None = None, snapshot: float | None = None):
+def load_run(run, device: str | None = None, snapshot: float | None = None,
+             averaged: bool = True):  # fmt: skip
     """(cfg, fields, checkpoint dict) of a run folder; device overrides the saved one;
     ``snapshot`` (seconds) loads the snapshot checkpoint kept at that training time
-    (``--snapshots``) instead of the latest one."""
+    (``--snapshots``) instead of the latest one. A run trained with ``--ema`` gets its averaged
+    weights in the model (what eval, render, mesh, export and the viewer show; see
+    :mod:`~warpnerf.train.ema`); ``averaged=False``: the raw weights (a resume trains on them,
+    and restores the average from the checkpoint's ``ema``)."""
     run = Path(run)
     cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
     if not cfg_path.is_file() or not ckpt_path.is_file():
@@ -276,6 +328,12 @@ def load_run(run, device: str | None = None, snapshot: float | None = None):
     if not isinstance(ckpt["fields"], dict):
         raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
     model.load_parts(ckpt["fields"], ckpt_path)  # every part the config gives it, strictly
+    from .ema import apply_average, saved_average
+
+    if averaged:  # --ema: the averaged weights replace the raw ones (checked, strictly)
+        apply_average(model, cfg, ckpt, ckpt_path)
+    else:
+        saved_average(cfg, ckpt, ckpt_path)  # (config and checkpoint must agree)
     if hasattr(model.coarse, "set_step"):  # the last step's schedules (open levels, beta), as
         model.coarse.set_step(max(int(ckpt["step"]) - 1, 0))  # its saved buffers hold them
     return cfg, model, ckpt

@@ -21,9 +21,10 @@ import copy
 import math
 
 __all__ = ["PRESET_NAMES", "NERF_PRESETS", "SDF_PRESETS", "preset_values", "preset_fields",
-           "preset_help", "cpu_hint", "preset_option"]  # fmt: skip
+           "default_field", "resolved_preset", "preset_help", "cpu_hint", "checkpoint_bytes",
+           "preset_option"]  # fmt: skip
 
-PRESET_NAMES = ("default", "gpu", "cpu")  # gpu = default: the configs' own defaults
+PRESET_NAMES = ("default", "gpu", "cpu")  # default: gpu on CUDA, the configs' own on a CPU
 
 
 def preset_option(scene: str):
@@ -32,7 +33,8 @@ def preset_option(scene: str):
 
     return option(
         "default", f"sizes: cpu ({scene} in under a minute on 2 CPU cores; sets the flags "
-        "marked --preset cpu, flags given explicitly win) or default/gpu (the defaults)",
+        "marked --preset cpu, flags given explicitly win), gpu (the measured GPU recipe, marked "
+        "--preset gpu) or default (gpu on CUDA, the plain defaults on a CPU)",
         choices=PRESET_NAMES,
     )  # fmt: skip
 
@@ -85,6 +87,28 @@ NERF_PRESETS = {
         },
     },
 }
+
+# The GPU recipe of the hash field (issue 44, measured on lego 400x400, all 100 val images, one
+# H200, 2026-11-27, docs/FIGURES.md): 2^19 composited samples a step (about 4,096 rays at first,
+# the batch adapting to the samples) and tiny-cuda-nn's weight average (--ema 0.95: 36.21 and
+# 36.11 dB at 60 s over two seeds against 35.83 without); TF32 is the config's default on CUDA.
+NERF_PRESETS["gpu"] = {
+    "hash": {"batch": 4096, "target_samples": 1 << 19, "ema": 0.95},
+}
+
+
+def default_field(field: str, device: str) -> str:
+    """``--field auto``: the hash field on CUDA, the paper's MLP on a CPU (where the hash field
+    at GPU sizes takes seconds a step; ``--preset cpu`` sizes either for the CPU)."""
+    if field != "auto":
+        return field
+    return "hash" if str(device).startswith("cuda") else "mlp"
+
+
+def resolved_preset(preset: str, device: str) -> str:
+    """``--preset default`` on CUDA is the GPU recipe (``gpu``); elsewhere the name given."""
+    return "gpu" if preset == "default" and str(device).startswith("cuda") else preset
+
 
 # `train sdf`: SDFConfig values per --field
 SDF_PRESETS = {
@@ -160,20 +184,65 @@ def step_seconds(cfg) -> float:
     return cfg.batch * samples * per_sample * cfg.traits.cpu_cost
 
 
-def cpu_hint(cfg, command: str = "train nerf") -> str | None:
-    """The one line a CPU run with GPU-sized settings prints (None: no line): the estimated
-    time a step and for all ``iters``, and the suggestion of ``--preset cpu``. None on CUDA,
-    with ``--preset cpu``, and when a step is estimated under :data:`HINT_STEP_SECONDS`."""
+def cpu_hint(
+    cfg, command: str = "train nerf", first_step: float | None = None, checkpoint: int | None = None
+) -> str | None:
+    """The one line a CPU run with GPU-sized settings prints (None: no line): the time a step
+    and for all ``iters`` (``first_step``: the measured seconds of the run's first step, else the
+    rule-of-thumb :func:`step_seconds`), the size of each checkpoint (``checkpoint`` bytes, see
+    :func:`checkpoint_bytes`) and the suggestion of ``--preset cpu``. None on CUDA, with
+    ``--preset cpu``, and when a step is estimated under :data:`HINT_STEP_SECONDS` (the rule of
+    thumb decides, so that a small run whose first step compiles kernels says nothing)."""
     if not str(cfg.device).startswith("cpu") or cfg.preset == "cpu":
         return None
     sec = step_seconds(cfg)
     if sec < HINT_STEP_SECONDS:
         return None
-    total = sec * cfg.iters
-    took = f"{total / 3600:.0f} h" if total >= 3600 * 2 else f"{total / 60:.0f} min"
+    if first_step is None:
+        took = f"about {_duration(sec)} a step on 2 CPU cores, {_duration(sec * cfg.iters)}"
+    else:
+        took = (f"the first step took {_duration(first_step)}, so about "
+                f"{_duration(first_step * cfg.iters)}")  # fmt: skip
+    size = "" if checkpoint is None else f"; each checkpoint is about {_size(checkpoint)}"
     return (
         f"warpnerf: note: --device cpu with GPU-sized settings (--batch {cfg.batch}, "
-        f"--field {cfg.field}): about {sec:.0f} s a step on 2 CPU cores, {took} for "
-        f"--iters {cfg.iters}; `{command} --preset cpu` sizes the run for a CPU (the built-in "
-        "scene in under a minute)"
+        f"--field {cfg.field}): {took} for --iters {cfg.iters}{size}; `{command} --preset cpu` "
+        "sizes the run for a CPU (the built-in scene in under a minute)"
     )
+
+
+def _duration(seconds: float) -> str:
+    """``0.4 s``, ``52 s``, ``14 min``, ``35 h``: a duration to the unit that reads best."""
+    if seconds < 10:
+        return f"{seconds:.1f} s"
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.0f} h"
+
+
+def _size(nbytes: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if nbytes < 1000 or unit == "GB":
+            return f"{nbytes:.0f} {unit}" if unit == "B" else f"{nbytes:.3g} {unit}"
+        nbytes /= 1000
+    return f"{nbytes:.3g} GB"
+
+
+def checkpoint_bytes(task) -> int:
+    """About the bytes of a task's checkpoint: its model's state (parameters and buffers: the
+    occupancy grid, poses) and Adam's two moments of every parameter (the optimiser's state once
+    it has stepped). Tensors shared between parts count once; histories and generators (small)
+    are left out."""
+    import torch
+
+    model = getattr(task, "model", None)
+    params = list(task.parameters())
+    state = list(model.state_dict().values()) if isinstance(model, torch.nn.Module) else params
+    seen, total = set(), 0
+    for t in state:
+        if isinstance(t, torch.Tensor) and (t.data_ptr(), t.numel()) not in seen:
+            seen.add((t.data_ptr(), t.numel()))
+            total += t.numel() * t.element_size()
+    return total + 2 * sum(p.numel() * p.element_size() for p in params)

@@ -1,0 +1,94 @@
+"""The training recipe of instant-ngp and tiny-cuda-nn, one option each (issue 44): random
+backgrounds behind RGBA pixels, occupancy cells outside every training frustum, Adam that leaves
+hash-table rows without a gradient alone, L2 on the MLP weights, an exponential moving average of
+the weights, and the Huber photometric loss. Each is a field of :class:`RecipeConfig`, a section
+of a NeRF/VolSDF run's config; a config.json written before the section existed reads the values
+those runs trained with (:data:`LEGACY`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..options import option
+
+__all__ = ["RecipeConfig", "LEGACY", "HUBER_DELTA", "EMA_MAX", "random_background", "wants_alpha"]
+
+HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
+EMA_MAX = 0.9999  # --ema above this would freeze the averaged weights for ~10^4+ steps
+
+# what a run trained with before these options existed (its config.json lacks the keys)
+LEGACY = {
+    "random_background": "off",
+    "view_cull": False,
+    "sparse_adam": False,
+    "mlp_weight_decay": 0.0,
+    "ema": 0.0,
+    "photometric_loss": "mse",
+}
+
+
+@dataclass
+class RecipeConfig:
+    """instant-ngp's training recipe, one option each (defaults: the measured winners)."""
+
+    TITLE = "training recipe (instant-ngp, tiny-cuda-nn)"
+
+    random_background: str = option(
+        "off", "composite each training ray of an RGBA dataset onto a random background colour "
+        "(its alpha kept; evaluation stays on the dataset's background); auto: on when the "
+        "training images have alpha",
+        choices=("auto", "on", "off"),
+    )  # fmt: skip
+    view_cull: bool = option(
+        False, "occupancy grid: cells outside every training camera's frustum are empty from "
+        "the start and stay empty (nothing no camera sees can become a floater)",
+    )  # fmt: skip
+    sparse_adam: bool = option(
+        False, "hash field: Adam leaves table rows without a gradient this step untouched "
+        "(values, moments and their step count), as tiny-cuda-nn's",
+    )  # fmt: skip
+    mlp_weight_decay: float = option(
+        0.0, "L2 on the MLP weights only (not biases, tables or codes; instant-ngp: 1e-6)",
+        check="nonnegative",
+    )  # fmt: skip
+    ema: float = option(
+        0.0, "decay of an exponential moving average of the weights (tiny-cuda-nn: 0.95), "
+        "used by eval, render, mesh and the viewer and saved in the checkpoint; 0: off",
+        check="nonnegative",
+    )  # fmt: skip
+    photometric_loss: str = option(
+        "mse", f"the colour loss: mse, or huber (delta {HUBER_DELTA}, instant-ngp)",
+        choices=("mse", "huber"),
+    )  # fmt: skip
+
+    def check_section(self, fail) -> None:
+        if self.random_background not in ("auto", "on", "off"):
+            raise fail(
+                "random_background", f"must be one of auto, on, off, got {self.random_background!r}"
+            )
+        if self.photometric_loss not in ("mse", "huber"):
+            raise fail("photometric_loss", f"must be mse or huber, got {self.photometric_loss!r}")
+        w = self.mlp_weight_decay
+        if not (isinstance(w, (int, float)) and math.isfinite(w) and 0 <= w <= 1):
+            raise fail("mlp_weight_decay", f"must be in [0, 1], got {w}")
+        e = self.ema
+        if not (isinstance(e, (int, float)) and math.isfinite(e) and (e == 0 or 0 < e <= EMA_MAX)):
+            raise fail("ema", f"must be 0 (off) or in (0, {EMA_MAX}], got {e}")
+
+
+def wants_alpha(cfg) -> bool:
+    """Whether a run reads its training images' alpha (--random-background on or auto, on a run
+    with an occupancy grid: the renderers that take a colour per ray)."""
+    return bool(cfg.grid_res) and cfg.random_background != "off"
+
+
+def random_background(cfg, train) -> bool:
+    """Whether the training rays of a run on the split ``train`` see random backgrounds: always
+    when the scene is contracted (no fixed colour lies behind it), else with --random-background
+    on, or auto when the split has alpha; runs with an occupancy grid only."""
+    if not cfg.grid_res:
+        return False
+    if cfg.contract == "on" or cfg.random_background == "on":
+        return True
+    return cfg.random_background == "auto" and getattr(train, "alpha", None) is not None
