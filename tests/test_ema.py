@@ -262,27 +262,11 @@ def test_the_live_viewer_renders_frames_with_the_average(tmp_path):
 def test_a_watched_live_viewer_leaves_training_with_the_average_unchanged(tmp_path):
     """A training watched through the live viewer (a frame after every step, rendered with the
     average swapped in) ends with the losses, weights and average of one without a viewer."""
-    from warpnerf.data.cameras import look_at
     from warpnerf.train.nerf import train_nerf
-    from warpnerf.viewer import LiveViewer
-    from warpnerf.viewer.server import _ClientState
 
-    from .test_viewer import _FakeClient, _free_port
+    from .test_viewer import _free_port, watching_viewer
 
-    class Watching(LiveViewer):
-        def on_start(self, task, step):
-            super().on_start(task, step)
-            st = _ClientState(_FakeClient())
-            st.pose = (look_at((0.0, -4.0, 1.0), (0, 0, 0)).double().numpy(), 0.8, 1.0, 32)
-            self.viewer._clients[1] = st
-            self.viewer.refresh_seconds = 0.0
-            self.client = st.client
-            self.viewer._last_frame_seconds = 0.0
-            self.viewer.settle_seconds = 1e9
-
-        def on_step(self, step, history, lr):
-            self.viewer._last_tick_frame = 0.0  # a frame after every step
-            super().on_step(step, history, lr)
+    Watching = watching_viewer()
 
     cfg = dict(GRID, ema=0.8, iters=4, val_images=0)
     quiet = dict(progress=False, log=lambda *a: None)

@@ -261,16 +261,11 @@ def _train(run, hooks=()):
     return train_nerf(cfg, run, progress=False, log=lambda *a: None, hooks=hooks)
 
 
-def test_live_viewer_leaves_training_unchanged(tmp_path):
-    """Training with the live viewer (no browser, then a watching client whose frames render
-    between steps) gives the same losses as training without it."""
+def watching_viewer():
+    """A LiveViewer with one fake browser client watching from a fixed pose, a frame rendered
+    after every training step (shared with tests/test_ema.py)."""
     from warpnerf.viewer import LiveViewer
     from warpnerf.viewer.server import _ClientState
-
-    base = _train(tmp_path / "a")
-    live = LiveViewer(tmp_path / "b", port=_free_port(), log=lambda *a: None)
-    assert _train(tmp_path / "b", [live])["loss"] == base["loss"]
-    assert live.viewer is None  # closed with the loop
 
     class Watching(LiveViewer):
         def on_start(self, task, step):
@@ -286,6 +281,21 @@ def test_live_viewer_leaves_training_unchanged(tmp_path):
         def on_step(self, step, history, lr):
             self.viewer._last_tick_frame = 0.0  # a frame after every step
             super().on_step(step, history, lr)
+
+    return Watching
+
+
+def test_live_viewer_leaves_training_unchanged(tmp_path):
+    """Training with the live viewer (no browser, then a watching client whose frames render
+    between steps) gives the same losses as training without it."""
+    from warpnerf.viewer import LiveViewer
+
+    base = _train(tmp_path / "a")
+    live = LiveViewer(tmp_path / "b", port=_free_port(), log=lambda *a: None)
+    assert _train(tmp_path / "b", [live])["loss"] == base["loss"]
+    assert live.viewer is None  # closed with the loop
+
+    Watching = watching_viewer()
 
     class Noting(Watching):
         def close(self):
