@@ -11,6 +11,7 @@ from warpnerf.errors import UserError
 from warpnerf.train.graph_step import GraphStep, tier
 from warpnerf.train.loop import read_terms
 from warpnerf.train.nerf import NeRFConfig, NeRFTask, build_model, load_data, resolve_data
+from warpnerf.train.recipe import wants_alpha
 
 SMALL = dict(data="builtin", builtin_size=16, field="hash", batch=64, hash_levels=4,
              hash_log2_size=12, hash_max_res=64, hidden=16, grid_res=16, grid_every=4,
@@ -20,7 +21,8 @@ SMALL = dict(data="builtin", builtin_size=16, field="hash", batch=64, hash_level
 def _task(device: str, **kw):
     torch.manual_seed(0)
     cfg = resolve_data(NeRFConfig(**{**SMALL, **kw}, device=device))
-    task = NeRFTask(cfg, build_model(cfg), load_data(cfg, "train"), None, log=lambda *a: None)
+    train = load_data(cfg, "train", alpha=wants_alpha(cfg))
+    task = NeRFTask(cfg, build_model(cfg), train, None, log=lambda *a: None)
     return task
 
 

@@ -5,6 +5,8 @@ twin, and Huber's gradient matches instant-ngp's closed form."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -13,9 +15,12 @@ from tests.test_datasets import _png, make_blender
 from tests.test_graph_step import _params, _task, _train
 from warpnerf.data import load_dataset
 from warpnerf.errors import UserError
-from warpnerf.train.losses import composite_target, eikonal_term, huber, photometric, ray_mean
-from warpnerf.train.nerf import NeRFConfig, resolve_data
-from warpnerf.train.recipe import HUBER_DELTA, random_background
+from warpnerf.train.losses import (
+    OPACITY_EPS, composite_target, eikonal_term, huber, opacity_term, photometric, ray_mean,
+)  # fmt: skip
+from warpnerf.train.nerf import NeRFConfig, NeRFTask, resolve_data
+from warpnerf.train.nerf_config import VolSDFConfig
+from warpnerf.train.recipe import HUBER_DELTA, mask_weight, random_background, wants_alpha
 
 
 def test_huber_is_instant_ngps_and_its_gradient_matches_the_closed_form():
@@ -113,16 +118,88 @@ def test_random_background_mode_and_its_refusal_without_a_grid():
 
 
 HUBER_BG = dict(random_background="on", photometric_loss="huber")
+MASK_BG = dict(random_background="on", mask_loss=0.5)  # the built-in scene's own alpha
 
 
-@pytest.mark.parametrize("kw", [dict(photometric_loss="huber"), HUBER_BG])
+def test_opacity_term_is_the_clamped_cross_entropy_and_its_gradient_checks():
+    g = torch.Generator().manual_seed(3)
+    o = torch.rand(64, generator=g, dtype=torch.float64)
+    o[:4] = torch.tensor([0.0, 1.0, 1e-9, 1 - 1e-12], dtype=torch.float64)  # saturated rays
+    a = torch.rand(64, generator=g, dtype=torch.float64)
+    a[:4] = torch.tensor([1.0, 0.0, 0.5, 1.0], dtype=torch.float64)
+    want = torch.nn.functional.binary_cross_entropy(o.clamp(OPACITY_EPS, 1 - OPACITY_EPS), a)
+    got = opacity_term(o, a)
+    assert torch.isfinite(got) and got.item() == pytest.approx(want.item(), rel=1e-12)
+    x = o[4:].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: opacity_term(t, a[4:]), (x,))
+    y = o.clone().requires_grad_(True)
+    opacity_term(y, a).backward()
+    assert torch.isfinite(y.grad).all() and (y.grad[:2] == 0).all()  # clamped: no push further
+    # the masked mean over used slots equals the mean over those rays alone
+    m = (torch.arange(64) < 40).to(torch.float64)
+    n = torch.tensor(40.0, dtype=torch.float64)
+    assert opacity_term(o, a, m, n).item() == pytest.approx(opacity_term(o[:40], a[:40]).item())
+
+
+def test_the_built_in_scene_renders_its_alpha():
+    """The built-in scene's alpha is its rendered opacity: where it is 0 the white background
+    shows through, and the images are the straight colours composited onto white."""
+    from warpnerf.data.dataset import LoadRequest
+    from warpnerf.data.synthetic import _load_builtin
+
+    ds = _load_builtin(LoadRequest(root="builtin", split="train", alpha=True, builtin_size=24))
+    assert ds.alpha is not None and ds.alpha.shape == ds.images.shape[:3]
+    a = ds.alpha
+    assert float(a.min()) >= 0 and float(a.max()) <= 1
+    assert 0.05 < float((a > 0.5).float().mean()) < 0.95  # objects and background both seen
+    assert float((ds.images[a < 1e-4] - 1).abs().max()) < 1e-3  # empty rays: white
+    no = _load_builtin(LoadRequest(root="builtin", split="train", builtin_size=24))
+    assert no.alpha is None and torch.equal(no.images, ds.images)
+    u8 = _load_builtin(LoadRequest(root="builtin", split="val", alpha=True, uint8=True,
+                                   builtin_size=24))  # fmt: skip
+    assert u8.alpha.dtype == torch.uint8
+
+
+def test_mask_loss_defaults_and_its_absence_without_alpha():
+    """`train volsdf` weighs the opacity loss 0.1 with random backgrounds behind RGBA pixels;
+    `train nerf` neither; a split without alpha has no mask loss, and the log says so."""
+    v, n = VolSDFConfig(), NeRFConfig()
+    assert (v.mask_loss, v.random_background) == (0.1, "auto")
+    assert (n.mask_loss, n.random_background) == (0.0, "off")
+
+    class DS:
+        alpha = torch.ones(1)
+
+    class Opaque:
+        alpha = None
+
+    assert mask_weight(v, DS()) == 0.1 and mask_weight(v, Opaque()) == 0.0
+    with pytest.raises(UserError, match="mask-loss"):
+        NeRFConfig(data="builtin", mask_loss=-1.0).validate()
+    with pytest.raises(UserError, match="mask-loss"):
+        NeRFConfig(data="builtin", mask_loss=float("nan")).validate()
+    from tests.test_graph_step import SMALL
+    from warpnerf.train.nerf import build_model, load_data
+
+    cfg = resolve_data(NeRFConfig(**{**SMALL, "mask_loss": 0.2}, device="cpu"))
+    lines = []
+    assert wants_alpha(cfg) and not wants_alpha(resolve_data(NeRFConfig(**SMALL, device="cpu")))
+    train = load_data(cfg, "train", alpha=True)
+    assert train.alpha is not None
+    opaque = dataclasses.replace(train, alpha=None)
+    task = NeRFTask(cfg, build_model(cfg), opaque, None, log=lines.append)
+    assert task.mask_w == 0 and task.flat_alpha is None
+    assert any("no alpha" in s for s in lines)
+
+
+@pytest.mark.parametrize("kw", [dict(photometric_loss="huber"), HUBER_BG, MASK_BG])
 def test_static_step_trains_as_the_eager_step_with_the_recipes_terms(kw):
     """One definition of the loss: with Huber and random backgrounds over RGBA pixels (an alpha
     given to the built-in scene's pixels), the static-shape step (the body a CUDA graph holds)
     gives the eager step's losses and parameters."""
     tasks = [_task("cpu", **kw), _task("cpu", **kw)]
     for task in tasks:
-        if task.random_bg:  # the built-in scene has no alpha: give its pixels one
+        if task.random_bg and not task.mask_w:  # a random alpha for the built-in pixels
             g = torch.Generator().manual_seed(5)
             task.flat_alpha = torch.rand(task.flat.shape[0], generator=g)
     eager, static = tasks

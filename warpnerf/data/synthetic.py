@@ -30,7 +30,7 @@ NEAR, FAR, RADIUS, FOV_X = 1.0, 4.0, 2.5, 0.7
 BOUND = 1.0  # the scene lies inside [-BOUND, BOUND]^3
 # Bump when the scene's images change for a reason the sources hashed by _code_version miss
 # (e.g. a kernel of the renderer): cached images of older versions are then made again.
-SCENE_VERSION = 1
+SCENE_VERSION = 2  # 2: the splits' alpha (the rendered opacity) cached beside their images
 
 
 class GlossyScene(nn.Module):
@@ -100,6 +100,8 @@ def cache_entry(
     spec = {
         "train": ((n_train, size, size, 3), "float32", 0.0, 1.0),
         "val": ((n_val, size, size, 3), "float32", 0.0, 1.0),
+        "train_alpha": ((n_train, size, size), "float32", 0.0, 1.0),
+        "val_alpha": ((n_val, size, size), "float32", 0.0, 1.0),
     }
     return key, spec
 
@@ -107,8 +109,9 @@ def cache_entry(
 def _scene_images(
     n_train: int, n_val: int, size: int, view_dependent: bool, n_samples: int, device
 ) -> dict:
-    """The splits' images {"train": [n_train, size, size, 3], "val": ...} (float32 numpy in
-    [0, 1]), from the disk cache (:mod:`~warpnerf.data.builtin_cache`) when they were made
+    """The splits' images {"train": [n_train, size, size, 3], "val": ...} and alpha
+    {"train_alpha": [n_train, size, size], "val_alpha": ...} (the rendered opacity; float32 numpy
+    in [0, 1]), from the disk cache (:mod:`~warpnerf.data.builtin_cache`) when they were made
     before with the same settings, device type and code, else rendered (and stored)."""
     key, spec = cache_entry(n_train, n_val, size, view_dependent, n_samples, device)
 
@@ -117,9 +120,10 @@ def _scene_images(
         out = {}
         for split, n, seed in (("train", n_train, 0), ("val", n_val, 1)):
             cams, k = _views(n, seed, size, device)
-            rgb = render_views(cams, k, size, size, NEAR, FAR, scene, n_samples=n_samples,
-                               mode="sigma", background=1.0)["rgb"]  # fmt: skip
-            out[split] = rgb.clamp(0, 1).float().cpu().numpy()
+            views = render_views(cams, k, size, size, NEAR, FAR, scene, n_samples=n_samples,
+                                 mode="sigma", background=1.0)  # fmt: skip
+            out[split] = views["rgb"].clamp(0, 1).float().cpu().numpy()
+            out[f"{split}_alpha"] = views["opacity"].clamp(0, 1).float().cpu().numpy()
         return out
 
     return cached_arrays("builtin", key, spec, make)
@@ -136,7 +140,7 @@ def make_synthetic_dataset(
 ):
     r"""Renders the built-in scene: (train, val) :class:`~warpnerf.data.dataset.Dataset`\ s
     (images [N, H, W, 3], c2w [N, 4, 4], intrinsics [N, 4], near, far; no paths); white
-    background. Cached in the process (treat the returned tensors as read-only) and on disk
+    background; each split's alpha (the rendered opacity, [N, H, W]) in ``alpha``. Cached in the process (treat the returned tensors as read-only) and on disk
     across processes (the images; see :func:`_scene_images`)."""
     images = _scene_images(n_train, n_val, size, view_dependent, n_samples, device)
     out = []
@@ -145,6 +149,7 @@ def make_synthetic_dataset(
         out.append(
             Dataset(
                 images=torch.from_numpy(images[split]).to(device),
+                alpha=torch.from_numpy(images[f"{split}_alpha"]).to(device),
                 c2w=cams,
                 intrinsics=k,
                 format="builtin",
@@ -161,10 +166,12 @@ def _load_builtin(req: LoadRequest) -> Dataset:
     train, val = make_synthetic_dataset(size=req.builtin_size, device=req.device)
     ds = train if req.split == "train" else val
     n = req.max_images or len(ds)
-    images = ds.images[:n]
+    images, alpha = ds.images[:n], ds.alpha[:n] if req.alpha else None
     if req.uint8:
         images = (images.clamp(0, 1) * 255).round().to(torch.uint8)
-    return dataclasses.replace(ds, images=images, c2w=ds.c2w[:n], intrinsics=ds.intrinsics[:n])
+        alpha = None if alpha is None else (alpha * 255).round().to(torch.uint8)
+    return dataclasses.replace(ds, images=images, alpha=alpha, c2w=ds.c2w[:n],
+                               intrinsics=ds.intrinsics[:n])  # fmt: skip
 
 
 register_format("builtin", _load_builtin, lambda root, _: str(root) == "builtin", folder=False)

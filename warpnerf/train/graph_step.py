@@ -34,7 +34,7 @@ import torch
 
 from ..render import render_marched_fixed
 from ._signals import nonfinite_flags
-from .losses import composite_target, eikonal_term, photometric, ray_mean
+from .losses import composite_target, eikonal_term, opacity_term, photometric, ray_mean
 
 __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
 
@@ -285,6 +285,10 @@ class GraphStep:
             "_marched": stats[0],
             "_live": stats[3],
         }
+        if task.mask_w > 0:  # the rendered opacity against the pixels' alpha
+            mask_term = opacity_term(out["opacity"], alpha, weight, n_active)
+            terms["mask"] = mask_term.detach()
+            loss = loss + task.mask_w * mask_term
         if "distortion" in out:
             dist_loss = ray_mean(out["distortion"], weight, n_active)
             terms["distortion"] = dist_loss.detach()

@@ -14,11 +14,14 @@ import torch
 from .recipe import HUBER_DELTA
 
 __all__ = [
-    "ray_mean", "photometric", "huber", "composite_target", "eikonal_term", "TERMS",
+    "ray_mean", "photometric", "huber", "composite_target", "opacity_term", "eikonal_term",
+    "TERMS",
 ]  # fmt: skip
 
 # the terms a step may record besides the loss, by name (history keys)
-TERMS = ("psnr", "distortion", "depth", "beta")
+TERMS = ("psnr", "distortion", "depth", "beta", "mask")
+
+OPACITY_EPS = 1e-3  # the opacity is clamped to [eps, 1 - eps] in the cross-entropy (finite log)
 
 
 def ray_mean(x: torch.Tensor, mask: torch.Tensor | None = None, n=None) -> torch.Tensor:
@@ -59,6 +62,17 @@ def composite_target(pixels, alpha, background, dataset_background: float):
     if alpha is None:
         return pixels
     return pixels + (1.0 - alpha).unsqueeze(-1) * (background - dataset_background)
+
+
+def opacity_term(opacity, alpha, mask=None, n=None) -> torch.Tensor:
+    """The rays' mean binary cross-entropy of the rendered opacity ``opacity`` [n] against the
+    pixels' alpha ``alpha`` [n] (instant-nsr-pl's mask loss): ``-(a log o + (1 - a) log(1 - o))``
+    with ``o`` clamped to [eps, 1 - eps] (:data:`OPACITY_EPS`), so a ray that is fully opaque or
+    empty where its alpha says otherwise has a finite loss and gradient (none once clamped)."""
+    o = opacity.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
+    a = alpha.to(o.dtype)
+    bce = -(a * torch.log(o) + (1.0 - a) * torch.log1p(-o))
+    return ray_mean(bce, mask, n)
 
 
 def eikonal_term(field, box_points, aux=None, aux_count=None) -> torch.Tensor:

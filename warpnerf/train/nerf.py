@@ -20,7 +20,7 @@ from .ema import KEY as EMA_KEY
 from .ema import WeightAverage
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
-from .losses import composite_target, eikonal_term, photometric, ray_mean
+from .losses import composite_target, eikonal_term, opacity_term, photometric, ray_mean
 from .nerf_config import MODEL as NERF_MODEL
 from .nerf_config import NeRFConfig, scene_settings
 from .nerf_run import (
@@ -38,7 +38,7 @@ from .nerf_run import (
     validate,
     with_refined_poses,
 )
-from .recipe import random_background, wants_alpha
+from .recipe import mask_weight, random_background, wants_alpha
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -208,8 +208,12 @@ class NeRFTask(Task):
         # --random-background: each training ray seen over a random colour; the pixels of an
         # RGBA dataset are re-composited onto it by their alpha (losses.composite_target)
         self.random_bg = random_background(cfg, train)
+        # --mask-loss: the opacity's cross-entropy against the alpha (losses.opacity_term)
+        self.mask_w = mask_weight(cfg, train)
+        if getattr(cfg, "mask_loss", 0) > 0 and self.mask_w == 0:
+            log(f"--mask-loss {cfg.mask_loss:g}: the training images have no alpha; no mask loss")
         self.flat_alpha = None
-        if self.random_bg and train.alpha is not None:
+        if (self.random_bg or self.mask_w > 0) and train.alpha is not None:
             self.flat_alpha = train.alpha.reshape(-1)
         # images in host memory on a CUDA run (--images-on): each batch's pixels are gathered
         # on the host, by the indices drawn there, and copied without blocking
@@ -365,6 +369,10 @@ class NeRFTask(Task):
         loss_fine, mse = photometric(out["rgb"], target, cfg.photometric_loss)
         terms["psnr"] = mse * scale
         loss = loss_fine * scale
+        if self.mask_w > 0:  # the rendered opacity against the pixels' alpha
+            mask_term = opacity_term(out["opacity"], alpha) * scale
+            terms["mask"] = mask_term.detach()
+            loss = loss + self.mask_w * mask_term
         if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
             dist_loss = ray_mean(out["distortion"]) * scale
             terms["distortion"] = dist_loss.detach()

@@ -587,6 +587,14 @@ class VolSDFConfig(NeRFConfig):
                         choices=FIELDS)  # fmt: skip
     pos_freqs: int = option(6, "positional-encoding frequencies", check="nonnegative")
     n_fine: int = option(FINE_SAMPLES, flag=None)
+    # surfaces learn their extent from the images' alpha (issue 49): the opacity loss at
+    # instant-nsr-pl's weight, and random backgrounds behind RGBA pixels (occupancy-grid fields)
+    mask_loss: float = option(0.1, RecipeConfig.__dataclass_fields__["mask_loss"].metadata["help"],
+                              check="nonnegative")  # fmt: skip
+    random_background: str = option(
+        "auto", RecipeConfig.__dataclass_fields__["random_background"].metadata["help"],
+        choices=("auto", "on", "off"),
+    )  # fmt: skip
 
 
 def _number(v) -> bool:

@@ -12,9 +12,13 @@ from dataclasses import dataclass
 
 from ..options import option
 
-__all__ = ["RecipeConfig", "LEGACY", "HUBER_DELTA", "EMA_MAX", "random_background", "wants_alpha"]
+__all__ = [
+    "RecipeConfig", "LEGACY", "HUBER_DELTA", "EMA_MAX", "MASK_LOSS_MAX", "random_background",
+    "wants_alpha", "mask_weight",
+]  # fmt: skip
 
 HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
+MASK_LOSS_MAX = 100.0  # --mask-loss: a weight this large would drown the photometric term
 EMA_MAX = 0.9999  # --ema above this would freeze the averaged weights for ~10^4+ steps
 
 # what a run trained with before these options existed (its config.json lacks the keys)
@@ -25,6 +29,7 @@ LEGACY = {
     "mlp_weight_decay": 0.0,
     "ema": 0.0,
     "photometric_loss": "mse",
+    "mask_loss": 0.0,
 }
 
 
@@ -61,6 +66,12 @@ class RecipeConfig:
         "mse", f"the colour loss: mse, or huber (delta {HUBER_DELTA}, instant-ngp)",
         choices=("mse", "huber"),
     )  # fmt: skip
+    mask_loss: float = option(
+        0.0, "weight of the opacity loss: binary cross-entropy of each training ray's rendered "
+        "opacity against its pixel's alpha (instant-nsr-pl: 0.1; `train volsdf`'s default); "
+        "images without alpha: off (said in the log); 0: off",
+        check="nonnegative",
+    )  # fmt: skip
 
     def check_section(self, fail) -> None:
         if self.random_background not in ("auto", "on", "off"):
@@ -75,12 +86,23 @@ class RecipeConfig:
         e = self.ema
         if not (isinstance(e, (int, float)) and math.isfinite(e) and (e == 0 or 0 < e <= EMA_MAX)):
             raise fail("ema", f"must be 0 (off) or in (0, {EMA_MAX}], got {e}")
+        m = self.mask_loss
+        if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
+            raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")
 
 
 def wants_alpha(cfg) -> bool:
-    """Whether a run reads its training images' alpha (--random-background on or auto, on a run
-    with an occupancy grid: the renderers that take a colour per ray)."""
-    return bool(cfg.grid_res) and cfg.random_background != "off"
+    """Whether a run reads its training images' alpha: --random-background on or auto, on a run
+    with an occupancy grid (the renderers that take a colour per ray), or --mask-loss."""
+    bg = bool(cfg.grid_res) and cfg.random_background != "off"
+    return bg or float(getattr(cfg, "mask_loss", 0.0) or 0.0) > 0
+
+
+def mask_weight(cfg, train) -> float:
+    """The opacity loss's weight on the split ``train``: --mask-loss where its images have
+    alpha, else 0."""
+    w = float(getattr(cfg, "mask_loss", 0.0) or 0.0)
+    return w if getattr(train, "alpha", None) is not None else 0.0
 
 
 def random_background(cfg, train) -> bool:
