@@ -35,6 +35,24 @@ def test_starts_as_the_sphere_sdf():
     assert torch.allclose(f.sdf(x), x.norm(dim=-1) - 0.75, atol=1e-3)  # 0.5 box units = 0.75
 
 
+def test_the_sdf_is_bounded_by_the_scene_box():
+    """Outside the scene box the SDF is at least the distance to the box (no surface there),
+    whatever the network holds; inside it the zero set is the network's own."""
+    f = field(radius=0.5)
+    with torch.no_grad():  # a field that is "inside" everywhere: a huge negative residual
+        f.sdf_mlp[-1].bias[0] = -5.0
+    g = torch.Generator().manual_seed(1)
+    out = torch.randn(400, 3, generator=g)
+    out = out / out.abs().amax(-1, keepdim=True) * (1.5 + 3 * torch.rand(400, 1, generator=g))
+    dist = (out.abs() - 1.5).clamp_min(0).norm(dim=-1)  # the distance to the box
+    assert (f.sdf(out) >= dist - 1e-5).all() and (f.sdf(out) > 0).all()
+    x = inside()  # inside: the bound is the (negative) depth from the walls, never above the
+    # network's value unless the network is deeper than that, as here
+    assert torch.allclose(f.sdf(x), -(1.5 - x.abs().amax(-1)), atol=1e-5)
+    plain = field(radius=0.5)
+    assert torch.allclose(plain.sdf(x), x.norm(dim=-1) - 0.75, atol=1e-3)  # (unchanged)
+
+
 def test_tetrahedral_gradient_matches_analytic_gradients(monkeypatch):
     """The central difference is exact on linear functions and O(h^2) on smooth ones."""
     f = field()
@@ -295,6 +313,8 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
     # raw level set with every face counted (the main figures leave out what lies under the disk)
     raw, dl = mat["raw_every_face"], mat["delivered"]
     assert dl["culled_by_views"] is True and dl["clean"] == 0.01
+    # and first by the training rays' weights (issue 49), or a note saying why not
+    assert dl["culled_by_weights"] is ("weight_grid" in dl) is ("weights_note" not in dl)
     assert dl["mesh_faces"] <= raw["mesh_faces"] and raw["surface_points"] >= mat["surface_points"]
     assert all(raw[k] is not None and raw[k] >= 0 for k in ("accuracy", "chamfer"))
     assert "raw_every_face" not in same and same["delivered"]["culled_by_views"] is True

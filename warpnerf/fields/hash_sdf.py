@@ -4,8 +4,9 @@ hash_sdf``), for the occupancy-grid fast path of the NeRF pipeline.
 Geometry: the scene box's unit coordinates c in [-1, 1]^3 and the Warp hash encoding of the box
 coordinates feed a small MLP (two Softplus hidden layers) -> a residual and ``n_features``
 geometry features; the signed distance (world units) is that residual plus a sphere of radius
-``radius`` (box units) around the box centre, |c| - radius. The MLP's last layer starts near
-zero (and the hash inputs' weights at zero), so training starts from the exact sphere SDF, the
+``radius`` (box units) around the box centre, |c| - radius, bounded below by the box's own SDF
+(so no surface lies outside the box). The MLP's last layer starts near zero (and the hash
+inputs' weights at zero), so training starts from the exact sphere SDF, the
 role of SAL's geometric initialisation (Atzmon & Lipman 2020), which a 64-wide network only
 approximates.
 
@@ -54,7 +55,7 @@ from torch import nn
 
 from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
-from .sdf_volume import laplace_cdf
+from .sdf_volume import laplace_cdf, sdf_box
 
 __all__ = [
     "HashSDFField",
@@ -212,7 +213,12 @@ class HashSDFField(nn.Module):
         c = 2.0 * u - 1.0
         enc = self.encoding(u) * self.level_mask.to(u.dtype)
         h = self.sdf_mlp(torch.cat([c, enc.to(c.dtype)], -1))
-        return (c.norm(dim=-1) - self.radius + h[:, 0]) * self.half, h[:, 1:]
+        d = (c.norm(dim=-1) - self.radius + h[:, 0]) * self.half
+        # bounded: at least the distance to the scene box, so that no surface lies outside it
+        # (inside the box the zero set is the network's own; outside, where the encoding sees
+        # only the clamped border, the SDF is the box's)
+        box = sdf_box(positions.detach().to(d.dtype), (lo + hi) * 0.5, hi - lo)
+        return torch.maximum(d, box), h[:, 1:]
 
     def sdf(self, positions: torch.Tensor) -> torch.Tensor:
         """World-unit signed distance at positions [n, 3]."""
