@@ -1,5 +1,6 @@
 """Meshes that are the surface, without VTK (warpnerf/mesh.py: merge_vertices, face_components,
-clean_mesh, seen_faces, cull_unseen; `warpnerf mesh` of a run culls and cleans by default,
+clean_mesh, seen_faces, cull_unseen; `warpnerf mesh` of a run culls (by the training rays'
+weights, unless --no-weight-cull, and by the training cameras) and cleans by default,
 `--keep-all` keeps the raw level set): connected components against a plain union-find, faces
 hidden from every camera culled, and the built-in scene's surface with an object inside another
 and a small floater: the default cleaning keeps exactly the visible surface."""
@@ -173,3 +174,11 @@ def test_mesh_of_a_run_culls_and_cleans_unless_keep_all(tmp_path, capsys):
     assert default["culled_by_views"] is True and default["clean"] == 0.01
     assert "culled_by_views" not in raw and "clean" not in raw
     assert default["faces_extracted"] == raw["faces"] >= default["faces"]
+    # culled by the training rays' weights first (issue 49), unless --no-weight-cull
+    assert default["culled_by_weights"] is True and default["weight_grid"]["rays"] > 0
+    assert "faces_unweighted" in default and "culled_by_weights" not in raw
+    assert mesh("w.ply", *level, "--no-weight-cull") == 0
+    off = json.loads(capsys.readouterr().out)
+    assert off["culled_by_weights"] is False and "faces_unweighted" not in off
+    assert off["culled_by_views"] is True and "--no-weight-cull" in off["weights_note"]
+    assert off["faces"] >= default["faces"]

@@ -36,6 +36,7 @@ __all__ = [
     "face_areas",
     "seen_faces",
     "cull_unseen",
+    "cull_unweighted",
     "surface_mesh",
     "DEFAULT_CLEAN",
     "decimate_mesh",
@@ -582,17 +583,70 @@ def cull_unseen(vertices, faces, c2w, intrinsics, width: int, height: int, **kw)
     return v, f.astype(np.int32), info
 
 
+def cull_unweighted(vertices, faces, grid, lower, upper):
+    """The mesh without the faces whose centroid lies in an unmarked cell of ``grid`` (bool
+    [Rx, Ry, Rz], numpy or torch, indexed x, y, z; its cells split the box [lower, upper] evenly,
+    e.g. a run's visibility grid: the cells where its training rays put weight,
+    :func:`warpnerf.train.visibility.training_weight_grid`); a centroid outside the box counts
+    as unmarked. Coincident vertices are merged first (as :func:`cull_unseen` does) and unused
+    ones dropped: (vertices float32, faces int32, info) with info = {"faces_unweighted",
+    "area_unweighted_fraction"}."""
+    g = torch.as_tensor(grid).to("cpu", torch.bool)
+    if g.dim() != 3 or min(g.shape) < 1:
+        raise ValueError(f"grid must be a 3-d bool array, got shape {tuple(g.shape)}")
+    lo = np.asarray(lower, dtype=np.float64).reshape(3)
+    hi = np.asarray(upper, dtype=np.float64).reshape(3)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
+        raise ValueError(f"need finite lower < upper, got {lo.tolist()} .. {hi.tolist()}")
+    v, f = merge_vertices(vertices, faces)
+    if len(f) == 0:
+        return v, f.astype(np.int32), {"faces_unweighted": 0, "area_unweighted_fraction": 0.0}
+    cent = v.astype(np.float64)[f].mean(1)
+    res = np.asarray(g.shape)
+    u = (cent - lo) / (hi - lo)  # [0, 1] inside the box
+    inside = ((u >= 0) & (u <= 1)).all(1)  # (False for NaN)
+    idx = np.clip(np.floor(np.where(inside[:, None], u, 0.0) * res), 0, res - 1).astype(np.int64)
+    keep = inside & g.numpy()[idx[:, 0], idx[:, 1], idx[:, 2]]
+    area = face_areas(v, f)
+    total = float(area.sum())
+    info = {
+        "faces_unweighted": int((~keep).sum()),
+        "area_unweighted_fraction": float(area[~keep].sum() / total) if total > 0 else 0.0,
+    }
+    v, f = _compact(v, f[keep])
+    return v, f.astype(np.int32), info
+
+
 DEFAULT_CLEAN = 0.01  # a run's mesh: components under this fraction of the area are dropped
 
 
-def surface_mesh(vertices, faces, cameras=None, min_fraction: float = DEFAULT_CLEAN, device="cpu"):
-    """A run's mesh as `warpnerf mesh` delivers it by default: the faces no camera of
-    ``cameras`` sees culled (:func:`cull_unseen`; ``cameras`` with ``c2w``, ``intrinsics``,
-    ``width``, ``height``, e.g. the training split; None: no culling), then the components
-    under ``min_fraction`` of the area dropped (:func:`clean_mesh`). Returns (vertices,
-    faces, info): ``culled_by_views`` and, with cameras, ``faces_unseen`` and
-    ``area_unseen_fraction``; ``clean`` and :func:`clean_mesh`'s figures."""
-    info = {"culled_by_views": cameras is not None}
+def surface_mesh(vertices, faces, cameras=None, min_fraction: float = DEFAULT_CLEAN, device="cpu",
+                 weight_grid=None):  # fmt: skip
+    """A run's mesh as `warpnerf mesh` delivers it by default: the faces where no training ray
+    puts weight culled (:func:`cull_unweighted`; ``weight_grid``: an object with ``grid``,
+    ``lower``, ``upper``, e.g. :func:`warpnerf.train.visibility.training_weight_grid`'s; None:
+    not culled so), then of the rest the faces no camera of ``cameras`` sees
+    (:func:`cull_unseen`; ``cameras`` with ``c2w``, ``intrinsics``, ``width``, ``height``, e.g.
+    the training split; None: not culled so), then the components under ``min_fraction`` of
+    the area dropped (:func:`clean_mesh`).
+
+    Both culls apply, in this order: a face must lie where training rays put weight *and* be
+    seen by a camera. The weight grid is the stricter rule (a surface a camera could see but
+    that the rendering never stops at goes: level-set pieces behind haze the rays spend their
+    transmittance on, surfaces no ray reaches), but its cells are coarser than the mesh (and
+    dilated by one), so it keeps faces just behind a visible surface (inside a thin wall),
+    which the cameras' depth buffers, at the mesh's own spacing, remove. Weights first: an
+    unweighted piece in front then no longer hides what the rays do reach behind it.
+
+    Returns (vertices, faces, info): ``culled_by_weights`` and, with a grid,
+    ``faces_unweighted`` and ``area_unweighted_fraction``; ``culled_by_views`` and, with
+    cameras, ``faces_unseen`` and ``area_unseen_fraction``; ``clean`` and
+    :func:`clean_mesh`'s figures."""
+    info = {"culled_by_weights": weight_grid is not None, "culled_by_views": cameras is not None}
+    if weight_grid is not None:
+        w = weight_grid
+        vertices, faces, cull = cull_unweighted(vertices, faces, w.grid, w.lower, w.upper)
+        info.update(cull)
     if cameras is not None:
         c = cameras
         vertices, faces, cull = cull_unseen(vertices, faces, c.c2w, c.intrinsics, c.width,

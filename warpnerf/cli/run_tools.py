@@ -158,6 +158,7 @@ class _MeshSource(NamedTuple):
     field: object = None  # a radiance field (forward(x, d) -> (sigma, rgb)) for --colors
     density: bool = False  # fn is minus a density (a NeRF): its values are -sigma
     cameras: object = None  # () -> training cameras (c2w, intrinsics, width, height) to cull by
+    weights: object = None  # (lower, upper, progress) -> (weight grid to cull by or None, why)
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -186,7 +187,7 @@ def _mesh_source(args) -> _MeshSource:
     m = method.mesh(opened, args.bounds, args.level)
     return _MeshSource(m["fn"], m["lower"], m["upper"], m["level"], m["shown_level"],
                        f"{m['what']} {args.run}", m["back"], m["device"], m["field"],
-                       m["density"], m["cameras"])  # fmt: skip
+                       m["density"], m["cameras"], m.get("weights"))  # fmt: skip
 
 
 def _check_clean(clean) -> None:
@@ -232,7 +233,8 @@ def cmd_mesh(args) -> int:
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
         check_foreign([png])
-    fn, lo, hi, level, shown_level, what, back, dev, field, density, cams = _mesh_source(args)
+    src = _mesh_source(args)
+    fn, lo, hi, level, shown_level, what, back, dev, field, density, cams = src[:11]
     if args.colors and field is None:
         raise UserError(f"--colors needs a NeRF or VolSDF run (a radiance field); {what} has none")
     chosen = {}
@@ -261,22 +263,33 @@ def cmd_mesh(args) -> int:
                         f"{hint}")  # fmt: skip
     del vals
     t1 = time.perf_counter()
-    # a run's surface as the training saw it (unless --keep-all): faces no training camera sees
-    # culled, then floating pieces dropped; an SDF scene's only with --clean
+    # a run's surface as the training saw it (unless --keep-all): faces where no training ray
+    # puts weight (unless --no-weight-cull) and faces no training camera sees culled, then
+    # floating pieces dropped; an SDF scene's only with --clean
     clean, n_faces, cull = args.clean, int(len(f)), {}
     if args.run is not None and not args.keep_all:
         from ..mesh import DEFAULT_CLEAN, surface_mesh
 
         clean = DEFAULT_CLEAN if clean is None else clean
+        wgrid, wnote = None, "off: --no-weight-cull"
+        if src.weights is not None and not args.no_weight_cull:
+            wgrid, wnote = src.weights(lo, hi, progress=not args.quiet)  # (renders the rays)
+            if wgrid is None:
+                print(f"warpnerf mesh: note: no culling by the training rays' weights ({wnote})",
+                      file=sys.stderr)  # fmt: skip
         cams = cams() if callable(cams) else cams  # (reads the training data)
         if cams is None and field is not None:  # a NeRF/VolSDF run whose cameras are not at hand
             print("warpnerf mesh: note: no culling by the training cameras (the run's data is "
                   "not at hand, or its rays are NDC); floating pieces are still dropped",
                   file=sys.stderr)  # fmt: skip
-        v, f, cull = surface_mesh(v, f, cams, clean, device=dev)
+        v, f, cull = surface_mesh(v, f, cams, clean, device=dev, weight_grid=wgrid)
+        if wgrid is not None:
+            cull["weight_grid"] = wgrid.info
+        elif src.weights is not None:
+            cull["weights_note"] = wnote
         if len(f) == 0:
             raise UserError(f"{what}: no face of the level set is seen by a training camera "
-                            "(--keep-all keeps them all)")  # fmt: skip
+                            "where its rays put weight (--keep-all keeps them all)")  # fmt: skip
         clean = None  # (done)
     v, f, post = _clean_and_decimate(v, f, clean, args.decimate)  # (the field's own frame)
     post = {**cull, **post, "faces_extracted": n_faces}

@@ -94,6 +94,11 @@ class MeshConfig:
     keep_all: bool = option(False, "runs: the raw level set; by default faces no training "
                             "camera sees are culled (the inside of objects, space under a floor) "
                             "and floating pieces dropped (--clean)")  # fmt: skip
+    no_weight_cull: bool = option(False, "runs: keep the faces where no training ray puts "
+                                  "weight; by default a face is kept only in the cells of a "
+                                  "grid (at most 128^3, dilated by one) holding a sample of a "
+                                  "training ray whose compositing weight is >= 0.005 (the "
+                                  "camera culling and --clean still apply)")  # fmt: skip
     decimate: float | None = option(None, "quadric decimation removing about R of the faces, "
                                     "0 < R < 1 (after --clean, before --colors)",
                                     check="finite", metavar="R")  # fmt: skip

@@ -424,6 +424,8 @@ def cmd_train_sdf(args) -> int:
     def report(m):
         out = {k: m[k] for k in ("step", "seconds", "chamfer", "vertices", "faces")}
         out["eikonal_residual_box_mean"] = m["eikonal_residual_box"]["mean"]
+        if "mesh_clean" in m:  # mesh.ply's cleaning: the components dropped
+            out["mesh_clean"] = m["mesh_clean"]
         return out
 
     def train(cfg, device, **kw):

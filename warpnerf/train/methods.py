@@ -69,7 +69,10 @@ class Method:
     the command chooses from the grid), back: vertices -> the data's
     units or None, field for --colors or None, density: fn is minus a density, cameras: a
     callable giving the training cameras in the mesh's frame (or None), or None: what the
-    default cleaning culls by). A method
+    default cleaning culls by; optional weights: None, or a callable (lower, upper, progress)
+    -> (a grid of the cells where training rays put weight, with ``grid``, ``lower`` and
+    ``upper``, or None, and why not), :func:`warpnerf.train.visibility.training_weight_grid`,
+    which the default cleaning culls by first). A method
     added after the built-in ones gives ``config`` (a dataclass declared with
     :func:`~warpnerf.options.option`) and ``train(cfg, out, resume, progress) -> result``
     (JSON-able): `warpnerf train <command>` then exists with the config's flags, ``--out``,
@@ -126,7 +129,7 @@ def method_of_run(run) -> Method:
     if not run.is_dir():
         raise UserError(f"{run}: no such run folder")
     path = run / "config.json"
-    if not path.is_file():
+    if not path.exists():  # (a FIFO or a link there: read_json names it)
         raise UserError(f"{run}: not a training run (no config.json)")
     saved = read_json(path, "run config")
     if not isinstance(saved, dict):
@@ -189,7 +192,17 @@ def _nerf_mesh(o: Opened, bounds, level) -> dict:
         lo[2], hi[2] = -1.0, 0.99
     # the training cameras, in the mesh's frame, for `mesh`'s culling (not NDC: another frame)
     cams = o.training_cameras if cfg.ndc_camera() is None else None  # (loaded when culling)
-    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams)
+
+    def weights(lower, upper, progress=False):  # the cells where the training rays put weight
+        from .visibility import training_weight_grid
+
+        ds = o.training_cameras()  # (NDC too: the rays and the grid are in the field's frame)
+        if ds is None:
+            return None, "the run's training data is not at hand"
+        return training_weight_grid(o.model, cfg, ds, lower, upper, progress=progress)
+
+    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams,
+               weights=weights)  # fmt: skip
     if o.model.kind == "sdf":  # the SDF's zero level set
         level = level or 0.0
         return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import torch
 
-from ..data.cameras import camera_rays, camera_target, look_at
+from ..data.camera_path import MAX_FRAMES
+from ..data.cameras import MAX_DEPTH, camera_rays, camera_target, look_at
 from ..errors import UserError, check_fits
 from ..io import (
     check_foreign,
@@ -23,6 +24,7 @@ from ..io import (
     write_video,
 )
 from ..metrics import psnr, ssim
+from ..ops._bridge import INT32_MAX
 from .loop import snapshot_name
 from .nerf import (
     CHECKPOINT,
@@ -48,8 +50,11 @@ __all__ = [
     "train_and_evaluate",
 ]
 
-# NeRFConfig fields that only affect rendering, so evaluation may override them.
+# NeRFConfig fields that only affect rendering, so evaluation may override them, and the ranges
+# of the numbers among them (rays at once and sample counts index in int32; a float32 distance)
 RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
+RENDER_RANGES = {"chunk": (1, INT32_MAX), "march_step": (1e-9, MAX_DEPTH),
+                 "round_samples": (0, INT32_MAX)}  # fmt: skip
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
 
 
@@ -111,21 +116,27 @@ def evaluate_run(
     sphere-traces the surface instead (:func:`sphere_traced_rays_of`; default folder
     RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction).
     ``progress``: images done on stderr (:class:`~warpnerf.train.progress.Progress`)."""
+    # every number the command takes, before any work (the kernels' limits)
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
+    for key, value in render.items():
+        if key not in RENDER_SETTINGS:
+            raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
+        lo, hi = RENDER_RANGES.get(key, (None, None))
+        if value is not None and lo is not None and not lo <= value <= hi:
+            raise UserError(f"--{key.replace('_', '-')} must be in [{lo:g}, {hi:g}], got {value}")
     cfg, model, ckpt = load_run(run, device, snapshot)
     _check_renderer(renderer, model, cfg)
     grid = model.grid
     for key, value in render.items():
-        if key not in RENDER_SETTINGS:
-            raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
         if value is None:
             continue
         if key != "chunk" and grid is None:
             raise UserError(f"--{key.replace('_', '-')} needs a run with an occupancy grid")
         setattr(cfg, key, type(getattr(cfg, key))(value))
+    cfg.check_values()  # (with the run's own: --chunk x samples a ray within int32 offsets)
     if grid is not None:
         grid.dt = cfg.march_step
     ds = load_data(cfg, split, cfg.images_on)  # (large splits stay in host memory)
@@ -257,6 +268,7 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     frame count and the near/far the viewer rendered each keyframe with; ``frames`` overrides
     the count; output in RUN/render_{file stem}/). ``progress``: frames done on stderr
     (:class:`~warpnerf.train.progress.Progress`)."""
+    check_video_numbers(frames, size)  # before any work
     cfg, model, _ = load_run(run, device)
     _check_renderer(renderer, model, cfg)
     user_path = None
@@ -268,14 +280,22 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     frames = frames or 40
     train = load_data(cfg, "train")
     w0, h0 = train.width, train.height
-    windows = None  # per frame (near, far): a viewer's path renders with the viewer's
     if user_path is not None:  # the viewer's field of view and aspect, the training height
         w, h = size or (max(1, round(h0 * user_path.aspect)), h0)
+    else:
+        w, h = size or (w0, h0)
+    if size is None:  # the training images' size: within the videos' limits too
+        check_video_numbers(frames, (w, h), "the training images' size (pass --size WxH)")
+    kinds = ("rgb", "depth", "geometry") if model.kind == "sdf" else ("rgb", "depth")
+    # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
+    check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
+    check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
+    windows = None  # per frame (near, far): a viewer's path renders with the viewer's
+    if user_path is not None:
         k = user_path.intrinsics(w, h).to(train.intrinsics)
         cams = user_path.cameras(frames).to(cfg.device)
         windows = _path_windows(user_path, frames, model, cfg, train)
     else:
-        w, h = size or (w0, h0)
         k = train.intrinsics[0].clone()
         k[[0, 2]] *= w / w0
         k[[1, 3]] *= h / h0
@@ -287,10 +307,6 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
             cams = camera_path(train.c2w, path, frames).to(cfg.device)
     name = path if user_path is None else Path(path).stem
     out_dir = Path(run) / (f"render_{name}" + ("_sphere" if renderer == "sphere" else ""))
-    kinds = ("rgb", "depth", "geometry") if model.kind == "sdf" else ("rgb", "depth")
-    # per frame: rays and outputs on the device (~64 B a pixel), the kept uint8 frames on the host
-    check_fits(64.0 * w * h, cfg.device, f"rendering {w}x{h} frames")
-    check_fits(3.0 * w * h * frames * len(kinds), "cpu", f"keeping {frames} frames of {w}x{h}")
     names = [f"{kind}_{f:03d}.png" for kind in kinds for f in range(frames)]
     names += [f"{kind}.{x}" for kind in kinds for x in ("gif", "mp4")]
     make_folder(out_dir, "render folder")  # (a link to another folder is refused)
@@ -298,6 +314,28 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
         check_foreign([out_dir / x for x in names])
         return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer,
                               windows, progress)  # fmt: skip
+
+
+# what `render` writes: an mp4 (H.264 in yuv420p, even sides: at least 2 pixels a side; x264
+# takes at most 16384) and a GIF (at most 65535 a side); ffmpeg's own picture-size limit,
+# (w + 128) (h + 128) < 2^28, holds up to 2^26 pixels
+VIDEO_SIDES = (2, 16384)
+MAX_VIDEO_PIXELS = 1 << 26
+
+
+def check_video_numbers(frames: int | None, size, what: str = "--size") -> None:
+    """UserError unless ``frames`` (None: the default) is a count in [1, MAX_FRAMES] (the
+    camera path's own bound) and ``size`` (W, H) (None: the training size) fits the videos
+    `render` writes: each side in :data:`VIDEO_SIDES`, at most :data:`MAX_VIDEO_PIXELS`."""
+    if frames is not None and not (isinstance(frames, int) and 1 <= frames <= MAX_FRAMES):
+        raise UserError(f"--frames must be in [1, {MAX_FRAMES}], got {frames}")
+    if size is None:
+        return
+    (w, h), (lo, hi) = size, VIDEO_SIDES
+    if not (lo <= w <= hi and lo <= h <= hi and w * h <= MAX_VIDEO_PIXELS):
+        raise UserError(f"{what}: {w}x{h} is beyond the videos' limits: each side in "
+                        f"[{lo}, {hi}] and at most {MAX_VIDEO_PIXELS} pixels (the mp4's "
+                        "encoder)")  # fmt: skip
 
 
 def _path_windows(user_path, frames: int, model, cfg, train):
@@ -710,7 +748,7 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
         res["cleaned"] = {"clean": clean, **dist, "mesh_faces": int(len(fc)),
                           **{k: info[k] for k in ("components", "components_removed",
                                                   "area_removed_fraction")}}  # fmt: skip
-    res.update(_delivered_figures(v, f, ref, points, cfg, below))
+    res.update(_delivered_figures(v, f, ref, points, cfg, below, model))
     if analytic:  # visible-surface figures and per-shape errors (of the cleaned mesh if any)
         vb, fb = (vc, fc) if clean is not None else (v, f)
         res["visible"] = _materials_breakdown(vb, fb, ref, points, cfg)
@@ -719,15 +757,19 @@ def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_00
     return res
 
 
-def _delivered_figures(v, f, ref, points, cfg, below) -> dict:
+def _delivered_figures(v, f, ref, points, cfg, below, model=None) -> dict:
     """The figures a user who opens the mesh meets, every vertex and face counted: "delivered"
-    (the mesh `warpnerf mesh` writes by default: culled by the training cameras, components
-    under 1 % of the area dropped, :func:`warpnerf.mesh.surface_mesh`) and, where the main
-    figures leave points out (materials: under the disk), "raw_every_face" (the raw level
-    set). Bounds in the mesh's frame (the data's world frame for Blender scenes)."""
+    (the mesh `warpnerf mesh` writes by default: the faces where no training ray of ``model``
+    puts weight and those no training camera sees culled, components under 1 % of the area
+    dropped, :func:`warpnerf.mesh.surface_mesh`; the grid's figures under "weight_grid", or
+    why there is none under "weights_note") and, where the main figures leave points out
+    (materials: under the disk), "raw_every_face" (the raw level set). Bounds in the mesh's
+    frame (the data's world frame for Blender scenes). ``v`` is the level set in the box
+    [-cfg.aabb, cfg.aabb]^3, the field's frame."""
     import contextlib
 
     from ..mesh import DEFAULT_CLEAN, surface_mesh
+    from .visibility import training_weight_grid
 
     out = {}
     if below is not None:
@@ -736,11 +778,21 @@ def _delivered_figures(v, f, ref, points, cfg, below) -> dict:
             "bounds_min": v.min(0).tolist(),
             "bounds_max": v.max(0).tolist(),
         }
-    cams = None
-    if cfg.ndc_camera() is None:
-        with contextlib.suppress(UserError):  # the training data may be gone: no culling then
-            cams = load_data(cfg, "train")
-    vd, fd, info = surface_mesh(v, f, cams, DEFAULT_CLEAN, device=cfg.device)
+    train, wgrid, wnote = None, None, "no model"
+    with contextlib.suppress(UserError):  # the training data may be gone: no culling then
+        train = load_data(cfg, "train")
+    if train is None:
+        wnote = "the run's training data is not at hand"
+    elif model is not None:  # (NDC too: the rays and the grid are in the field's frame)
+        a = float(cfg.aabb)
+        wgrid, wnote = training_weight_grid(model, cfg, with_refined_poses(model, train, "train"),
+                                            [-a] * 3, [a] * 3)  # fmt: skip
+    cams = train if cfg.ndc_camera() is None else None
+    vd, fd, info = surface_mesh(v, f, cams, DEFAULT_CLEAN, device=cfg.device, weight_grid=wgrid)
+    if wgrid is not None:
+        info["weight_grid"] = wgrid.info
+    else:
+        info["weights_note"] = wnote
     d = {"accuracy": None, "completeness": None, "chamfer": None, "mesh_faces": 0}
     if len(fd):
         d = {

@@ -34,6 +34,7 @@ from ..errors import UserError
 from ..fields.hash_point_sdf import HashPointSDF
 from ..fields.neural_sdf import NeuralSDF
 from ..io import (
+    build_for_weights,
     load_checkpoint,
     load_weights,
     write_json,
@@ -220,8 +221,12 @@ def load_points(path) -> tuple:
         v, f = extract_mesh(scene.sdf, [-1.2] * 3, [1.2] * 3, 96)
         return sample_surface(v, f, 5000, seed=1).astype(np.float32), None
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise UserError(f"{path}: no such point-cloud file")
+    from ..files import open_input
+
+    with contextlib.suppress(OSError), open_input(path, "point cloud", follow=True):
+        pass  # a FIFO or device is refused here, never waited on (the PLY reader opens by name)
     normals = None
     try:
         if path.suffix == ".npz":
@@ -309,16 +314,18 @@ def load_sdf_run(run, device=None):
     if not isinstance(d, dict) or d.get("model") != MODEL:
         model = d.get("model") if isinstance(d, dict) else None
         raise UserError(f"{run}: not a neural-SDF run (config model {model!r})")
-    if not (run / CHECKPOINT).is_file():
+    if not (run / CHECKPOINT).exists():  # (a FIFO or a link: load_checkpoint names it)
         raise UserError(f"{run}: no {CHECKPOINT} yet (the run never reached a checkpoint)")
     cfg = SDFConfig.from_dict(d, str(run / "config.json"))
     if device:
         cfg.device = device
     if cfg.device.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"{run}: trained on {cfg.device}, not available here; pass --device cpu")
-    model = _build(cfg)
     keys = ("step", "model", "optimizer", "generator", "history", "normalisation")
     ckpt = load_checkpoint(run / CHECKPOINT, cfg.device, keys)
+    # the config's sizes bounded by the weights the checkpoint holds, before the model is built
+    model = build_for_weights(lambda: _build(cfg), ckpt["model"], run / CHECKPOINT,
+                              run / "config.json")  # fmt: skip
     load_weights(model, ckpt["model"], run / CHECKPOINT, "network weights")
     if cfg.field == "hash":  # the levels open at the checkpoint's step
         model.set_open_levels(open_levels(cfg, ckpt["step"]))
@@ -399,7 +406,7 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard
         task, settings, run=run, checkpoint=CHECKPOINT, resume_from=ckpt, progress=progress,
         log=log, hooks=[*hooks, *tb],
     )  # fmt: skip
-    metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale)
+    metrics = finish_sdf_run(run, model, cfg, pts_np, center, scale, log=log)
     metrics.update(step=history["step"][-1] if history["step"] else 0,
                    seconds=history["seconds"][-1] if history["seconds"] else 0.0)  # fmt: skip
     write_json(run / "metrics.json", metrics)
@@ -470,14 +477,37 @@ def eikonal_stats(model, points: torch.Tensor) -> dict:
     return {"mean": r.mean().item(), "p95": r.quantile(0.95).item(), "max": r.max().item()}
 
 
-def finish_sdf_run(run, model, cfg, pts_np, center, scale):
-    """Mesh (input units) + screenshot + Chamfer (in bbox diagonals) + eikonal statistics."""
-    from ..mesh import extract_mesh, sample_surface, screenshot, write_ply
+def finish_sdf_run(run, model, cfg, pts_np, center, scale, log=print):
+    """Mesh (input units) + screenshot + Chamfer (in bbox diagonals) + eikonal statistics.
+    mesh.ply is the zero level set cleaned as `warpnerf mesh` cleans a run's
+    (:func:`~warpnerf.mesh.clean_mesh`: components under :data:`~warpnerf.mesh.DEFAULT_CLEAN`
+    of the area dropped, e.g. a hash field's surfaces away from the points); "vertices",
+    "faces" and the Chamfer distances are of that mesh, "mesh_clean" says what was dropped
+    (and ``log`` a line)."""
+    from ..mesh import (
+        DEFAULT_CLEAN,
+        clean_mesh,
+        extract_mesh,
+        sample_surface,
+        screenshot,
+        write_ply,
+    )
 
     model.eval()
     dev = cfg.device
     v, f = extract_mesh(lambda p: model(p), [-1] * 3, [1] * 3, cfg.resolution, 0.0, device=dev)
+    n_faces, cleaned = int(len(f)), None
+    if n_faces:
+        v, f, c = clean_mesh(v, f, DEFAULT_CLEAN)
+        cleaned = {"clean": DEFAULT_CLEAN, "faces_extracted": n_faces,
+                   **{k: c[k] for k in ("components", "components_removed",
+                                        "area_removed_fraction")}}  # fmt: skip
+        log(f"mesh.ply: {c['components_removed']} of {c['components']} components dropped "
+            f"(under {DEFAULT_CLEAN:.0%} of the area; {c['area_removed_fraction']:.2%} of it), "
+            f"{len(f)} of {n_faces} faces kept")  # fmt: skip
     m = {"vertices": len(v), "faces": len(f)}
+    if cleaned is not None:
+        m["mesh_clean"] = cleaned
     diag = float(np.linalg.norm(pts_np.max(0) - pts_np.min(0)))
     if len(f):
         v_world = v / scale + center
