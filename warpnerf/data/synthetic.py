@@ -140,8 +140,9 @@ def make_synthetic_dataset(
 ):
     r"""Renders the built-in scene: (train, val) :class:`~warpnerf.data.dataset.Dataset`\ s
     (images [N, H, W, 3], c2w [N, 4, 4], intrinsics [N, 4], near, far; no paths); white
-    background; each split's alpha (the rendered opacity, [N, H, W]) in ``alpha``. Cached in the process (treat the returned tensors as read-only) and on disk
-    across processes (the images; see :func:`_scene_images`)."""
+    background; each split's alpha (the rendered opacity, [N, H, W]) in ``alpha``. Cached in
+    the process (treat the returned tensors as read-only) and on disk across processes (the
+    images; see :func:`_scene_images`)."""
     images = _scene_images(n_train, n_val, size, view_dependent, n_samples, device)
     out = []
     for split, n, seed in (("train", n_train, 0), ("val", n_val, 1)):
