@@ -1,10 +1,14 @@
-"""Shared fixtures: a ``device`` fixture over cpu and cuda, and fixed seeds for every test."""
+"""Shared fixtures: a ``device`` fixture over cpu and cuda, fixed seeds for every test, and
+``fifo`` (a FIFO that fails the test instead of hanging it)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
+import threading
+import time
 
 import pytest
 import torch
@@ -43,6 +47,40 @@ def pytest_unconfigure(config) -> None:
     else:
         os.environ["WARPNERF_CACHE"] = old
     shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def fifo():
+    """``fifo(path)`` makes a FIFO at ``path`` (replacing a file there) and watches it: a command
+    that blocks opening it (the open waits for a writer forever, and no signal reaches a blocked
+    open in a worker thread) is released after 30 s by opening the other end, and the test
+    fails."""
+    paths, stop, hung = [], threading.Event(), []
+
+    def watch():
+        t0 = time.monotonic()
+        while not stop.wait(0.2):
+            if time.monotonic() - t0 < 30:
+                continue
+            for p in paths:
+                with contextlib.suppress(OSError):  # ENXIO: nobody is reading it
+                    os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))
+                    hung.append(p)
+
+    thread = threading.Thread(target=watch, daemon=True)
+    thread.start()
+
+    def make(path):
+        if os.path.lexists(path):
+            os.unlink(path)
+        os.mkfifo(path)
+        paths.append(path)
+        return path
+
+    yield make
+    stop.set()
+    thread.join()
+    assert not hung, f"the command hung opening the FIFO {hung[0]}"
 
 
 @pytest.fixture(autouse=True)

@@ -263,7 +263,7 @@ CASES = [
     (["train", "box", "--data", "bl_noimg", "--out", "OUT"], ["not found"]),
     # point clouds (train sdf)
     (["train", "sdf", "--points", "nope.npz", "--out", "OUT"], ["nope.npz", "no such"]),
-    (["train", "sdf", "--points", "emptydir", "--out", "OUT"], ["emptydir", "no such"]),
+    (["train", "sdf", "--points", "emptydir", "--out", "OUT"], ["emptydir", "is a folder"]),
     (["train", "sdf", "--points", "p0.npz", "--out", "OUT"], ["p0.npz", "[N >= 16, 3]", "[0, 3]"]),
     (
         ["train", "sdf", "--points", "p0.ply", "--out", "OUT"],
@@ -278,7 +278,7 @@ CASES = [
     (["train", "sdf", "--points", "points.txt", "--out", "OUT"], ["points.txt", ".npz or .ply"]),
     # SDF scenes (mesh --sdf)
     (["mesh", "--sdf", "nope.json", "--out", "OUT/m.ply"], ["nope.json", "no such scene"]),
-    (["mesh", "--sdf", "emptydir", "--out", "OUT/m.ply"], ["emptydir", "not a readable JSON"]),
+    (["mesh", "--sdf", "emptydir", "--out", "OUT/m.ply"], ["emptydir", "is a folder"]),
     (["mesh", "--sdf", "bad_scene.json", "--out", "OUT/m.ply"], ["bad_scene.json", "JSON"]),
     (["mesh", "--sdf", "empty_scene.json", "--out", "OUT/m.ply"], ["'primitives' is empty"]),
     (["mesh", "--sdf", "nan_scene.json", "--out", "OUT/m.ply"], ["primitives[0]", "center"]),

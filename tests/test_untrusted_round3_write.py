@@ -23,7 +23,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -58,37 +57,6 @@ def victim(tmp_path) -> Path:
     p.parent.mkdir()
     p.write_text("the user's file")
     return p
-
-
-@pytest.fixture
-def fifo():
-    """``fifo(path)`` makes a FIFO at ``path`` and watches it: a command that blocks opening it
-    (the bug: the open waits for a writer forever, and no signal reaches a blocked open from
-    another thread) is released after 60 s by opening the other end, and the test fails."""
-    paths, stop, hung = [], threading.Event(), []
-
-    def watch():
-        t0 = time.monotonic()
-        while not stop.wait(0.2):
-            if time.monotonic() - t0 < 60:
-                continue
-            for p in paths:
-                with contextlib.suppress(OSError):  # ENXIO: nobody is reading it
-                    os.close(os.open(p, os.O_WRONLY | os.O_NONBLOCK))
-                    hung.append(p)
-
-    thread = threading.Thread(target=watch, daemon=True)
-    thread.start()
-
-    def make(path):
-        os.mkfifo(path)
-        paths.append(path)
-        return path
-
-    yield make
-    stop.set()
-    thread.join()
-    assert not hung, f"the command hung opening the FIFO {hung[0]}"
 
 
 def _one_line(capsys, rc, *needles) -> str:

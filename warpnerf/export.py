@@ -15,7 +15,10 @@ trains in, with per-frame intrinsics and image paths relative to the JSON; a cap
 world-to-normalised transform is recorded as nerfstudio's ``applied_transform``. Datasets without
 image files (the built-in scene), and runs trained on downscaled copies of their files
 (``--downscale``), get the images the run trained on written beside the JSON: every frame's
-intrinsics and size describe its file.
+intrinsics and size describe its file. An export never replaces a file a dataset or run may read:
+an image already at an exported image's name is kept when it holds the same pixels (the same
+export again) and refused otherwise, and ``--out`` may not be the index (``transforms*.json``) of
+the dataset the run reads; both before anything is written.
 """
 
 from __future__ import annotations
@@ -123,11 +126,43 @@ def _image_size(path) -> tuple | None:
     """(width, height) from an image file's header (nothing decoded); None if unreadable."""
     from PIL import Image
 
+    from .files import open_input
+
     try:
-        with Image.open(path) as im:
+        with open_input(path, "image", follow=True) as fh, Image.open(fh) as im:
             return im.size
     except Exception:  # (the loader read it a moment ago; then: the run's images are written)
         return None
+
+
+def _indexes_read_by(cfg) -> set:
+    """The resolved paths of the dataset index files (``transforms*.json``) a run reads."""
+    if cfg.data == "builtin":
+        return set()
+    root = Path(cfg.data)
+    files = [root] if root.is_file() else sorted(root.glob("transforms*.json"))
+    return {p.resolve() for p in files}
+
+
+def _keeps(path: Path, img: torch.Tensor) -> bool:
+    """Whether the image ``path`` (absent, or a file warpnerf wrote) may stay as the exported
+    image ``img`` (uint8 [H, W, C]): False when absent; True when it holds exactly these pixels
+    (the same export again); a :class:`UserError` when it holds others, which a dataset (an
+    earlier export) or a run may read: an export never replaces them."""
+    from .data._images import read_image, to_uint8
+
+    if not os.path.lexists(path):
+        return False
+    old = to_uint8(read_image(path))
+    new = img.numpy()
+    if old.shape == new.shape and np.array_equal(old, new):
+        return True
+    (h, w), (nh, nw) = old.shape[:2], new.shape[:2]
+    raise UserError(
+        f"{path}: exists and holds other pixels ({w}x{h} there, {nw}x{nh} from this run); a "
+        "dataset or run may read it and export never replaces an image: export into another "
+        "folder (--out OTHER/transforms.json)"
+    )
 
 
 def export_cameras(run, out, splits=("train", "val")) -> dict:
@@ -135,7 +170,9 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
     ``images/`` beside it, the images the run trained on where they are no file of that size:
     the built-in scene, a run with ``--downscale``); returns a summary. Every target is
     checked before anything is written: a file warpnerf did not write there (the JSON or an
-    image), or a link in place of ``images/``, is refused with nothing written."""
+    image), or a link in place of ``images/``, is refused with nothing written. Nothing a
+    dataset or run may read is replaced: ``out`` may not be the index of the run's own dataset,
+    and an image already at an exported name must hold the same pixels (it is then kept)."""
     from .train.nerf import load_data, load_run, with_refined_poses
 
     out = Path(out)
@@ -174,12 +211,19 @@ def export_cameras(run, out, splits=("train", "val")) -> dict:
     folder = out.parent / "images"
     if images and os.path.lexists(folder):  # a link or a file there: refused before any write
         make_folder(folder, "exported images folder")
+    if out.exists() and out.resolve() in _indexes_read_by(cfg):
+        raise UserError(
+            f"{out}: the run {run} reads it (its dataset's index); export never replaces a file "
+            "a dataset or run reads: choose another --out"
+        )
     check_foreign([out, *(out.parent / rel for rel, _ in images)])
+    todo = [(rel, img) for rel, img in images if not _keeps(out.parent / rel, img)]
     if images:
         make_folder(folder, "exported images folder")
-    for rel, img in images:
+    for rel, img in todo:
         write_image(out.parent / rel, img.numpy())
     write_json(out, json_safe(doc))
     frame = "normalised (applied_transform)" if cfg.scene is not None else "data"
-    return {"out": str(out), "frames": len(frames), "images_written": len(images),
+    return {"out": str(out), "frames": len(frames), "images_written": len(todo),
+            "images_unchanged": len(images) - len(todo),
             "images_folder": str(folder) if images else None, "frame": frame}  # fmt: skip

@@ -25,6 +25,13 @@ warpnerf wrote earlier is bounded by the bytes actually read, never by ``st_size
   (:func:`make_folder`: ``eval_*``, ``render_*``, ``snapshots``, export's ``images``), checked with
   ``lstat`` to be real folders.
 
+Reading: :func:`open_input` / :func:`read_input` are the one way a command opens a file it is
+given or a run holds (run configs, checkpoints, run records, camera paths, SDF scenes, dataset
+indexes, images, COLMAP models, arrays): non-blocking (a FIFO is refused, never waited on), a
+regular file only (a device, socket or folder is refused by name), no link followed unless the
+caller asks (files named by the user and dataset files, whose links are checked by their
+loaders), and :func:`read_input` bounded by the bytes actually read.
+
 The threat is a folder prepared in advance (an archive), not a process racing the program on the
 same machine: paths are checked, then used by name (writers such as ffmpeg and ``torch.save``
 need a path).
@@ -33,6 +40,7 @@ need a path).
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import stat
@@ -53,6 +61,8 @@ __all__ = [
     "lock_holder",
     "make_folder",
     "read_regular",
+    "open_input",
+    "read_input",
 ]
 
 MANIFEST = ".warpnerf-files.json"  # per folder: the files warpnerf wrote there (a JSON-lines log)
@@ -80,8 +90,16 @@ def _kind(mode: int) -> str:
     return "special file"
 
 
-def _refuse(path, mode: int, what: str):
-    """The UserError for a link or a special file where warpnerf reads or writes its ``what``."""
+def _refuse(path, mode: int, what: str, reading: bool = False):
+    """The UserError for a link or a special file where warpnerf reads or writes its ``what``
+    (``reading``: a file a command reads, :func:`open_input`)."""
+    if reading:
+        if stat.S_ISLNK(mode):
+            return _user_error(
+                f"{path}: is a symbolic link; warpnerf reads its {what} without following links "
+                "(put the file itself there)"
+            )
+        return _user_error(f"{path}: is a {_kind(mode)}, not a regular file; expected the {what}")
     if stat.S_ISLNK(mode):
         return _user_error(
             f"{path}: is a symbolic link; warpnerf does not follow links where it writes (its "
@@ -93,23 +111,25 @@ def _refuse(path, mode: int, what: str):
     )
 
 
-def _open(path, flags: int, what: str, mode: int = 0o666) -> int:
-    """``os.open`` that never follows a link at ``path``, never blocks on a FIFO and returns the
-    descriptor of a regular file only (:class:`UserError` naming ``path`` otherwise)."""
+def _open(path, flags: int, what: str, mode: int = 0o666, follow: bool = False,
+          reading: bool = False) -> int:  # fmt: skip
+    """``os.open`` that never follows a link at ``path`` (unless ``follow``), never blocks on a
+    FIFO and returns the descriptor of a regular file only (:class:`UserError` naming ``path``
+    otherwise)."""
     try:
-        fd = os.open(path, flags | _NOFOLLOW | _NONBLOCK | _CLOEXEC, mode)
+        fd = os.open(path, flags | (0 if follow else _NOFOLLOW) | _NONBLOCK | _CLOEXEC, mode)
     except OSError as e:
         try:
-            st = os.lstat(path)
+            st = os.stat(path) if follow else os.lstat(path)
         except OSError:
             raise e from None
         if not stat.S_ISREG(st.st_mode):  # ELOOP (a link), ENXIO (a FIFO without reader), ...
-            raise _refuse(path, st.st_mode, what) from None
+            raise _refuse(path, st.st_mode, what, reading) from None
         raise
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise _refuse(path, st.st_mode, what)
+            raise _refuse(path, st.st_mode, what, reading)
     except BaseException:
         os.close(fd)
         raise
@@ -144,6 +164,37 @@ def read_regular(path, max_bytes: int, what: str = "file") -> bytes | None:
     if len(data) > max_bytes:
         raise _user_error(f"{path}: larger than {max_bytes} bytes; not a {what} warpnerf wrote "
                           "(remove it or choose another output)")  # fmt: skip
+    return data
+
+
+def open_input(path, what: str = "file", follow: bool = False):
+    """The file ``path`` that a command reads (a file named on its command line, in a run or a
+    dataset), opened for binary reading: never blocking on a FIFO, a regular file only, a link
+    at ``path`` followed only when ``follow``. :class:`UserError` naming ``path`` and ``what``
+    for a missing file, a link (unless ``follow``), a FIFO, device, socket or folder; other
+    ``OSError`` (permissions, I/O) propagate for the caller to word."""
+    try:
+        fd = _open(path, os.O_RDONLY, what, follow=follow, reading=True)
+    except FileNotFoundError:
+        raise _user_error(f"{path}: no such file (expected the {what})") from None
+    raw = io.FileIO(fd, "rb")
+    raw.name = str(path)  # (what readers' messages show, not the descriptor's number)
+    return io.BufferedReader(raw)
+
+
+def _size_text(n: int) -> str:
+    return f"{n >> 20} MiB" if n >= 1 << 20 and not n % (1 << 20) else f"{n} bytes"
+
+
+def read_input(path, what: str, max_bytes: int, follow: bool = False) -> bytes:
+    """The bytes of ``path`` opened by :func:`open_input`, at most ``max_bytes`` counted as they
+    are read (whatever ``st_size`` says): a larger file is a :class:`UserError` naming ``path``
+    and the limit of its kind."""
+    with open_input(path, what, follow) as fh:
+        data = _read_upto(fh.fileno(), max_bytes + 1)
+    if len(data) > max_bytes:
+        raise _user_error(f"{path}: larger than {_size_text(max_bytes)}, the most a {what} "
+                          "holds; not a file of this kind")  # fmt: skip
     return data
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ __all__ = [
     "watch_checkpoint_reads",
     "load_weights",
     "load_tensors",
+    "build_for_weights",
     "zip_directory",
     "check_overlap",
     "write_image",
@@ -92,8 +94,10 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
 
     path = Path(path)
     try:
-        _check_checkpoint_zip(path)
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        with _files.open_input(path, "checkpoint") as fh:  # (no link, no FIFO: never blocks)
+            _check_checkpoint_zip(path, fh)
+            fh.seek(0)
+            ckpt = torch.load(fh, map_location=map_location, weights_only=True)
     except UserError:
         raise
     except (PermissionError, FileNotFoundError, IsADirectoryError) as e:
@@ -125,6 +129,9 @@ def load_checkpoint(path, map_location=None, keys=()) -> dict:
     for k in keys:  # the entries every run kind shares, of the form the loop writes
         if k in _ENTRIES and not _ENTRIES[k][0](ckpt[k]):
             raise UserError(f"{path}: entry {k!r} must be {_ENTRIES[k][1]}, got {_show(ckpt[k])}")
+    problem = _history_problem(ckpt["history"]) if "history" in keys else None
+    if problem:
+        raise UserError(f"{path}: entry 'history' is not a training history: {problem}")
     for watcher in tuple(_READ_WATCHERS):
         watcher(path, ckpt)
     return ckpt
@@ -198,6 +205,86 @@ def load_tensors(targets: dict, saved, path, what: str) -> None:
             t.copy_(saved[k])
 
 
+def build_for_weights(build, saved, path, config_path):
+    """``build()`` (the model a run's ``config_path``, its config.json, describes) allowed to
+    allocate no more than about what checkpoint ``path`` holds for it (``saved``: the model's
+    entry, tensors in dicts and lists): every tensor the build makes through torch's factories
+    (empty, zeros, ones, full, rand, randn, randint, new_*) is counted before it is allocated,
+    and past twice those bytes + 1 MiB (buffers a checkpoint leaves out, the occupancy grid's
+    mask) the build stops with a :class:`UserError` naming both files. A config.json edited to
+    sizes its checkpoint cannot fill (2^31 layers, a 2^20-wide MLP, a 2^24-row hash table, 10^6
+    appearance codes) is refused at once, before growing until the OOM killer; the strict load
+    after the build checks every shape."""
+    from torch.overrides import TorchFunctionMode
+
+    from .errors import UserError, _human
+
+    held = _tensor_bytes(saved)
+
+    class Budget(TorchFunctionMode):  # (this thread's torch calls, while the build runs)
+        left = 2 * held + (1 << 20)
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            kwargs = kwargs or {}
+            self.left -= _factory_bytes(func, args, kwargs)
+            if self.left < 0:
+                raise _OverBudget  # (before the allocation)
+            return func(*args, **kwargs)
+
+    try:
+        with Budget():
+            return build()
+    except _OverBudget:
+        raise UserError(
+            f"{config_path}: describes a model larger than the weights {path} holds "
+            f"({_human(held)}): its network sizes (layers, widths, hash table, appearance codes, "
+            "cameras) do not match the checkpoint; was config.json edited, or copied from "
+            "another run?"
+        ) from None
+
+
+def _tensor_bytes(obj) -> int:
+    """Bytes of the tensors in ``obj`` (a tensor, or dicts and lists of them)."""
+    import torch
+
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_tensor_bytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_tensor_bytes(v) for v in obj)
+    return 0
+
+
+class _OverBudget(Exception):
+    pass
+
+
+def _factory_bytes(func, args, kwargs) -> int:
+    """Bytes a call of one of torch's tensor factories will allocate (0 for anything else)."""
+    import torch
+
+    sized = (torch.empty, torch.zeros, torch.ones, torch.rand, torch.randn)
+    methods = (torch.Tensor.new_empty, torch.Tensor.new_zeros, torch.Tensor.new_ones)
+    if func in methods or func is torch.Tensor.new_full:
+        args = args[1:]  # (self)
+    if func in sized or func in methods:  # f(*size) or f(size)
+        size = args[0] if len(args) == 1 and not isinstance(args[0], int) else args
+    elif func in (torch.full, torch.empty_strided, torch.Tensor.new_full):
+        size = args[0] if args else ()
+    elif func is torch.randint:
+        size = args[-1] if args else ()
+    else:
+        return 0
+    size = kwargs.get("size", size)
+    try:
+        numel = math.prod(max(int(v), 0) for v in size)
+    except (TypeError, ValueError):  # (not a size: torch's own error follows)
+        return 0
+    dtype = kwargs.get("dtype") or torch.get_default_dtype()
+    return numel * dtype.itemsize
+
+
 def _check_optimizer_state(opt) -> None:
     """ValueError naming the first parameter whose saved state tensor (not a 0-dim counter) has
     another shape than the parameter: ``load_state_dict`` does not check them, and the first
@@ -227,6 +314,37 @@ def _is_history(v) -> bool:
     return isinstance(v, dict) and all(isinstance(x, list) for x in v.values())
 
 
+_PER_STEP = ("step", "loss", "seconds")  # the lists the loop appends to at every step
+
+
+def _history_problem(h: dict) -> str | None:
+    """What is wrong with a checkpoint's history (a dict of lists, :func:`_is_history`) for the
+    training loop and the tools that read it, or None: names are strings; ``step``, ``loss``
+    and ``seconds`` present and of one length; every value a number (not a bool), steps
+    (``step``, ``val_step``) integers in [0, 2^31), ``loss`` and ``seconds`` finite, no NaN
+    anywhere (a PSNR may be infinite); ``val_step`` and each ``val_*`` list of one length."""
+    names = [k for k in h if not isinstance(k, str)]
+    if names:
+        return f"a key that is not a name ({_show(names[0])})"
+    missing = [k for k in _PER_STEP if k not in h]
+    if missing:
+        return f"no {missing[0]!r} list"
+    for k, values in h.items():
+        for i, v in enumerate(values):
+            if type(v) not in (int, float) or v != v:
+                return f"{k!r}[{i}] must be a number, got {_show(v)}"
+            if k in ("step", "val_step") and not _is_step(v):
+                return f"{k!r}[{i}] must be an integer step in [0, 2^31), got {_show(v)}"
+            if k in ("loss", "seconds") and not math.isfinite(v):
+                return f"{k!r}[{i}] must be finite, got {v!r}"
+    validation = ["val_step", *(k for k in h if k.startswith("val_") and k != "val_step")]
+    for group in (_PER_STEP, validation):
+        lengths = [f"{k} {len(h[k])}" for k in group if k in h]
+        if len({len(h[k]) for k in group if k in h}) > 1:
+            return f"lists of different lengths ({', '.join(lengths)})"
+    return None
+
+
 _ENTRIES = {  # name: (test, what it must be)
     "step": (_is_step, "an integer step in [0, 2^31)"),
     "generator": (_is_generator_state, "a CPU generator's state (uint8)"),
@@ -244,7 +362,7 @@ def _show(v) -> str:
     return f"a {type(v).__name__}" if len(text) > 40 else text
 
 
-def _check_checkpoint_zip(path: Path) -> None:
+def _check_checkpoint_zip(path: Path, fh) -> None:
     """A checkpoint's zip directory, read before torch unpacks anything: torch's zip format with
     every member stored (``torch.save`` never compresses), each member's declared size its
     stored size, and the members together no larger than the file (no overlapping members, the
@@ -255,13 +373,13 @@ def _check_checkpoint_zip(path: Path) -> None:
 
     from .errors import UserError
 
-    size = path.stat().st_size
-    if not zipfile.is_zipfile(path):
+    size = os.fstat(fh.fileno()).st_size
+    if not zipfile.is_zipfile(fh):
         raise UserError(
             f"{path}: not a readable checkpoint (not torch's zip format: corrupt, truncated, or "
             "torch's legacy format, which warpnerf never writes)"
         )
-    infos = zip_directory(path, "checkpoint")
+    infos = zip_directory(path, "checkpoint", fh)
     for info in infos:
         if info.compress_type != zipfile.ZIP_STORED:
             raise UserError(
@@ -276,14 +394,15 @@ def _check_checkpoint_zip(path: Path) -> None:
     check_overlap(path, infos, size)
 
 
-def zip_directory(path: Path, what: str) -> list:
-    """The members (ZipInfo) of a zip file's central directory; UserError when unreadable."""
+def zip_directory(path: Path, what: str, fh=None) -> list:
+    """The members (ZipInfo) of a zip file's central directory (read from the open file ``fh``
+    when given, else from ``path``); UserError naming ``path`` when unreadable."""
     import zipfile
 
     from .errors import UserError
 
     try:
-        with zipfile.ZipFile(path) as z:
+        with zipfile.ZipFile(fh if fh is not None else path) as z:
             return z.infolist()
     except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, EOFError) as e:
         raise UserError(f"{path}: unreadable {what} (a corrupt zip file: {e})") from None

@@ -2,9 +2,13 @@
 fields of a JSON object against a dataclass, with one-line :class:`UserError` messages that name
 the file, the field and the expected form.
 
-``read_json`` turns every way a file can fail into a UserError: missing or unreadable (OSError),
-larger than ``MAX_JSON_BYTES``, not UTF-8, not JSON, and nested deeper than Python's parser
-allows (``'[' * 100000`` raises RecursionError in :func:`json.loads`).
+``read_json`` turns every way a file can fail into a UserError naming the file: missing or
+unreadable (OSError), a FIFO, device or folder (never opened blocking; a link too, inside a run
+folder), larger than its kind holds (:data:`JSON_LIMITS`: parsing costs up to ~30x a file's size
+in memory, so each kind is bounded by what a valid file of it can hold), not UTF-8, not JSON, and
+nested deeper than :data:`MAX_JSON_DEPTH` levels (deeper than Python's parser allows, ``'[' *
+100000``, raises RecursionError in :func:`json.loads`; a few hundred levels parse but break the
+code that walks or rewrites the value later).
 """
 
 from __future__ import annotations
@@ -18,9 +22,23 @@ from pathlib import Path
 from .errors import UserError
 
 __all__ = ["read_json", "check_fields", "field_error", "is_device", "show", "MAX_JSON_BYTES",
-           "MAX_INT"]  # fmt: skip
+           "JSON_LIMITS", "MAX_JSON_DEPTH", "MAX_INT"]  # fmt: skip
 
-MAX_JSON_BYTES = 64 << 20  # 64 MiB: far above any transforms file, scene or run config
+MAX_JSON_BYTES = 64 << 20  # 64 MiB: a JSON file of a kind not in JSON_LIMITS
+# bytes a JSON file of each kind may hold (its ``what`` in read_json), each far above the largest
+# valid file of that kind: a run's config (~2 KB; a capture's list of unregistered images is all
+# that grows), its run record (256 sessions of ~1-2 KB), a camera path (1000 keyframes, ~1 MB as
+# warpnerf writes it), an SDF scene (primitives of ~200 bytes), a dataset's transforms file
+# (~1 KB a frame: ~60,000 frames)
+JSON_LIMITS = {
+    "run config": 16 << 20,
+    "run record": 8 << 20,
+    "camera path": 4 << 20,
+    "JSON scene": 4 << 20,
+    "transforms file": 64 << 20,
+}
+MAX_JSON_DEPTH = 32  # nesting levels; the deepest valid input (a camera path) has 5
+_IN_RUN = ("run config", "run record")  # files of a run folder: a link there is not followed
 MAX_INT = 2**31  # integer fields (counts, sizes, seeds) stay below this (int32 kernels, seeds)
 
 _repr = reprlib.Repr()
@@ -34,29 +52,43 @@ def show(v) -> str:
     return _repr.repr(v)
 
 
-def read_json(path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES):
+def read_json(path, what: str = "JSON file", max_bytes: int | None = None):
     """The parsed content of the JSON file ``path`` (any JSON value), or a UserError naming the
-    file and ``what`` it should be (e.g. "transforms file", "run config")."""
+    file and ``what`` it should be (e.g. "transforms file", "run config"). ``max_bytes``: the
+    kind's limit in :data:`JSON_LIMITS` (or :data:`MAX_JSON_BYTES`) unless given."""
+    from .files import read_input
+
     path = Path(path)
+    limit = max_bytes if max_bytes is not None else JSON_LIMITS.get(what, MAX_JSON_BYTES)
     try:
-        with open(path, "rb") as fh:
-            data = fh.read(max_bytes + 1)
-    except FileNotFoundError:
-        raise UserError(f"{path}: no such file (expected the {what})") from None
-    except OSError as e:  # permissions, a folder named like the file, I/O errors
+        data = read_input(path, what, limit, follow=what not in _IN_RUN)
+    except OSError as e:  # permissions, I/O errors
         raise UserError(f"{path}: not a readable {what} (cannot read: {e.strerror or e})") from None
-    if len(data) > max_bytes:
-        raise UserError(
-            f"{path}: the {what} is larger than {max_bytes >> 20} MiB; not a JSON file of this kind"
-        )
     try:
-        return json.loads(data.decode("utf-8"))
+        value = json.loads(data.decode("utf-8"))
     except UnicodeDecodeError as e:
         raise UserError(f"{path}: not valid JSON (not UTF-8 text: {e.reason})") from None
     except RecursionError:
         raise UserError(f"{path}: not valid JSON for the {what} (nested too deeply)") from None
     except ValueError as e:  # JSONDecodeError; integers of more than 4300 digits
         raise UserError(f"{path}: not valid JSON ({str(e)[:200]})") from None
+    if _deeper_than(value, MAX_JSON_DEPTH):
+        raise UserError(
+            f"{path}: not valid JSON for the {what} (nested deeper than {MAX_JSON_DEPTH} levels)"
+        )
+    return value
+
+
+def _deeper_than(value, limit: int) -> bool:
+    """Whether lists and objects nest more than ``limit`` levels in ``value`` (no recursion)."""
+    stack = [(value, 1)] if isinstance(value, (list, dict)) else []
+    while stack:
+        v, depth = stack.pop()
+        if depth > limit:
+            return True
+        items = v.values() if isinstance(v, dict) else v
+        stack.extend((x, depth + 1) for x in items if isinstance(x, (list, dict)))
+    return False
 
 
 def _expected(hint) -> tuple[tuple, bool]:

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..io import check_overlap, zip_directory
+from ..io import check_overlap, open_input, zip_directory
 
 __all__ = ["load_npz", "load_npy", "inflate_limit", "INFLATE_ENV"]
 
@@ -43,10 +43,19 @@ def load_npz(path, what: str = "file") -> dict:
     arrays (pickles) are refused. A :class:`UserError` naming ``path``, the member and the limit
     otherwise."""
     path = Path(path)
-    size = path.stat().st_size
-    if not zipfile.is_zipfile(path):
+    try:
+        fh = open_input(path, what, follow=True)  # (a FIFO or device: refused, never waited on)
+    except OSError as e:
+        raise UserError(f"{path}: unreadable {what} ({type(e).__name__}: {e})") from None
+    with fh:
+        return _load_npz(path, fh, what)
+
+
+def _load_npz(path: Path, fh, what: str) -> dict:
+    size = os.fstat(fh.fileno()).st_size
+    if not zipfile.is_zipfile(fh):
         raise UserError(f"{path}: unreadable {what} (not an .npz zip file)")
-    infos = zip_directory(path, what)
+    infos = zip_directory(path, what, fh)
     check_overlap(path, infos, size)
     limit, total = inflate_limit(size), sum(i.file_size for i in infos)
     if total > limit:
@@ -58,7 +67,7 @@ def load_npz(path, what: str = "file") -> dict:
         )
     out = {}
     try:
-        with zipfile.ZipFile(path) as z:
+        with zipfile.ZipFile(fh) as z:
             for info in infos:
                 if info.is_dir():
                     continue
@@ -77,8 +86,8 @@ def load_npy(path, what: str = "file") -> np.ndarray:
     and dtype must declare no more bytes than the file holds; no pickles (object arrays)."""
     path = Path(path)
     try:
-        with open(path, "rb") as f:
-            return _read_npy(f, path.stat().st_size, str(path))
+        with open_input(path, what, follow=True) as f:
+            return _read_npy(f, os.fstat(f.fileno()).st_size, str(path))
     except UserError:
         raise
     except (OSError, ValueError, EOFError) as e:

@@ -16,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import UserError
+from ..files import open_input
 
 __all__ = ["read_all", "read_image", "to_uint8", "MAX_PIXELS", "FORMATS"]
 
@@ -41,11 +42,17 @@ def read_image(path, where: str = "") -> np.ndarray:
     from PIL import Image
 
     ctx = f" ({where})" if where else ""
+    try:  # (a regular file only: a FIFO or device is refused, never waited on or read)
+        fh = open_input(path, "image", follow=True)
+    except UserError as e:
+        raise UserError(f"{e}{ctx}") from None
+    except OSError as e:
+        raise UserError(f"{path}: cannot read image{ctx}: {e}") from None
     try:
         with warnings.catch_warnings():  # (the header is checked against MAX_PIXELS below;
             # Pillow's own warning from 89 M pixels would only repeat it, as a Python warning)
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-            im = Image.open(path)
+            im = Image.open(fh)
         with im:
             _check_header(im, path, ctx)
             im.seek(0)  # (the first frame; nothing beyond it is decoded)
@@ -68,7 +75,10 @@ def read_image(path, where: str = "") -> np.ndarray:
     except MemoryError:
         raise
     except Exception as e:  # PIL raises many types for corrupt files
-        raise UserError(f"{path}: cannot read image{ctx}: {e}") from None
+        why = str(e).replace(f" {fh!r}", "")  # (PIL names the open file: the path is named)
+        raise UserError(f"{path}: cannot read image{ctx}: {why}") from None
+    finally:
+        fh.close()
     if img.ndim == 2:
         img = img[..., None]
     if img.shape[-1] in (1, 2):  # grey, grey + alpha

@@ -27,7 +27,6 @@ import io
 import json
 import math
 import os
-import stat
 import sys
 import tempfile
 import zipfile
@@ -77,31 +76,15 @@ def _nbytes(spec: Spec) -> int:
 
 def _read_bounded(path: Path, limit: int) -> bytes | None:
     """The bytes of ``path`` when it is a regular file (not a symlink, FIFO, device, folder) of at
-    most ``limit`` bytes; None otherwise or when it cannot be read."""
-    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
-    flags |= getattr(os, "O_BINARY", 0) | getattr(os, "O_CLOEXEC", 0)
+    most ``limit`` bytes; None otherwise or when it cannot be read
+    (:func:`~warpnerf.files.read_input`)."""
+    from ..errors import UserError
+    from ..files import read_input
+
     try:
-        if stat.S_ISLNK(os.lstat(path).st_mode):  # (systems without O_NOFOLLOW)
-            return None
-        fd = os.open(path, flags)
-    except OSError:  # absent, a symlink (ELOOP), unreadable
+        return read_input(path, "cache entry", limit)
+    except (UserError, OSError):  # absent, a symlink, a special file, too large, unreadable
         return None
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode) or st.st_size > limit:
-            return None
-        chunks, n = [], 0
-        while n <= limit:
-            b = os.read(fd, min(1 << 20, limit + 1 - n))
-            if not b:
-                break
-            chunks.append(b)
-            n += len(b)
-        return None if n > limit else b"".join(chunks)
-    except OSError:
-        return None
-    finally:
-        os.close(fd)
 
 
 def _parse(data: bytes, name: str, key: Mapping, spec: Spec) -> dict | None:

@@ -33,7 +33,7 @@ import torch
 
 from ..errors import UserError
 from ..jsonio import read_json
-from .cameras import check_poses
+from .cameras import MAX_DEPTH, check_poses
 
 __all__ = [
     "CameraPath",
@@ -48,7 +48,7 @@ __all__ = [
 PATH_FORMAT = 1
 MAX_KEYFRAMES = 1000
 MAX_FRAMES = 100000
-MAX_DEPTH = 1e9  # bound on a keyframe's near/far (contracted runs' far lies far out)
+# MAX_DEPTH (data/cameras.py): bound on a keyframe's near/far, as on a run's
 
 
 class CameraPath:
@@ -84,7 +84,7 @@ class CameraPath:
         being opened (:func:`~warpnerf.files.check_foreign`), so it cannot hang the save."""
         from ..files import check_foreign, read_regular
         from ..io import write_json
-        from ..jsonio import MAX_JSON_BYTES
+        from ..jsonio import JSON_LIMITS
 
         p = Path(path)
         if len(self.keyframes) == 0:
@@ -92,7 +92,7 @@ class CameraPath:
         d = self.to_dict()
         _from_dict(p, d)  # (what the file would say, checked before writing)
         check_foreign([p])
-        data = read_regular(p, MAX_JSON_BYTES, "camera path")
+        data = read_regular(p, JSON_LIMITS["camera path"], "camera path")
         if data is not None:
             try:
                 _from_dict(p, json.loads(data.decode("utf-8")))

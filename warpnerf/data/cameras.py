@@ -19,6 +19,10 @@ ROTATION_FIX = 0.05  # up to this: replaced by the nearest rotation (SVD), with 
 MAX_IMAGE_SIDE = 1 << 16  # pixels
 MAX_FOCAL = 1e8  # pixels
 MAX_TAN = 500.0  # tan of the widest ray's angle off the axis (about 89.9 degrees)
+# ... and to the scene they are rendered in (check_scene_bounds; a run's near/far and box too):
+MAX_DEPTH = 1e9  # near/far at most: float32 distances (a contracted scene's far, 1000 x its box)
+MIN_EXTENT = 1e-3  # a scene box's half-size at least: below, its finest hash cell (2a / 2048)
+# would be under the float32 spacing of positions at the cameras' distance (~5e-7 at 4)
 
 
 def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), dtype=torch.float32) -> torch.Tensor:
@@ -281,6 +285,29 @@ def check_poses(c2w, where, labels=None, max_centre: float = MAX_CENTRE) -> np.n
             "a corrupt pose)"
         )
     return c2w
+
+
+def scene_bounds_problem(near, far, aabb, inner=None) -> tuple[str, str] | None:
+    """What is wrong with a scene's depth range and box: (the value's name, the rule it breaks:
+    "must be ..."), or None. The one rule for an exported capture's ``warpnerf_scene`` and a
+    run's saved ``scene``: finite numbers with 0 <= near < far <= :data:`MAX_DEPTH`; the box's
+    half-size ``aabb`` and the contracted scene's inner cube ``inner`` (None: absent) in
+    [:data:`MIN_EXTENT`, :data:`MAX_CENTRE`]."""
+    values = {"near": near, "far": far, "aabb": aabb, "inner": inner}
+    for name, v in values.items():
+        if (v is not None or name != "inner") and not (
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        ):
+            return name, f"must be a finite number, got {v!r}"[:200]
+    if not 0 <= near < far <= MAX_DEPTH:
+        return "far", (f"must satisfy 0 <= near < far <= {MAX_DEPTH:g}, got near {near:g}, "
+                       f"far {far:g}")  # fmt: skip
+    for name in ("aabb", "inner"):
+        v = values[name]
+        if v is not None and not MIN_EXTENT <= v <= MAX_CENTRE:
+            return name, (f"must be in [{MIN_EXTENT:g}, {MAX_CENTRE:g}] (a half-size of the "
+                          f"scene's box), got {v:g}")  # fmt: skip
+    return None
 
 
 def check_intrinsics(intrinsics, size, where, labels=None) -> None:

@@ -38,8 +38,10 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..files import open_input
 from ._arrays import load_npy
 from ._images import read_all, read_image
+from ._paths import OPT_IN, outside_reason
 from .blender import _area_downscale, _composite, data_root
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
@@ -73,13 +75,30 @@ def _image_size(path: Path) -> tuple[int, int]:
     try:
         from PIL import Image
 
-        with Image.open(path) as im:
+        with open_input(path, "image", follow=True) as fh, Image.open(fh) as im:
             return im.size
     except ImportError:  # pragma: no cover - imageio brings pillow
         pass
+    except UserError:  # (a FIFO or device: refused, never waited on or read)
+        raise
     except Exception as e:
         raise UserError(f"{path}: cannot read image ({e})") from None
     return _read(path).shape[1::-1]
+
+
+def _confine(root: Path, folder: Path, names, allow_outside: bool, where) -> None:
+    """UserError naming the image unless every file ``folder / name`` stays inside the dataset
+    folder ``root`` once links are resolved (the folder itself may be the link), the rule of the
+    Blender loader (:func:`~._paths.outside_reason`); ``allow_outside``
+    (``--allow-outside-paths``) lets them lead anywhere. Checked before any image is read."""
+    if allow_outside:
+        return
+    for name in names:
+        file = folder / name
+        why = outside_reason(root, file.relative_to(root).as_posix(), file)
+        if why is not None:
+            raise UserError(f"{where}: image {file} {why}, outside the dataset folder {root} "
+                            f"(pass {OPT_IN} to use images outside it)")  # fmt: skip
 
 
 def _read(path: Path) -> np.ndarray:
@@ -92,7 +111,7 @@ def _read(path: Path) -> np.ndarray:
 # chosen image folder, distortion [N, 4], bounds [N, 2] (or None), points [M, 3] (or None).
 
 
-def _colmap(root: Path, downscale: int) -> dict:
+def _colmap(root: Path, downscale: int, allow_outside: bool = False) -> dict:
     model = find_model(root)
     cams, images, points = read_model(model)
     if not images:
@@ -108,6 +127,7 @@ def _colmap(root: Path, downscale: int) -> dict:
         raise UserError(
             f"{folder}: {len(missing)} image(s) of the model are missing, e.g. {missing[:3]}"
         )
+    _confine(root, folder, [im.name for im in ims], allow_outside, model)
     registered = {im.name for im in ims}
     unregistered = [p.name for p in _image_files(folder) if p.name not in registered]
     c2w, k, dist, bounds, observations = [], [], [], [], []
@@ -160,7 +180,7 @@ def _colmap(root: Path, downscale: int) -> dict:
     }
 
 
-def _llff(root: Path, downscale: int) -> dict:
+def _llff(root: Path, downscale: int, allow_outside: bool = False) -> dict:
     path = root / "poses_bounds.npy"
     arr = load_npy(path, "LLFF poses_bounds")  # (its header's shape checked before reading)
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] < 1:
@@ -191,6 +211,7 @@ def _llff(root: Path, downscale: int) -> dict:
             f"{folder}: {len(files)} image(s) but {path} has {len(arr)} pose rows "
             "(one row per image, in sorted file-name order)"
         )
+    _confine(root, folder, [p.name for p in files], allow_outside, path)
     w_img, h_img = _image_size(files[0])
     s = w_img / w_full
     if abs(h_img / h_full - s) > 0.01:
@@ -315,7 +336,7 @@ def apply_transform(transform: np.ndarray, c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
+def _scene(root: Path, fmt: str | None, downscale: int, allow_outside: bool = False) -> dict:
     root = data_root(root)  # (DIR/poses_bounds.npy: DIR)
     if not root.is_dir():
         raise UserError(f"{root}: data folder not found")
@@ -327,7 +348,8 @@ def _scene(root: Path, fmt: str | None, downscale: int) -> dict:
         raise UserError(f"{root}: --format colmap, but no cameras/images.{{bin,txt}} found")
     if fmt == "llff" and not (root / "poses_bounds.npy").is_file():
         raise UserError(f"{root}: --format llff, but no poses_bounds.npy found")
-    sc = _colmap(root, downscale) if fmt == "colmap" else _llff(root, downscale)
+    read = _colmap if fmt == "colmap" else _llff
+    sc = read(root, downscale, allow_outside)
     sc["format"] = fmt
     _check_cameras(sc)
     _check_undistortion(sc)
@@ -462,11 +484,13 @@ def reprojection_errors(root, max_observations: int = 200_000, seed: int = 0) ->
     return out
 
 
-def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT) -> dict:
+def capture_info(root, fmt=None, downscale: int = 1, holdout: int = HOLDOUT,
+                 allow_outside: bool = False) -> dict:  # fmt: skip
     """Everything but the pixels: format, splits, image size, intrinsics, near/far, NDC use,
-    scene transform and bounds (normalised), camera centres' box. JSON-ready."""
+    scene transform and bounds (normalised), camera centres' box. JSON-ready. Images (the
+    first one's header is read) must lie inside the folder unless ``allow_outside``."""
     req = LoadRequest.make(root, downscale=downscale, holdout=holdout)
-    sc = _scene(req.root, fmt, downscale)
+    sc = _scene(req.root, fmt, downscale, allow_outside)
     n = len(sc["names"])
     folder = sc["folder"]
     extra = sc["extra"]
@@ -521,7 +545,7 @@ def load_capture(root, split: str = "train", fmt: str | None = None, **options) 
 
 def _load(req: LoadRequest, fmt: str | None) -> Dataset:
     root, downscale = data_root(req.root), req.downscale
-    sc = _scene(root, fmt, downscale)
+    sc = _scene(root, fmt, downscale, req.allow_outside)
     idx = req.select(len(sc["names"]), root)
     bg = req.bg
     extra = sc["extra"]
@@ -605,10 +629,11 @@ register_format(
 )  # fmt: skip
 
 
-def capture_summary(root, fmt: str, downscale: int, holdout: int) -> dict:
+def capture_summary(root, fmt: str, downscale: int, holdout: int,
+                    allow_outside: bool = False) -> dict:  # fmt: skip
     """``warpnerf data``'s figures of a capture: :func:`capture_info`, and for COLMAP the
     reprojection error of the model's observations through the loader's cameras."""
-    info = capture_info(root, fmt, downscale, holdout)
+    info = capture_info(root, fmt, downscale, holdout, allow_outside)
     if fmt == "colmap":
         info["reprojection"] = reprojection_errors(root)
     return info

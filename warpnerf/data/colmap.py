@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..io import atomic_path
+from ..io import atomic_path, read_input
 from .cameras import MAX_IMAGE_SIDE
 
 __all__ = ["Camera", "Image", "read_model", "find_model", "qvec_to_rotmat", "rotmat_to_qvec"]
@@ -57,6 +57,7 @@ _OTHER_MODELS = {
 }
 _BY_NAME = {name: (i, n) for i, (name, n) in MODELS.items()}
 MAX_WORLD = 1e9  # |camera centre| and |sparse point| in world units, before normalisation
+MAX_MODEL_BYTES = 1 << 34  # one file of a COLMAP model (16 GiB: far beyond any reconstruction)
 
 
 @dataclass
@@ -142,8 +143,8 @@ class _Reader:
 
     def __init__(self, path: Path):
         self.path = path
-        try:
-            self.data = path.read_bytes()
+        try:  # (a regular file only: a FIFO or device is refused, never waited on or read)
+            self.data = read_input(path, "COLMAP model file", MAX_MODEL_BYTES, follow=True)
         except OSError as e:
             raise UserError(f"{path}: cannot read ({e.strerror or e})") from None
         self.pos = 0
@@ -278,7 +279,7 @@ def _read_points_bin(path: Path) -> dict:
 def _text_lines(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, fields) of the non-comment lines; blank lines kept for images.txt."""
     try:
-        text = path.read_text()
+        text = read_input(path, "COLMAP model file", MAX_MODEL_BYTES, follow=True).decode()
     except (OSError, UnicodeDecodeError) as e:
         raise UserError(f"{path}: cannot read ({e})") from None
     return [(i + 1, ln.split()) for i, ln in enumerate(text.splitlines()) if not ln.startswith("#")]

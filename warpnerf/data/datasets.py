@@ -107,9 +107,11 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
     root = Path(root) if str(root) == "builtin" else data_root(root)  # (an index file: its folder)
     fmt = detect_format(root) if fmt == "auto" else fmt
     if is_capture(fmt):
-        info = _capture.capture_summary(root, fmt, downscale, holdout)
+        info = _capture.capture_summary(root, fmt, downscale, holdout, allow_outside)
     else:
         info = {"format": fmt, "splits": {}}
+    # the scene a run on it resolves: a folder's own (an exported capture's warpnerf_scene)
+    carried = REGISTRY[fmt].scene(root) if REGISTRY[fmt].scene is not None else None
     for split in ("train", "val"):
         try:
             ds = load_dataset(root, split, fmt=fmt, downscale=downscale, holdout=holdout,
@@ -122,14 +124,21 @@ def data_summary(root, fmt: str = "auto", downscale: int = 1, holdout: int = HOL
         info["splits"][split] = len(ds)
         if split == "train" and not is_capture(fmt):
             centres = ds.c2w[:, :3, 3]
+            # what a run on it resolves (train nerf --near/--far override it): the carried
+            # scene's, the data's own range (the built-in scene's), else the NeRF-synthetic 2..6
+            near = ds.near if ds.near is not None else 2.0
+            far = ds.far if ds.far is not None else 6.0
             info.update(
                 image_size=[ds.width, ds.height],
                 intrinsics=[round(float(v), 4) for v in ds.intrinsics[0]],
-                near=2.0,  # the NeRF-synthetic convention (train nerf --near/--far override)
-                far=6.0,
+                near=float(near),
+                far=float(far),
                 camera_centres_box=[
                     [round(float(v), 4) for v in centres.min(0).values],
                     [round(float(v), 4) for v in centres.max(0).values],
                 ],
             )
+            if carried is not None:
+                info.update({k: carried[k] for k in ("near", "far", "aabb", "inner")
+                             if k in carried})  # fmt: skip
     return info

@@ -43,7 +43,7 @@ from .blender import (
     has_nerfstudio_fields,
     make_dataset,
 )
-from .cameras import check_intrinsics
+from .cameras import check_intrinsics, scene_bounds_problem
 from .dataset import Dataset, LoadRequest, register_format
 
 __all__ = ["load_nerfstudio", "detect_nerfstudio", "exported_scene", "CAMERA_MODELS",
@@ -170,8 +170,9 @@ def exported_scene(root) -> dict | None:
         raise UserError(f"{path}: field 'warpnerf_scene' must be an object with near, far, aabb "
                         "(and optionally inner)")  # fmt: skip
     vals = {k: _number(sc[k], f"warpnerf_scene.{k}", path, positive=k != "near") for k in sc}
-    if not (vals["near"] >= 0 and vals["far"] > vals["near"] and max(vals.values()) <= 1e6):
-        raise UserError(f"{path}: warpnerf_scene needs 0 <= near < far and values up to 1e6")
+    problem = scene_bounds_problem(vals["near"], vals["far"], vals["aabb"], vals.get("inner"))
+    if problem is not None:  # (the rule of a run's saved scene)
+        raise UserError(f"{path}: field 'warpnerf_scene.{problem[0]}' {problem[1]}")
     return {"format": "nerfstudio", "transform": np.eye(4).tolist(), "ndc": None, **vals}
 
 

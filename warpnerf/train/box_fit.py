@@ -250,7 +250,7 @@ def _read_config(run: Path, strict: bool = False):
     from ..jsonio import read_json
 
     path = run / "config.json"
-    if not path.is_file():
+    if not path.exists():  # (a FIFO or a link there: read_json names it)
         return None
     try:
         d = read_json(path, "run config")
@@ -268,8 +268,8 @@ def load_box_run(run, device: str | None = None):
     from ..jsonio import is_device, show
 
     run = Path(run)
-    d = _read_config(run, strict=(run / CHECKPOINT).is_file())
-    if d is None or not (run / CHECKPOINT).is_file():
+    d = _read_config(run, strict=(run / CHECKPOINT).exists())
+    if d is None or not (run / CHECKPOINT).exists():
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     if d.get("model") != MODEL:
         raise UserError(f"{run}: not a box run (config model {d.get('model')!r})")

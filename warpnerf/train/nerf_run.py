@@ -14,7 +14,7 @@ import torch
 
 from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
-from ..io import load_checkpoint
+from ..io import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
 from .nerf_config import MODEL, NeRFConfig
 
@@ -279,7 +279,7 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
     and restores the average from the checkpoint's ``ema``)."""
     run = Path(run)
     cfg_path, ckpt_path = run / "config.json", run / CHECKPOINT
-    if not cfg_path.is_file() or not ckpt_path.is_file():
+    if not cfg_path.exists() or not ckpt_path.exists():  # (a FIFO or link: its reader names it)
         raise UserError(f"{run}: not a training run (needs config.json and {CHECKPOINT})")
     if snapshot is not None:
         from .loop import snapshot_name
@@ -322,11 +322,12 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
         )
     if cfg.device.startswith("cuda"):  # matrix products as in training
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
-    model = build_model(cfg)
     keys = ("step", "fields", "optimizer", "generator", "history")
-    ckpt = load_checkpoint(ckpt_path, cfg.device, keys)
+    ckpt = load_checkpoint(ckpt_path, cfg.device, keys)  # (allocates at most its file's size)
     if not isinstance(ckpt["fields"], dict):
         raise UserError(f"{ckpt_path}: not a NeRF checkpoint ('fields' is not a dict)")
+    # the config's sizes bounded by the weights the checkpoint holds, before the model is built
+    model = build_for_weights(lambda: build_model(cfg), ckpt["fields"], ckpt_path, cfg_path)
     model.load_parts(ckpt["fields"], ckpt_path)  # every part the config gives it, strictly
     from .ema import apply_average, saved_average
 

@@ -213,7 +213,10 @@ def _session(device, step: int, iters: int, dist) -> dict:
 
 
 def _earlier_sessions(path: Path) -> list:
-    """The sessions of an existing run.json (untrusted: anything malformed counts as none)."""
+    """The sessions of an existing run.json (untrusted: anything malformed counts as none; one
+    that cannot be read as JSON is named in a warning)."""
+    import warnings
+
     from ..errors import UserError
     from ..jsonio import read_json
 
@@ -221,7 +224,8 @@ def _earlier_sessions(path: Path) -> list:
         return []
     try:
         saved = read_json(path, "run record")
-    except UserError:
+    except UserError as e:
+        warnings.warn(f"{e}; its earlier sessions are not kept", UserWarning, stacklevel=2)
         return []
     sessions = saved.get("sessions") if isinstance(saved, dict) else None
     return [s for s in sessions if isinstance(s, dict)] if isinstance(sessions, list) else []
