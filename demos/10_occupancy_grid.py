@@ -14,7 +14,7 @@ Measured with the defaults on the 2-core CPU machine (built-in 24x24 scene, 500 
 2026-11-22): with the grid 27.53 dB val, 16.6 samples per ray at the last step, 27.7 s of
 training, 11.3 % of the 32^3 cells occupied; without it 25.71 dB, 32 samples per ray, 18.9 s
 (on one CPU thread the grid updates and marching cost more than the samples they save; on the
-H100 the grid is what makes lego train in minutes, see docs/PERFORMANCE.md).
+H100 the grid is what makes lego train in minutes, see docs/design/rendering.md).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ of floating pieces with vertex colours baked from the radiance field (PLY + pyvi
         --iters 100000 --batch 4096 --target-samples 262144 --hash-levels 16 \\
         --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --march-step 0 --eval-images 100
     (the settings of scripts/gpu_hash_sdf.sh: lego on an H100 reached 31.1 dB on all 100 val
-    images after 300 s, docs/PERFORMANCE.md)
+    images after 300 s, docs/design/surfaces.md)
 
 The last line is JSON: val PSNR/SSIM (both renderers), final beta, mesh size, time.
 """
@@ -61,7 +61,7 @@ def _main(argv) -> int:
     hist = train_nerf(cfg, run, progress=False, log=lambda *a: None)
     m = evaluate_run(run, "val", max_images=args.eval_images)
     # the same views with the learned surface sphere-traced instead (colour from the field's head
-    # at the hit): faster on CPU, less faithful (docs/PERFORMANCE.md)
+    # at the hit): faster on CPU, less faithful (docs/design/surfaces.md)
     ms = evaluate_run(run, "val", max_images=args.eval_images, renderer="sphere")
     r = render_run(run, "spiral", args.frames)
     cfg, model, _ = load_run(run)

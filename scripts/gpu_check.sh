@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Runs on the lent GPU machine (see docs/PERFORMANCE.md): CUDA variants of the tests, then the
+# Runs on the lent GPU machine (see docs/design/kernels.md): CUDA variants of the tests, then the
 # compositing benchmark. Expects Warp importable (PYTHONPATH) and the package installed; writes
 # under $OUT.
 set -u

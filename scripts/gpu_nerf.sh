@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# NeRF figures on the lent GPU (see docs/PERFORMANCE.md).
+# NeRF figures on the lent GPU (see docs/design/nerf.md).
 # Usage: gpu_nerf.sh materials|lego_seed|lego_full|lego_hash|lego_grid|lego_grid_more|sweep|capture
 # (lego_grid: hash field + occupancy grid for SECS seconds, then eval on all val images;
 #  lego_grid_more: resume that run for SECS more seconds and eval again; sweep: speed vs error)

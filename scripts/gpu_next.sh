@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# What the CPU-only session of 2026-11-25 afternoon left for the GPU (docs/PERFORMANCE.md "Issue
-# 18: host cost of a launch" and "Issue 19"), one device call per STAGE (each well under 10 min):
+# What the CPU-only session of 2026-11-25 afternoon left for the GPU (docs/design/training.md "Issue
+# 18: host cost of a launch" and docs/design/viewer.md "Issue 19"), one device call per STAGE (each well under 10 min):
 #   STAGE=cuda      CUDA variants of every test (the array-descriptor bridge on CUDA first: its
 #                   launches and generic overloads ran on CPU only), then the launch host cost on
 #                   CUDA: experiments/launch_overhead.py --device cuda
@@ -15,7 +15,7 @@
 #                   once with snapshots, every val image scored at each budget, spiral frames of
 #                   the final state (RUN/render_spiral, FRAMES at SIZE) and one depth frame
 #   STAGE=reflect   hash_sdf on materials with the reflection-aware colour head (issue 17's
-#                   materials gap): the lapB run of PERFORMANCE.md plus --color-direction reflect
+#                   materials gap): the lapB run of docs/design/surfaces.md plus --color-direction reflect
 # Usage on the device (Warp on PYTHONPATH, package installed, data in .gpu/materials):
 #   STAGE=cuda bash scripts/gpu_next.sh      (writes under $OUT)
 set -u

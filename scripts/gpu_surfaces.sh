@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Surface figures on the lent GPU (docs/PERFORMANCE.md). Usage:
+# Surface figures on the lent GPU (docs/design/surfaces.md). Usage:
 #   gpu_surfaces.sh trace            CUDA tests of the surface code, demos 06/07/08 on cuda
 #   gpu_surfaces.sh volsdf_materials BETA...   VolSDF on materials with fixed betas ("learned": learned)
 #   gpu_surfaces.sh volsdf_lego      VolSDF on lego (learned beta), eval, spiral renders, mesh

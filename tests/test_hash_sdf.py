@@ -220,7 +220,7 @@ def test_annealed_beta_follows_its_schedule_and_is_saved():
 
 def test_surface_workflow_on_the_builtin_scene(tmp_path):
     """train volsdf --field hash_sdf, eval, render (rgb, depth, geometry), mesh: the commands
-    run end to end on a tiny run (quality is measured on the GPU, docs/PERFORMANCE.md)."""
+    run end to end on a tiny run (quality is measured on the GPU, docs/design/surfaces.md)."""
     from warpnerf.cli.parser import main
 
     run = tmp_path / "r"

@@ -51,7 +51,7 @@ class HashConfig:
     hash_max_res: int | None = option(
         None, "hash field: finest grid resolution (default 1024 for --field hash on a "
         "COLMAP/LLFF capture: measured +0.4 dB on beer and +0.1 dB on fern against 2048, "
-        "docs/PERFORMANCE.md; else 2048)", check="positive",
+        "docs/design/data.md; else 2048)", check="positive",
     )  # fmt: skip
     hidden: int = option(64, "hash field MLP width", check="positive")
 
@@ -101,7 +101,7 @@ class SDFDensityConfig:
     )  # fmt: skip
     eikonal_weight: float | None = option(
         None, "weight of (|grad d| - 1)^2 (samples + random points); default 0.1 (volsdf), "
-        "0.01 (hash_sdf: measured +0.7 dB on lego, docs/PERFORMANCE.md)", check="finite",
+        "0.01 (hash_sdf: measured +0.7 dB on lego, docs/design/surfaces.md)", check="finite",
         groups=VOLSDF,
     )  # fmt: skip
     c2f_every: int = option(

@@ -11,7 +11,7 @@ to ``RUN/tensorboard/`` (``tensorboard --logdir RUN``); tensorboardX's backgroun
 them. A resumed run writes a new file that starts with a purge marker at the first step it logs,
 so TensorBoard drops what an interrupted run logged past its last checkpoint and the curves
 continue without overlap. Cost: about 15 us in the training thread per record plus the writer
-thread's pure-Python CRC (about 80 us a record), measured in docs/PERFORMANCE.md.
+thread's pure-Python CRC (about 80 us a record), measured in docs/design/viewer.md (issue 19).
 """
 
 from __future__ import annotations

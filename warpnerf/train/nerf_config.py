@@ -223,7 +223,7 @@ class CaptureConfig:
         None, "hash field with a grid: a learned appearance code of this size per training "
         "image, fed to the colour MLP (exposure / white balance changing between photos); "
         "held-out views use the codes' mean; 0: none (default 16 on a COLMAP/LLFF capture: "
-        "measured +0.5 dB on beer, docs/PERFORMANCE.md; else 0)", check="nonnegative",
+        "measured +0.5 dB on beer, docs/design/data.md; else 0)", check="nonnegative",
     )  # fmt: skip
     appearance_images: int = option(0, flag=None)  # codes: the training split's size, when set
     pose_refine: bool = option(
