@@ -629,8 +629,9 @@ def _number(v) -> bool:
 
 
 def _check_scene(scene, fail) -> None:
-    """A saved ``scene`` (see :meth:`NeRFConfig._resolve_scene`): the capture's format, its
-    world -> normalised similarity transform [4][4], the NDC camera or null, near, far, aabb."""
+    """A saved ``scene`` (made by :func:`scene_settings`, kept by :meth:`NeRFConfig.resolve`): the
+    capture's format, its world -> normalised similarity transform [4][4], the NDC camera or
+    null, near, far, aabb."""
     keys = ("format", "transform", "ndc", "near", "far", "aabb")
     # "inner" (the contracted scene's inner cube) came later: older runs' scenes lack it
     if not isinstance(scene, dict) or set(scene) - {"inner"} != set(keys):
