@@ -1,8 +1,10 @@
 """A smoke test of each kept tool in scripts/ (scripts/README.md): each runs as a process on the
 CPU with the smallest inputs that reach its end (a tiny run of the built-in scene, a few steps)
 and leaves the output it promises. GPU-only tools (CUDA memory, CUDA sync debugging, several
-GPUs) are checked to start (``--help``) and, where they have one, through their CPU part.
-They are `slow` (subprocesses that import torch and Warp): the quick subset leaves them out."""
+GPUs, the peers) are checked to start (``--help``) and, where they have one, through their CPU
+part. The studies moved to experiments/ keep the same smoke runs, so they still run as recorded.
+(scripts/gpu.py, the GPU runner: tests/test_gpu_runner.py.) They are `slow` (subprocesses that
+import torch and Warp): the quick subset leaves them out."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ROOT / "scripts"
+EXPERIMENTS = ROOT / "experiments"
 pytestmark = pytest.mark.slow
 
 # a tiny `train nerf` of the built-in scene: hash field with an 8^3 grid, a few steps
@@ -43,22 +46,25 @@ def run(tmp_path_factory):
     return d / "r"
 
 
-@pytest.mark.parametrize("script", ["dp_scaling.py", "images_memory.py", "sync_sites.py",
-                                    "dp_profile.py", "materials_geometry.py"])  # fmt: skip
+@pytest.mark.parametrize("script", [SCRIPTS / "dp_scaling.py", SCRIPTS / "sync_sites.py",
+                                    SCRIPTS / "dp_profile.py", SCRIPTS / "materials_geometry.py",
+                                    SCRIPTS / "peers/run_peer.py", SCRIPTS / "peers/peer_runner.py",
+                                    EXPERIMENTS / "memory/images_memory.py"],
+                         ids=lambda p: p.name)  # fmt: skip
 def test_gpu_tools_start(script, tmp_path):
-    assert "usage" in _run([SCRIPTS / script, "--help"], tmp_path).lower()
+    assert "usage" in _run([script, "--help"], tmp_path).lower()
 
 
 def test_exp_bias_on_the_cpu(tmp_path):
-    assert "cpu" in _run([SCRIPTS / "exp_bias.py"], tmp_path).lower()
+    assert "cpu" in _run([EXPERIMENTS / "numerics/exp_bias.py"], tmp_path).lower()
 
 
 def test_bounds_and_checkpoint_costs(tmp_path):
-    _run([SCRIPTS / "bounds_overhead.py", "--device", "cpu", "--quick", "--json", "b.json"],
-         tmp_path)  # fmt: skip
+    _run([EXPERIMENTS / "overheads/bounds_overhead.py", "--device", "cpu", "--quick", "--json",
+          "b.json"], tmp_path)  # fmt: skip
     assert json.loads((tmp_path / "b.json").read_text())
-    out = _run([SCRIPTS / "checkpoint_cost.py", "--params", "1000", "--repeats", "1", "--dir",
-                tmp_path], tmp_path)  # fmt: skip
+    out = _run([EXPERIMENTS / "overheads/checkpoint_cost.py", "--params", "1000", "--repeats", "1",
+                "--dir", tmp_path], tmp_path)  # fmt: skip
     assert out.strip()
 
 
@@ -99,14 +105,15 @@ def test_tools_on_a_run(tmp_path, run):
 
 
 def test_studies_that_train(tmp_path):
-    """The tools that train several runs themselves, at three steps each."""
-    _run([SCRIPTS / "distortion_effect.py", "--weights", "0,0.01", "--json", "d.json", "--",
-          "train", "nerf", *TINY, "--iters", "3"], tmp_path)  # fmt: skip
+    """The studies that train several runs themselves, at three steps each."""
+    _run([EXPERIMENTS / "recipe/distortion_effect.py", "--weights", "0,0.01", "--json", "d.json",
+          "--", "train", "nerf", *TINY, "--iters", "3"], tmp_path)  # fmt: skip
     assert len(json.loads((tmp_path / "d.json").read_text())) >= 2
-    _run([SCRIPTS / "pose_refine_effect.py", "--iters", "3", "--json", "p.json", "--", "train",
-          "nerf", *TINY], tmp_path)  # fmt: skip
+    _run([EXPERIMENTS / "recipe/pose_refine_effect.py", "--iters", "3", "--json", "p.json", "--",
+          "train", "nerf", *TINY], tmp_path)  # fmt: skip
     assert json.loads((tmp_path / "p.json").read_text())
-    _run([SCRIPTS / "watch_overhead.py", "--repeats", "1", "--", *TINY, "--iters", "3"], tmp_path)
+    _run([EXPERIMENTS / "overheads/watch_overhead.py", "--repeats", "1", "--", *TINY, "--iters",
+          "3"], tmp_path)  # fmt: skip
 
 
 def test_surface_renderers_on_an_sdf_run(tmp_path):

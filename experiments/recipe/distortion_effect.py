@@ -4,7 +4,7 @@ weight of its val rays is (the mean distortion loss of every val pixel's ray, wi
 own coordinate; lower: the weight sits in a shorter stretch of the ray), plus the training
 time. A CPU-sized default (the built-in scene); pass a capture's flags for the real question.
 
-    python3 scripts/distortion_effect.py [--weights 0,0.01,0.1] [--json out.json] -- \
+    python3 experiments/recipe/distortion_effect.py [--weights 0,0.01,0.1] [--json out.json] -- \
         train nerf --data builtin --field hash --iters 600 ...
 """
 

@@ -3,7 +3,7 @@ cameras perturbed by random rotations and translations (zero mean), trained with
 ``--pose-refine``, plus the true poses as the ceiling; val PSNR on the true held-out poses and
 the training cameras' pose error before and after.
 
-    python3 scripts/pose_refine_effect.py [--rot-deg 1.0] [--trans 0.02] [--iters 600]
+    python3 experiments/recipe/pose_refine_effect.py [--rot-deg 1.0] [--trans 0.02] [--iters 600]
         [--json out.json] -- train nerf --data builtin --field hash ... (the run's flags;
         --pose-refine is added for the refining run)
 

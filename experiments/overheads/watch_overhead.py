@@ -7,9 +7,9 @@ the loop's own clock excludes the hooks' time from training seconds, so this clo
 that shows their cost, direct and indirect, e.g. the viewer server's threads), the hooks' own
 time per step, and the slowdown against the plain runs of the same repeat.
 
-    python scripts/watch_overhead.py --repeats 3 -- --data builtin --iters 300 --batch 1024 \
-        --layers 4 --width 64 --val-images 0
-    python scripts/watch_overhead.py --device cuda -- --data lego --field hash ...
+    python experiments/overheads/watch_overhead.py --repeats 3 -- --data builtin --iters 300 \
+        --batch 1024 --layers 4 --width 64 --val-images 0
+    python experiments/overheads/watch_overhead.py --device cuda -- --data lego --field hash ...
 
 The arguments after ``--`` are `warpnerf train nerf` flags (without --out).
 """

@@ -4,10 +4,10 @@ For each checked op, the median time of a call with its value checks (``check=Tr
 calling the public op gets) and without (``check=False``, what the library's own renderers use),
 on inputs of a training step's size (``--rays`` rays, ``--samples`` samples per ray). The training
 and rendering paths themselves are A/B-timed against the previous release by
-``scripts/gpu_overhead.sh``.
+the `overhead` phase of ``scripts/gpu.py``.
 
-    python scripts/bounds_overhead.py --device cuda            # GPU figures
-    python scripts/bounds_overhead.py --device cpu --quick     # smoke run on CPU
+    python experiments/overheads/bounds_overhead.py --device cuda            # GPU figures
+    python experiments/overheads/bounds_overhead.py --device cpu --quick     # smoke run on CPU
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ of W x H is held as the training split with ``--images-on host`` (pixels gathere
 each step) or ``device`` (all images on the GPU); a hash field + occupancy grid trains STEPS steps
 and the peak of ``torch.cuda.max_memory_allocated`` over the training is reported, per N.
 
-    python3 scripts/images_memory.py --images 100,2000 --width 1920 --height 1080 --steps 40 \
-        [--images-on host] [--dtype uint8|float32] [--json out.json]
+    python3 experiments/memory/images_memory.py --images 100,2000 --width 1920 --height 1080 \
+        --steps 40 [--images-on host] [--dtype uint8|float32] [--json out.json]
 """
 
 from __future__ import annotations

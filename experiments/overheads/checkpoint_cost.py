@@ -3,8 +3,8 @@ blocked by a synchronous write (torch.save + fsync + rename, as before) against 
 writer's part (a host copy of the state, then a thread writes it), for a state the size of the
 lego hash field's (12.2 M parameters and Adam's two moments: 147 MB), median of REPEATS.
 
-    python3 scripts/checkpoint_cost.py [--device cpu|cuda] [--params 12207507] [--repeats 5]
-        [--dir FOLDER]   (where the files go: the run folder's disk)
+    python3 experiments/overheads/checkpoint_cost.py [--device cpu|cuda] [--params 12207507]
+        [--repeats 5] [--dir FOLDER]   (where the files go: the run folder's disk)
 """
 
 from __future__ import annotations

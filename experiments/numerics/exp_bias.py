@@ -2,7 +2,7 @@
 nearly transparent ray (docs/NUMERICS.md: the one-thread-per-ray compositing backward multiplies
 its running sum by exp(-tau) once per sample, so a bias adds up along the ray).
 
-    python3 scripts/exp_bias.py            # cpu, and cuda when present
+    python3 experiments/numerics/exp_bias.py            # cpu, and cuda when present
 
 Prints, per device and decade of tau: the mean and max relative error of exp(-tau) in float32
 units in the last place (2^-24), and the relative error of the product of 16384 factors
