@@ -10,8 +10,8 @@ of floating pieces with vertex colours baked from the radiance field (PLY + pyvi
     python demos/11_hash_sdf.py --data ../shared/data/lego --device cuda --max-seconds 300 \\
         --iters 100000 --batch 4096 --target-samples 262144 --hash-levels 16 \\
         --hash-log2-size 19 --hash-max-res 2048 --grid-res 128 --march-step 0 --eval-images 100
-    (the settings of scripts/gpu_hash_sdf.sh: lego on an H100 reached 31.1 dB on all 100 val
-    images after 300 s, docs/design/surfaces.md)
+    (the settings of scripts/gpu.py's hash_sdf phase: lego on an H100 reached 31.1 dB on all
+    100 val images after 300 s, docs/design/surfaces.md)
 
 The last line is JSON: val PSNR/SSIM (both renderers), final beta, mesh size, time.
 """
