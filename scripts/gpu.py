@@ -285,7 +285,7 @@ cp /tmp/ttq/run/history.json "$OUT/ttq_history.json" 2>/dev/null
         "the graph_profile JSONs, one line each",
         """
 for g in off auto; do
-  [ -f "$OUT/prof_$g.json" ] && $GPU --summary graph_profile "$OUT/prof_$g.json" "$g"
+  if [ -f "$OUT/prof_$g.json" ]; then $GPU --summary graph_profile "$OUT/prof_$g.json" "$g"; fi
 done
 """,
     ),

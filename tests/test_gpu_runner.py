@@ -5,6 +5,7 @@ tables it prints come out of made-up run folders. (Running a phase needs the len
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -67,3 +68,10 @@ def test_the_summaries_on_made_up_runs(tmp_path):
     prof.write_text(json.dumps({"step_ms_median": 8.2, "top_device_ops_ms_per_step": {"k": 1.0}}))
     assert "8.2" in _gpu("--summary", "graph_profile", prof, "off")
     assert "[('k', 1.0)]" in _gpu("--summary", "graph_profile", prof, "hash_sdf auto")
+
+
+def test_a_phase_runs_through_bash(tmp_path):
+    """graph_summary, the one phase that needs no GPU: the runner's bash, $OUT and $GPU."""
+    (tmp_path / "prof_off.json").write_text(json.dumps({"step_ms_median": 8.25}))
+    out = _gpu("graph_summary", env={**os.environ, "OUT": str(tmp_path)})
+    assert "=== graph_summary" in out and "'step_ms_median': 8.25" in out
