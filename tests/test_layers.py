@@ -14,6 +14,7 @@ LAYERS = {
     "errors": 1,
     "trace": 1,
     "options": 1,
+    "plugins": 1,
     "reference": 2,
     "ops": 2,
     "io": 2,

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
+from ..plugins import Registry, add_entry
 
 __all__ = [
     "Dataset",
@@ -254,15 +255,18 @@ class Format:
     scene: Callable[[Path], dict | None] | None = None
 
 
-REGISTRY: dict[str, Format] = {}
+# The built-in formats register in their own modules (blender.py, nerfstudio.py, capture.py:
+# colmap and llff; synthetic.py: the built-in scene), an outside package's through the
+# "warpnerf.formats" entry points (warpnerf/plugins.py), loaded when the registry is first read.
+REGISTRY: dict[str, Format] = Registry("warpnerf.formats")
 
 
 def register_format(name: str, load, detect=None, capture: bool = False,
                     folder: bool = True, scene=None) -> Format:  # fmt: skip
     """Adds a format to the registry (detection asks formats in registration order)."""
-    if name in REGISTRY or name == "auto":
+    fmt = Format(name, load, detect, bool(capture), bool(folder), scene)
+    if name == "auto" or not add_entry(REGISTRY, name, fmt):
         raise ValueError(f"format {name!r} is already registered")
-    REGISTRY[name] = fmt = Format(name, load, detect, bool(capture), bool(folder), scene)
     return fmt
 
 

@@ -22,20 +22,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import UserError
-from . import capture as _capture  # noqa: F401  (registers colmap, llff)
-from . import nerfstudio as _nerfstudio  # noqa: F401  (registers nerfstudio)
+from . import capture as _capture
 from .blender import _read_json, check_folder, data_root, has_nerfstudio_fields
 from .dataset import HOLDOUT, REGISTRY, Dataset, FormatChoices, LoadRequest, is_capture
 
 __all__ = ["load_dataset", "detect_format", "data_summary", "FORMATS"]
 
-
-# The folder formats register themselves on import; detection asks them in this order (a folder
-# with split files is Blender even when it also holds a COLMAP model). The built-in scene
-# registers itself in data/synthetic.py (imported by the package), formats added by users after.
-_FOLDER_FORMATS = ("blender", "nerfstudio", "colmap", "llff")
-for _name in _FOLDER_FORMATS:
-    REGISTRY[_name] = REGISTRY.pop(_name)
 
 FORMATS = FormatChoices()  # --format's choices: "auto" + the registered folder formats, live
 

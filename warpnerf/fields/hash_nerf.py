@@ -18,8 +18,11 @@ from torch import nn
 
 from ..ops.encoding import HashGrid
 from ..ops.occupancy import contract_points, is_contracted_box
+from ..options import section_of
 from .encoding import HashEncoding, SphericalHarmonics
 from .mlp import run_mlp
+from .model import FieldTraits, RadianceModel, register_field
+from .settings import HashConfig
 
 __all__ = ["HashNeRFField"]
 
@@ -137,3 +140,51 @@ class HashNeRFField(nn.Module):
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+# the built-in field `hash`, registered as an added field is (docs/ARCHITECTURE.md), and the
+# helpers the hash fields' builders share (hash_sdf.py)
+
+
+def _hash_grid(cfg):
+    """The hash encoding of a config's :class:`HashConfig` section."""
+    return HashGrid(**section_of(cfg, HashConfig).grid_kwargs())
+
+
+def _contraction(cfg) -> dict:
+    """The grid's contraction settings of a run with ``--contract on`` ({} otherwise)."""
+    if getattr(cfg, "contract", "off") != "on":
+        return {}
+    return {"contract": float(cfg.aabb), "cone": float(cfg.march_cone)}
+
+
+def _on_grid(cfg, f, box) -> RadianceModel:
+    """The model of a hash field ``f``: with the occupancy grid when ``cfg.grid_res`` > 0 (then
+    no fine pass), else ``f`` serves the fine pass too when there is one."""
+    from ..occupancy import OccupancyGrid
+
+    grid = None
+    if cfg.grid_res:
+        grid = OccupancyGrid(
+            box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
+            warmup=-(-cfg.grid_warmup // cfg.grid_every), **_contraction(cfg),
+        )  # fmt: skip
+    return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
+
+
+@register_field("hash", FieldTraits(in_box=True, hash=True, grid=True, captures=True, lr=1e-2,
+                                    lr_decay=20.0, config=(HashConfig,)))  # fmt: skip
+def _hash(cfg) -> RadianceModel:
+    """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
+    ``cfg.grid_res`` > 0 (then there is no fine pass)."""
+    box = cfg.resolve().aabb_box()
+    from ..errors import UserError
+
+    app = None
+    if cfg.appearance_dim > 0:
+        if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
+            raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
+        app = (cfg.appearance_images, cfg.appearance_dim)
+    f = HashNeRFField(box, _hash_grid(cfg), cfg.hidden, cfg.view_dependence, app,
+                      contract=_contraction(cfg).get("contract", 0.0))  # fmt: skip
+    return _on_grid(cfg, f, box)

@@ -31,8 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from ..options import section_of
-from .settings import HashConfig, MLPConfig, SDFDensityConfig
+from ..plugins import Registry, add_entry
 
 __all__ = [
     "RadianceModel", "FIELDS", "FieldTraits", "register_field", "field_traits", "fields_with",
@@ -170,9 +169,12 @@ class FieldTraits:
             raise ValueError("the capture features need the occupancy grid (grid=True)")
 
 
-# name -> builder(cfg) -> RadianceModel; cfg is a NeRFConfig (resolved by the builder if needed)
-FIELDS: dict[str, Callable] = {}
-FIELD_TRAITS: dict[str, FieldTraits] = {}
+# name -> builder(cfg) -> RadianceModel; cfg is a NeRFConfig (resolved by the builder if needed).
+# The built-in fields register in their own modules (nerf.py: mlp, hash_nerf.py: hash, volsdf.py,
+# hash_sdf.py; imported by the package in that order), an outside package's through the
+# "warpnerf.fields" entry points (warpnerf/plugins.py), loaded when the registry is first read.
+FIELDS: dict[str, Callable] = Registry("warpnerf.fields")
+FIELD_TRAITS: dict[str, FieldTraits] = Registry("warpnerf.fields")
 _NO_TRAITS = FieldTraits()
 
 
@@ -181,9 +183,8 @@ def register_field(name: str, traits: FieldTraits | None = None):
     with its :class:`FieldTraits` (default: a density field outside any box)."""
 
     def add(builder):
-        if name in FIELDS:
+        if not add_entry(FIELDS, name, builder):
             raise ValueError(f"field {name!r} is registered already")
-        FIELDS[name] = builder
         FIELD_TRAITS[name] = traits or _NO_TRAITS
         return builder
 
@@ -218,114 +219,3 @@ def build_model(cfg) -> RadianceModel:
             raise UserError("pose_refine needs pose_images >= 1 (the training images)")
         model.poses = CameraCorrection(cfg.pose_images)
     return model.to(cfg.device)
-
-
-@register_field("mlp", FieldTraits(config=(MLPConfig,)))  # density, samples near..far
-def _mlp(cfg) -> RadianceModel:
-    """NeRF's MLP (positional encoding, skip connection); a second one for the fine pass."""
-    from .nerf import NeRFField
-
-    def make():
-        return NeRFField(
-            cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs, cfg.dir_freqs,
-            cfg.view_dependence, cfg.density_activation,
-        )  # fmt: skip
-
-    coarse = make()
-    return RadianceModel(coarse, make() if cfg.n_fine > 0 else None)
-
-
-def _hash_grid(cfg):
-    """The hash encoding of a config's :class:`HashConfig` section."""
-    from ..ops.encoding import HashGrid
-
-    return HashGrid(**section_of(cfg, HashConfig).grid_kwargs())
-
-
-def _contraction(cfg) -> dict:
-    """The grid's contraction settings of a run with ``--contract on`` ({} otherwise)."""
-    if getattr(cfg, "contract", "off") != "on":
-        return {}
-    return {"contract": float(cfg.aabb), "cone": float(cfg.march_cone)}
-
-
-def _on_grid(cfg, f, box) -> RadianceModel:
-    """The model of a hash field ``f``: with the occupancy grid when ``cfg.grid_res`` > 0 (then
-    no fine pass), else ``f`` serves the fine pass too when there is one."""
-    from ..occupancy import OccupancyGrid
-
-    grid = None
-    if cfg.grid_res:
-        grid = OccupancyGrid(
-            box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
-            warmup=-(-cfg.grid_warmup // cfg.grid_every), **_contraction(cfg),
-        )  # fmt: skip
-    return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
-
-
-@register_field("hash", FieldTraits(in_box=True, hash=True, grid=True, captures=True, lr=1e-2,
-                                    lr_decay=20.0, config=(HashConfig,)))  # fmt: skip
-def _hash(cfg) -> RadianceModel:
-    """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
-    ``cfg.grid_res`` > 0 (then there is no fine pass)."""
-    from .hash_nerf import HashNeRFField
-
-    box = cfg.resolve().aabb_box()
-    from ..errors import UserError
-
-    app = None
-    if cfg.appearance_dim > 0:
-        if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
-            raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
-        app = (cfg.appearance_images, cfg.appearance_dim)
-    f = HashNeRFField(box, _hash_grid(cfg), cfg.hidden, cfg.view_dependence, app,
-                      contract=_contraction(cfg).get("contract", 0.0))  # fmt: skip
-    return _on_grid(cfg, f, box)
-
-
-def _check_volsdf(cfg, fail) -> None:
-    d_in = 3 * (1 + 2 * cfg.pos_freqs)
-    if cfg.width <= d_in:
-        raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
-
-
-@register_field(
-    "volsdf",
-    FieldTraits(
-        geometry="sdf",
-        in_box=True,
-        cpu_cost=3.0,
-        check=_check_volsdf,
-        config=(MLPConfig, SDFDensityConfig),
-    ),
-)  # (3: the eikonal double backward)
-def _volsdf(cfg) -> RadianceModel:
-    """A neural SDF rendered through VolSDF's Laplace density; one network for both passes."""
-    from .volsdf import VolSDFField
-
-    cfg.resolve()
-    f = VolSDFField(
-        cfg.aabb, cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs, cfg.dir_freqs,
-        n_features=cfg.width, color_width=cfg.width, view_dependence=cfg.view_dependence,
-        beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
-    )  # fmt: skip
-    return RadianceModel(f, f if cfg.n_fine > 0 else None)
-
-
-@register_field("hash_sdf", FieldTraits(
-    geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
-    eikonal_weight=0.01, cpu_cost=2.3,  # (2.3: the SDF's central differences, measured)
-    config=(HashConfig, SDFDensityConfig),
-))  # fmt: skip
-def _hash_sdf(cfg) -> RadianceModel:
-    """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
-    from .hash_sdf import HashSDFField
-
-    box = cfg.resolve().aabb_box()
-    f = HashSDFField(
-        box, _hash_grid(cfg), cfg.hidden, view_dependence=cfg.view_dependence,
-        beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
-        level_every=cfg.c2f_every, density=cfg.sdf_density, beta_final=cfg.beta_final,
-        anneal_steps=cfg.beta_anneal_steps, color_direction=cfg.color_direction,
-    )  # fmt: skip
-    return _on_grid(cfg, f, box)

@@ -8,6 +8,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from .encoding import PositionalEncoding
+from .model import FieldTraits, RadianceModel, register_field
+from .settings import MLPConfig
 
 __all__ = ["NeRFField"]
 
@@ -88,3 +90,18 @@ class NeRFField(nn.Module):
 
     def n_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+
+# the built-in field `mlp`, registered as an added field is (docs/ARCHITECTURE.md)
+@register_field("mlp", FieldTraits(config=(MLPConfig,)))  # density, samples near..far
+def _mlp(cfg) -> RadianceModel:
+    """NeRF's MLP (positional encoding, skip connection); a second one for the fine pass."""
+
+    def make():
+        return NeRFField(
+            cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs, cfg.dir_freqs,
+            cfg.view_dependence, cfg.density_activation,
+        )  # fmt: skip
+
+    coarse = make()
+    return RadianceModel(coarse, make() if cfg.n_fine > 0 else None)

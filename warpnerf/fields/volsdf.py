@@ -20,8 +20,10 @@ import torch
 from torch import nn
 
 from .encoding import PositionalEncoding
+from .model import FieldTraits, RadianceModel, register_field
 from .neural_sdf import NeuralSDF
 from .sdf_volume import laplace_cdf
+from .settings import MLPConfig, SDFDensityConfig
 
 __all__ = ["VolSDFField"]
 
@@ -102,3 +104,33 @@ class VolSDFField(nn.Module):
         """Unit normals (no graph) at positions [n, 3]."""
         _, g, _ = self.sdf_and_gradient(positions, create_graph=False)
         return torch.nn.functional.normalize(g.detach(), dim=-1)
+
+
+# the built-in field `volsdf`, registered as an added field is (docs/ARCHITECTURE.md)
+
+
+def _check_volsdf(cfg, fail) -> None:
+    d_in = 3 * (1 + 2 * cfg.pos_freqs)
+    if cfg.width <= d_in:
+        raise fail("width", f"must exceed the encoded position size {d_in} (volsdf)")
+
+
+@register_field(
+    "volsdf",
+    FieldTraits(
+        geometry="sdf",
+        in_box=True,
+        cpu_cost=3.0,
+        check=_check_volsdf,
+        config=(MLPConfig, SDFDensityConfig),
+    ),
+)  # (3: the eikonal double backward)
+def _volsdf(cfg) -> RadianceModel:
+    """A neural SDF rendered through VolSDF's Laplace density; one network for both passes."""
+    cfg.resolve()
+    f = VolSDFField(
+        cfg.aabb, cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs, cfg.dir_freqs,
+        n_features=cfg.width, color_width=cfg.width, view_dependence=cfg.view_dependence,
+        beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
+    )  # fmt: skip
+    return RadianceModel(f, f if cfg.n_fine > 0 else None)

@@ -38,6 +38,7 @@ from ..options import check_at_least, option, with_defaults
 from ..render import render_rays, render_views
 from .logs import TensorBoardLog
 from .loop import LoopConfig, LoopSettings, Task, lock_run, resume_checks, run_loop
+from .methods import Method, Opened, register_method
 
 __all__ = [
     "BoxFitConfig",
@@ -402,3 +403,35 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
     write_video(out / f"{prefix}_depth.gif", [depth_to_uint8(f, dmax) for f in surf])
     write_image(out / f"{prefix}_depth_000.png", depth_to_uint8(surf[0]))
     return rgb, surf
+
+
+# ------------------------------------------------- the method, registered as an added one is
+
+
+def _open_box(run, device=None) -> Opened:
+    import contextlib
+
+    from ..data.blender import load_blender
+    from ..fields.sdf_volume import SDFVolume
+    from ..io import load_weights
+
+    cfg, data, dev, ckpt = load_box_run(run, device)
+    volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
+    load_weights(volume, ckpt["volume"], Path(run) / "checkpoint.pt", "box parameters")
+    train = None
+    with contextlib.suppress(UserError):  # the cameras are an overlay
+        train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
+                             allow_outside=cfg.allow_outside_paths)  # fmt: skip
+    return Opened(cfg, volume, train, f"{Path(run).name}: box fit")
+
+
+def _box_task(task) -> Opened:
+    from types import SimpleNamespace
+
+    n, h, w = task.images.shape[:3]
+    cams = SimpleNamespace(c2w=task.c2w, intrinsics=task.intrinsics, width=w, height=h,
+                           images=task.images)  # fmt: skip
+    return Opened(task.cfg, task.volume, cams)
+
+
+register_method(Method(MODEL, ("box",), "box fit", "box", _open_box, _box_task))

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import UserError
+from ..plugins import Registry, add_entry
 
 __all__ = ["Method", "Opened", "METHODS", "register_method", "method_of_config", "method_of_run",
            "method_of_task", "VIEWS"]  # fmt: skip
@@ -95,15 +96,17 @@ class Method:
             raise ValueError(f"view must be one of {', '.join(VIEWS)}, got {self.view!r}")
 
 
-METHODS: dict[str, Method] = {}
+# The built-in methods register in their own modules (nerf_method.py, sdf.py, box_fit.py; imported
+# by warpnerf.train in that order), an outside package's through the "warpnerf.methods" entry
+# points (warpnerf/plugins.py), loaded when the registry is first read.
+METHODS: dict[str, Method] = Registry("warpnerf.methods")
 LEGACY = "nerf"  # a config.json without ``model``: a NeRF/VolSDF run written before the registry
 
 
 def register_method(method: Method) -> Method:
     """Adds ``method`` to :data:`METHODS` (ValueError for a name registered already)."""
-    if method.name in METHODS:
+    if not add_entry(METHODS, method.name, method):
         raise ValueError(f"method {method.name!r} is registered already")
-    METHODS[method.name] = method
     return method
 
 
@@ -143,139 +146,3 @@ def method_of_task(task) -> Method:
     if name not in METHODS:
         raise TypeError(f"{type(task).__name__} names no registered method ({name!r})")
     return METHODS[name]
-
-
-# ------------------------------------------------------------------------ the built-in methods
-
-
-def _open_nerf(run, device=None) -> Opened:
-    import contextlib
-
-    from .nerf_run import load_data, load_run, with_refined_poses
-
-    run = Path(run)
-    cfg, model, _ = load_run(run, device)
-
-    def cameras():  # (read only when asked: `mesh --keep-all` never reads the images)
-        with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
-            return with_refined_poses(model, load_data(cfg, "train"), "train")
-        return None
-
-    def reload(lock) -> int:
-        """Loads the run's latest checkpoint into the opened model (copied in under ``lock``,
-        a context manager); returns its step."""
-        _, fresh, ck = load_run(run, device)
-        with lock:
-            for k, part in model.parts().items():
-                if part is not None:
-                    part.load_state_dict(fresh.parts()[k].state_dict())
-        return int(ck["step"])
-
-    return Opened(cfg, model, None, f"{run.name}: {cfg.field}", reload, load_cameras=cameras)
-
-
-def _nerf_mesh(o: Opened, bounds, level) -> dict:
-    """A NeRF/VolSDF run's surface: an SDF field's zero level set, else the density's level set
-    marched as -density at -level (inside negative, like an SDF); with no level given, level
-    and shown_level are None: the command chooses the density from the grid
-    (:func:`warpnerf.mesh.density_level`)."""
-    cfg, field = o.cfg, o.model.field
-    b = bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
-    back = None
-    if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units
-        from ..data.capture import normalised_to_world
-
-        ndc = cfg.ndc_camera()
-        back = lambda v: normalised_to_world(v, cfg.scene["transform"], ndc)  # noqa: E731
-    lo, hi = [-b] * 3, [b] * 3
-    if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
-        lo[2], hi[2] = -1.0, 0.99
-    # the training cameras, in the mesh's frame, for `mesh`'s culling (not NDC: another frame)
-    cams = o.training_cameras if cfg.ndc_camera() is None else None  # (loaded when culling)
-
-    def weights(lower, upper, progress=False):  # the cells where the training rays put weight
-        from .visibility import training_weight_grid
-
-        ds = o.training_cameras()  # (NDC too: the rays and the grid are in the field's frame)
-        if ds is None:
-            return None, "the run's training data is not at hand"
-        return training_weight_grid(o.model, cfg, ds, lower, upper, progress=progress)
-
-    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams,
-               weights=weights)  # fmt: skip
-    if o.model.kind == "sdf":  # the SDF's zero level set
-        level = level or 0.0
-        return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,
-                    what=cfg.field, density=False)  # fmt: skip
-    return dict(out, fn=lambda p: -field.density(p.to(cfg.device))[0],
-                level=None if level is None else -level, shown_level=level, what="nerf",
-                density=True)  # fmt: skip
-
-
-def _nerf_task(task) -> Opened:
-    return Opened(task.cfg, task.model, getattr(task, "train", None))
-
-
-def _open_point_sdf(run, device=None) -> Opened:
-    from .sdf import load_sdf_run
-
-    cfg, model, ck = load_sdf_run(run, device)
-    model.eval()
-    title = f"{Path(run).name}: neural SDF ({cfg.field})"
-    return Opened(cfg, model, None, title, extra={"normalisation": ck["normalisation"]})
-
-
-def _point_sdf_mesh(o: Opened, bounds, level) -> dict:
-    """A neural SDF's zero level set in its normalised box, vertices mapped back to the point
-    cloud's units."""
-    import numpy as np
-
-    cfg, model = o.cfg, o.model
-    c, s = o.extra["normalisation"]["center"], o.extra["normalisation"]["scale"]
-    b = bounds or 1.0  # in the normalised frame
-    level = level or 0.0
-    return dict(fn=lambda p: model(p.to(cfg.device)), lower=[-b] * 3, upper=[b] * 3, level=level,
-                shown_level=level, what="sdf run", back=lambda v: v / s + np.asarray(c),
-                device=cfg.device, field=None, density=False, cameras=None)  # fmt: skip
-
-
-def _point_sdf_task(task) -> Opened:
-    return Opened(task.cfg, task.model)
-
-
-def _open_box(run, device=None) -> Opened:
-    import contextlib
-
-    from ..data.blender import load_blender
-    from ..fields.sdf_volume import SDFVolume
-    from ..io import load_weights
-    from .box_fit import load_box_run
-
-    cfg, data, dev, ckpt = load_box_run(run, device)
-    volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
-    load_weights(volume, ckpt["volume"], Path(run) / "checkpoint.pt", "box parameters")
-    train = None
-    with contextlib.suppress(UserError):  # the cameras are an overlay
-        train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
-                             allow_outside=cfg.allow_outside_paths)  # fmt: skip
-    return Opened(cfg, volume, train, f"{Path(run).name}: box fit")
-
-
-def _box_task(task) -> Opened:
-    from types import SimpleNamespace
-
-    n, h, w = task.images.shape[:3]
-    cams = SimpleNamespace(c2w=task.c2w, intrinsics=task.intrinsics, width=w, height=h,
-                           images=task.images)  # fmt: skip
-    return Opened(task.cfg, task.volume, cams)
-
-
-from .box_fit import MODEL as _BOX  # noqa: E402  (each method module's config.json name)
-from .nerf_config import MODEL as _NERF  # noqa: E402
-from .sdf import MODEL as _POINT_SDF  # noqa: E402
-
-register_method(Method(_NERF, ("nerf", "volsdf"), "NeRF/VolSDF", "radiance", _open_nerf,
-                       _nerf_task, renders=True, mesh=_nerf_mesh))  # fmt: skip
-register_method(Method(_POINT_SDF, ("sdf",), "neural-SDF", "point_sdf", _open_point_sdf,
-                       _point_sdf_task, mesh=_point_sdf_mesh))  # fmt: skip
-register_method(Method(_BOX, ("box",), "box fit", "box", _open_box, _box_task))

@@ -51,6 +51,7 @@ from .loop import (
     resume_checks,
     run_loop,
 )
+from .methods import Method, Opened, register_method
 from .presets import PRESET_NAMES, preset_option
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
@@ -532,3 +533,35 @@ def finish_sdf_run(run, model, cfg, pts_np, center, scale, log=print):
         m["surface_abs_sdf_mean"] = float(model(pts).abs().mean()) / scale / diag
     m["units"] = "chamfer and surface |sdf| in units of the point cloud's bounding-box diagonal"
     return m
+
+
+# ------------------------------------------------- the method, registered as an added one is
+
+
+def _open_point_sdf(run, device=None) -> Opened:
+    cfg, model, ck = load_sdf_run(run, device)
+    model.eval()
+    title = f"{Path(run).name}: neural SDF ({cfg.field})"
+    return Opened(cfg, model, None, title, extra={"normalisation": ck["normalisation"]})
+
+
+def _point_sdf_mesh(o: Opened, bounds, level) -> dict:
+    """A neural SDF's zero level set in its normalised box, vertices mapped back to the point
+    cloud's units."""
+    import numpy as np
+
+    cfg, model = o.cfg, o.model
+    c, s = o.extra["normalisation"]["center"], o.extra["normalisation"]["scale"]
+    b = bounds or 1.0  # in the normalised frame
+    level = level or 0.0
+    return dict(fn=lambda p: model(p.to(cfg.device)), lower=[-b] * 3, upper=[b] * 3, level=level,
+                shown_level=level, what="sdf run", back=lambda v: v / s + np.asarray(c),
+                device=cfg.device, field=None, density=False, cameras=None)  # fmt: skip
+
+
+def _point_sdf_task(task) -> Opened:
+    return Opened(task.cfg, task.model)
+
+
+register_method(Method(MODEL, ("sdf",), "neural-SDF", "point_sdf", _open_point_sdf,
+                       _point_sdf_task, mesh=_point_sdf_mesh))  # fmt: skip

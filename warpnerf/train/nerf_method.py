@@ -1,0 +1,85 @@
+"""The NeRF/VolSDF method (`train nerf`, `train volsdf`) in the registry of kinds of run
+(:mod:`warpnerf.train.methods`): how a saved run is opened for the viewer and `mesh`, what
+`mesh` marches, and its registration, made as an added method's is (docs/ARCHITECTURE.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import UserError
+from .methods import Method, Opened, register_method
+from .nerf_config import MODEL
+
+__all__: list = []
+
+
+def _open_nerf(run, device=None) -> Opened:
+    import contextlib
+
+    from .nerf_run import load_data, load_run, with_refined_poses
+
+    run = Path(run)
+    cfg, model, _ = load_run(run, device)
+
+    def cameras():  # (read only when asked: `mesh --keep-all` never reads the images)
+        with contextlib.suppress(UserError):  # the cameras are an overlay: the data may be gone
+            return with_refined_poses(model, load_data(cfg, "train"), "train")
+        return None
+
+    def reload(lock) -> int:
+        """Loads the run's latest checkpoint into the opened model (copied in under ``lock``,
+        a context manager); returns its step."""
+        _, fresh, ck = load_run(run, device)
+        with lock:
+            for k, part in model.parts().items():
+                if part is not None:
+                    part.load_state_dict(fresh.parts()[k].state_dict())
+        return int(ck["step"])
+
+    return Opened(cfg, model, None, f"{run.name}: {cfg.field}", reload, load_cameras=cameras)
+
+
+def _nerf_mesh(o: Opened, bounds, level) -> dict:
+    """A NeRF/VolSDF run's surface: an SDF field's zero level set, else the density's level set
+    marched as -density at -level (inside negative, like an SDF); with no level given, level
+    and shown_level are None: the command chooses the density from the grid
+    (:func:`warpnerf.mesh.density_level`)."""
+    cfg, field = o.cfg, o.model.field
+    b = bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
+    back = None
+    if cfg.scene is not None:  # COLMAP/LLFF: vertices back to the capture's world units
+        from ..data.capture import normalised_to_world
+
+        ndc = cfg.ndc_camera()
+        back = lambda v: normalised_to_world(v, cfg.scene["transform"], ndc)  # noqa: E731
+    lo, hi = [-b] * 3, [b] * 3
+    if cfg.ndc_camera() is not None:  # NDC box; z = 1 is infinity
+        lo[2], hi[2] = -1.0, 0.99
+    # the training cameras, in the mesh's frame, for `mesh`'s culling (not NDC: another frame)
+    cams = o.training_cameras if cfg.ndc_camera() is None else None  # (loaded when culling)
+
+    def weights(lower, upper, progress=False):  # the cells where the training rays put weight
+        from .visibility import training_weight_grid
+
+        ds = o.training_cameras()  # (NDC too: the rays and the grid are in the field's frame)
+        if ds is None:
+            return None, "the run's training data is not at hand"
+        return training_weight_grid(o.model, cfg, ds, lower, upper, progress=progress)
+
+    out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams,
+               weights=weights)  # fmt: skip
+    if o.model.kind == "sdf":  # the SDF's zero level set
+        level = level or 0.0
+        return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,
+                    what=cfg.field, density=False)  # fmt: skip
+    return dict(out, fn=lambda p: -field.density(p.to(cfg.device))[0],
+                level=None if level is None else -level, shown_level=level, what="nerf",
+                density=True)  # fmt: skip
+
+
+def _nerf_task(task) -> Opened:
+    return Opened(task.cfg, task.model, getattr(task, "train", None))
+
+
+register_method(Method(MODEL, ("nerf", "volsdf"), "NeRF/VolSDF", "radiance", _open_nerf,
+                       _nerf_task, renders=True, mesh=_nerf_mesh))  # fmt: skip
