@@ -8,7 +8,8 @@ hold-out rule.
 - :func:`register_format` / :data:`REGISTRY`: format name -> (detect, load). ``load_dataset``
   (:mod:`warpnerf.data.datasets`) asks each registered format, in registration order, whether a
   folder is its kind, then calls its loader. A new format is one module with a ``detect`` and a
-  ``load`` plus one ``register_format`` line (docs/ARCHITECTURE.md).
+  ``load`` plus one ``register_format`` line (docs/ARCHITECTURE.md), as the built-in ones are;
+  an outside package's comes through the ``warpnerf.formats`` entry points.
 - :func:`holdout_indices`: the split rule of every format without split files (nerfstudio, a
   single ``transforms.json``, COLMAP, LLFF): with ``holdout = k``, images ``i % k == 0`` (file /
   sorted-name order) are val and test, the others train; ``holdout = 0`` puts every image in

@@ -15,7 +15,9 @@ Adding a field: write the module (one new file in ``warpnerf/fields/``), then on
     def _my_field(cfg):
         return RadianceModel(MyField(cfg.width).to(cfg.device))
 
-and ``--field myfield`` trains it (the config's choices come from this registry). The field's
+and ``--field myfield`` trains it (the config's choices come from this registry). The built-in
+fields register so in their own modules; an outside package names its module in the
+``warpnerf.fields`` entry points (:mod:`warpnerf.plugins`). The field's
 :class:`FieldTraits` are what the rest of the library knows of it: whether it is a density or an
 SDF, whether it lives in the scene box, takes the hash flags or the occupancy grid, its
 learning-rate defaults, the built-in config sections it reads (``config``: ``--width`` is

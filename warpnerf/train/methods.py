@@ -12,8 +12,10 @@ Adding a kind of run: its module (config, task, loader, trainer), then one entry
                            open_run=open_my_run, open_task=open_my_task,
                            config=MyConfig, train=train_my_method))
 
-and `warpnerf train mymethod` exists with MyConfig's flags (the four built-in commands keep
-their own, richer front ends in cli/train.py: presets, resume checks, data parallel).
+and `warpnerf train mymethod` exists with MyConfig's flags. The built-in methods register so in
+their own modules (nerf_method.py, sdf.py, box_fit.py; their four commands keep their own,
+richer front ends in cli/train.py: presets, resume checks, data parallel); an outside package
+names its module in the ``warpnerf.methods`` entry points (:mod:`warpnerf.plugins`).
 
 ``view`` picks how the viewer shows it: "radiance" (a :class:`~warpnerf.fields.model.
 RadianceModel` with a NeRFConfig: volume rendering), "point_sdf" (an SDF network in [-1, 1]^3,
