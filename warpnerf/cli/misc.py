@@ -1,4 +1,8 @@
-"""`warpnerf demo`, `bench` and `data`."""
+"""`warpnerf demo`, `bench` and `data`: the commands that take no run folder.
+
+The rule between the CLI modules: a command whose input is a trained run folder goes in
+run_tools.py (eval, render, mesh, export; view in view.py, beside the live viewer's flags), a
+`train` command in train.py, any other command here."""
 
 from __future__ import annotations
 

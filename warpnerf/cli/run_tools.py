@@ -1,5 +1,6 @@
-"""`warpnerf eval`, `render`, `mesh` and `export`: tools on a trained run (mesh also on an SDF
-scene)."""
+"""`warpnerf eval`, `render`, `mesh` and `export`: the commands whose input is a trained run
+folder (mesh also takes an analytic SDF scene instead). Commands that take no run folder go in
+misc.py, `train` commands in train.py, `view` in view.py."""
 
 from __future__ import annotations
 
