@@ -162,6 +162,11 @@ def test_a_broken_plugin_is_named_in_a_warning_and_the_rest_works(site):
     assert "plugin 'broken' (warpnerf_broken, from warpnerf-broken-plugin)" in text
     assert "RuntimeError: boom" in text
     assert "plugin 'clash'" in text and "'mlp' is registered already" in text
+    # each shown at the plugin's own failing line, not inside warpnerf
+    assert {(Path(w.filename).name, w.lineno) for w in seen} == {
+        ("warpnerf_broken.py", 1),
+        ("warpnerf_clash.py", 2),
+    }
     assert "toy_mlp" in names and "mlp" in names and "broken" not in names
     args = build_parser().parse_args(["train", "nerf", "--out", "x", "--field", "toy_mlp"])
     assert args.field == "toy_mlp"

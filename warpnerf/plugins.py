@@ -61,8 +61,11 @@ def load_plugins(group: str) -> list:
             if callable(obj):  # ("pkg.mod:register"; a module is imported and that is all)
                 obj()
         except Exception as e:
-            warnings.warn(f"warpnerf: {who} of {group} was not loaded: {type(e).__name__}: {e}",
-                          PluginWarning, stacklevel=3)  # fmt: skip
+            file, line = _where(e, ep.name)
+            warnings.warn_explicit(
+                f"warpnerf: {who} of {group} was not loaded: {type(e).__name__}: {e}",
+                PluginWarning, file, line, module="warpnerf.plugins",
+            )  # fmt: skip
             continue
         loaded.append(ep.name)
     return loaded
@@ -75,6 +78,22 @@ def add_entry(registry: dict, name: str, value) -> bool:
         return False
     dict.__setitem__(registry, name, value)
     return True
+
+
+def _where(error: BaseException, name: str) -> tuple:
+    """(file, line) a plugin's warning is shown at: the deepest place of ``error``'s traceback
+    in the plugin's own code (not warpnerf's, not the import machinery's), else the entry point's
+    name."""
+    import importlib
+    import os
+    import traceback
+
+    skip = tuple(
+        os.path.dirname(os.path.abspath(f)) + os.sep for f in (importlib.__file__, __file__)
+    )  # (the import machinery, warpnerf)
+    frames = [f for f in traceback.extract_tb(error.__traceback__)
+              if not f.filename.startswith(("<", *skip))]  # fmt: skip
+    return (frames[-1].filename, frames[-1].lineno or 0) if frames else (f"<plugin {name}>", 0)
 
 
 class Registry(dict):
