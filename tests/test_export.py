@@ -145,7 +145,7 @@ def test_a_downscaled_run_exports_the_images_it_trained_on(tmp_path, capsys):
     frames point at images of the size its intrinsics describe, and the nerfstudio loader reads
     back the run's own cameras and pixels (was: downscaled intrinsics beside full-size files)."""
     from warpnerf.data import load_nerfstudio
-    from warpnerf.data._images import read_image
+    from warpnerf.data.images import read_image
     from warpnerf.train.nerf import load_data, load_run
 
     from .test_capture import _colmap_capture, _object_cameras

@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from warpnerf.data._images import read_all
+from warpnerf.data.images import read_all
 from warpnerf.errors import UserError
 
 

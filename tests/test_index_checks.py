@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from warpnerf.ops import generate_rays, random_pixels, ray_aabb_intersect, render_packed
 from warpnerf.ops import occupancy as O
-from warpnerf.ops._bridge import IndexDtypeError
+from warpnerf.ops.bridge import IndexDtypeError
 from warpnerf.ops.composite import packed_info_from_ray_indices
 from warpnerf.ops.sampling import Samples, importance_samples, stratified_samples
 

@@ -180,4 +180,105 @@ def test_the_checker_finds_a_cycle_and_an_upward_import():
     assert _cycles({"a": {"b"}, "b": set()}) == []
     assert _layer("warpnerf.ops.rays") < _layer("warpnerf.fields.nerf")
     edges, _ = _imports(_modules())
-    assert "warpnerf.ops._bridge" in edges["warpnerf.ops.composite"]
+    assert "warpnerf.ops.bridge" in edges["warpnerf.ops.composite"]
+
+
+# --- issue 46: no module imports another's private names; modules stay under 600 lines ---------
+
+# the kept tools' imports of private names, removed by the scripts cleanup (another change);
+# nothing in warpnerf/ or demos/ may be listed here
+SCRIPTS_ALLOWED = {
+    "scripts/peers/peer_runner.py: nerfacc.cuda._backend",  # (a peer library's own internals)
+}
+MAX_LINES = 600
+
+
+def _package_of(path: Path) -> tuple:
+    """(dotted name of the module, its package) for a file under ROOT, demos/ and scripts/
+    being packages of their own (their files import each other as top-level modules)."""
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+        return ".".join(parts), ".".join(parts)
+    return ".".join(parts), ".".join(parts[:-1])
+
+
+def private_imports(path: Path) -> list:
+    """'file: module.name' for each import in ``path`` of a private name (a leading underscore)
+    of another module, or of a private module (``_x.py``) from outside its own folder. A private
+    module may serve the modules beside it (``data/_paths.py`` for the data loaders)."""
+    mod, pkg = _package_of(path)
+    rel = path.relative_to(ROOT).as_posix()
+    loose = rel.split("/")[0] in ("demos", "scripts")  # (scripts import their neighbours by name)
+    out = []
+
+    def private_module(dotted: str) -> bool:
+        parts = dotted.split(".")
+        for i, part in enumerate(parts):
+            if part.startswith("_") and not part.startswith("__"):
+                owner = ".".join(parts[:i])
+                if loose and i == 0:
+                    owner = pkg  # `import _common` in demos/: its own folder
+                if owner != pkg:
+                    return True
+        return False
+
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [f"{rel}: {a.name}" for a in node.names if private_module(a.name)
+                    and not (loose and "." not in a.name)]  # fmt: skip
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                up = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+                base = ".".join(up + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            for a in node.names:
+                name = a.name
+                if (name.startswith("_") and not name.startswith("__")) or private_module(base):
+                    out.append(f"{rel}: {base}.{name}")
+    return out
+
+
+def _sources(*tops: str) -> list:
+    files = []
+    for top in tops:
+        for p in sorted((ROOT / top).rglob("*.py")):
+            if top == "warpnerf" and "kernels" in p.relative_to(ROOT / top).parts[:1]:
+                continue  # (the link to kernels/, scanned as kernels/)
+            files.append(p)
+    return files
+
+
+def test_no_module_imports_private_names_of_another():
+    found = [hit for p in _sources("warpnerf", "kernels", "demos") for hit in private_imports(p)]
+    assert found == [], "make these names public where they are shared:\n" + "\n".join(found)
+
+
+def test_scripts_import_no_private_names_beyond_the_known_ones():
+    found = {hit for p in _sources("scripts") for hit in private_imports(p)}
+    assert found <= SCRIPTS_ALLOWED, sorted(found - SCRIPTS_ALLOWED)
+
+
+def test_the_private_import_check_sees_them(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "warpnerf" / "cli").mkdir(parents=True)
+    (tmp_path / "demos").mkdir()
+    f, demo = tmp_path / "warpnerf" / "cli" / "x.py", tmp_path / "demos" / "x.py"
+    f.write_text("from warpnerf.ops._bridge import check_int\nfrom .train import _nerf_flags\n")
+    assert len(private_imports(f)) == 2
+    f.write_text("from ._common import check_out\nfrom warpnerf.ops.bridge import check_int\n")
+    assert private_imports(f) == []  # (a private module serves its own folder)
+    demo.write_text("import _common\nfrom warpnerf.data._paths import OPT_IN\n")
+    assert private_imports(demo) == ["demos/x.py: warpnerf.data._paths.OPT_IN"]
+
+
+def test_no_module_over_600_lines():
+    long = [f"{p.relative_to(ROOT)}: {n}" for p in _sources("warpnerf", "kernels")
+            if (n := len(p.read_text().splitlines())) > MAX_LINES]  # fmt: skip
+    assert long == [], f"split these by responsibility (over {MAX_LINES} lines):\n" + "\n".join(
+        long
+    )

@@ -314,7 +314,7 @@ def test_uint8_images_load_as_rounded_floats(tmp_path):
     import numpy as np
 
     from warpnerf.data import load_dataset
-    from warpnerf.data._images import read_all, to_uint8
+    from warpnerf.data.images import read_all, to_uint8
     from warpnerf.train.nerf import load_data
 
     from ._scene import write_box_folder

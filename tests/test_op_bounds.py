@@ -669,7 +669,7 @@ def test_library_renderers_skip_the_checks_and_still_work(monkeypatch):
     grid.update(lambda p: ball.density(p)[0], torch.Generator().manual_seed(0))
     o = torch.tensor([[0.0, 0.0, -3.0], [0.3, 0.1, -3.0], [4.0, 4.0, -3.0]])
     d = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3).contiguous()
-    monkeypatch.setattr(C, "_check_packed_info", refuse)
+    monkeypatch.setattr(C, "check_packed_info", refuse)
     out = render_marched(grid, ball, o, d, 0.0, 6.0, perturb=True,
                          generator=torch.Generator().manual_seed(1))  # fmt: skip
     out["rgb"].sum().backward()

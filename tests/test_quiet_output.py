@@ -1,5 +1,5 @@
 """CPU commands print nothing but their own output and progress bars: no "Warp CUDA warning: Could
-not find or load the NVIDIA CUDA driver" (warpnerf/ops/_bridge.py holds it back at Warp's init),
+not find or load the NVIDIA CUDA driver" (warpnerf/ops/bridge.py holds it back at Warp's init),
 no Warp "Module ... load" lines, no VTK "bad X server connection" line from pyvista's offscreen
 screenshot (warpnerf/mesh.py asks VTK for EGL when there is no X display), no Python warnings
 (the commands run with PYTHONWARNINGS=default, which shows the ones hidden by default)."""
@@ -83,9 +83,9 @@ def test_cuda_asked_for_without_a_driver_still_says_so(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--device cuda: no CUDA device" in err and len(err.strip().splitlines()) == 1
     code = "\n".join([
-        "import sys, torch", "from warpnerf.ops import _bridge", "_bridge._wp()",
+        "import sys, torch", "from warpnerf.ops import bridge", "bridge.load_warp()",
         "sys.stderr.write('init done\\n')", "try:",
-        "    _bridge.wp_device(torch.device('cuda', 0))",
+        "    bridge.wp_device(torch.device('cuda', 0))",
         "except RuntimeError as e:", "    print(e)",
     ])  # fmt: skip
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

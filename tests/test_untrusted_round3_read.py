@@ -91,7 +91,7 @@ def test_npz_bomb_is_refused_from_its_zip_directory(tmp_path):
 
 
 def io_limit(size: int) -> int:
-    from warpnerf.data._arrays import inflate_limit
+    from warpnerf.data.arrays import inflate_limit
 
     return inflate_limit(size)
 
@@ -103,7 +103,7 @@ def test_inflate_limit_is_overridable_and_real_npz_files_still_load(tmp_path, mo
     pts, nrm = load_points(tmp_path / "c.npz")
     assert np.array_equal(pts, g) and np.allclose(nrm, g / np.linalg.norm(g, axis=1)[:, None])
     assert np.array_equal(load_points(tmp_path / "s.npz")[0], g)
-    from warpnerf.data._arrays import load_npz
+    from warpnerf.data.arrays import load_npz
 
     monkeypatch.setenv("WARPNERF_MAX_INFLATE", "1000")
     with pytest.raises(UserError, match="WARPNERF_MAX_INFLATE"):
@@ -128,7 +128,7 @@ def test_npy_and_npz_headers_cannot_declare_more_than_the_file_holds(tmp_path):
         z.writestr("points.npy", _lying_npy((10**9, 3)))
     with pytest.raises(UserError, match="declares shape"):
         load_points(tmp_path / "c.npz")
-    from warpnerf.data._arrays import load_npy
+    from warpnerf.data.arrays import load_npy
 
     np.save(tmp_path / "ok.npy", np.arange(6.0).reshape(2, 3))
     assert np.array_equal(load_npy(tmp_path / "ok.npy"), np.arange(6.0).reshape(2, 3))
@@ -170,7 +170,7 @@ def decoded(monkeypatch):
 
 
 def test_png_declaring_a_huge_size_is_refused_before_decoding(tmp_path, decoded):
-    from warpnerf.data._images import MAX_PIXELS
+    from warpnerf.data.images import MAX_PIXELS
 
     side = 12000  # 144 M pixels: past the limit, below PIL's own bomb error (it only warns)
     assert side * side > MAX_PIXELS
@@ -376,7 +376,7 @@ def test_cmyk_jpeg_loads_as_its_colour(tmp_path):
 def test_palette_with_transparency_and_grey_alpha_are_composited(tmp_path):
     from PIL import Image
 
-    from warpnerf.data._images import read_image
+    from warpnerf.data.images import read_image
 
     p = Image.new("P", (4, 4), 1)
     p.putpalette([0, 0, 0, 255, 0, 0] + [0] * 762)

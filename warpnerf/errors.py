@@ -88,7 +88,7 @@ def describe_failure(exc: BaseException) -> str | None:
         m = re.search(r"allocate (memory: you tried to allocate )?([\d.]+ ?[KMGT]?i?B|\d+ bytes)",
                       text)  # fmt: skip
         if m and m.group(2).endswith(" bytes"):
-            asked = _human(float(m.group(2).split()[0]))
+            asked = human_bytes(float(m.group(2).split()[0]))
         else:
             asked = m.group(2) if m else None
         what = f"tried to allocate {asked}" if asked else first.strip()[:200]
@@ -96,7 +96,8 @@ def describe_failure(exc: BaseException) -> str | None:
     return None
 
 
-def _human(n: float) -> str:
+def human_bytes(n: float) -> str:
+    """``n`` bytes as a short string in B, KiB, MiB, ... (one decimal)."""
     for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
         if n < 1024 or unit == "PiB":
             return f"{n:.1f} {unit}"
@@ -125,8 +126,8 @@ def check_fits(nbytes: float, device: str, what: str) -> None:
     total = available_memory(device)
     if nbytes > total:
         raise UserError(
-            f"{what} needs about {_human(nbytes)}, more than the {_human(total)} of {device}; "
-            "choose smaller sizes"
+            f"{what} needs about {human_bytes(nbytes)}, more than the {human_bytes(total)} of "
+            f"{device}; choose smaller sizes"
         )
 
 

@@ -149,7 +149,7 @@ def _keeps(path: Path, img: torch.Tensor) -> bool:
     image ``img`` (uint8 [H, W, C]): False when absent; True when it holds exactly these pixels
     (the same export again); a :class:`UserError` when it holds others, which a dataset (an
     earlier export) or a run may read: an export never replaces them."""
-    from .data._images import read_image, to_uint8
+    from .data.images import read_image, to_uint8
 
     if not os.path.lexists(path):
         return False

@@ -217,7 +217,7 @@ def build_for_weights(build, saved, path, config_path):
     after the build checks every shape."""
     from torch.overrides import TorchFunctionMode
 
-    from .errors import UserError, _human
+    from .errors import UserError, human_bytes
 
     held = _tensor_bytes(saved)
 
@@ -237,8 +237,8 @@ def build_for_weights(build, saved, path, config_path):
     except _OverBudget:
         raise UserError(
             f"{config_path}: describes a model larger than the weights {path} holds "
-            f"({_human(held)}): its network sizes (layers, widths, hash table, appearance codes, "
-            "cameras) do not match the checkpoint; was config.json edited, or copied from "
+            f"({human_bytes(held)}): its network sizes (layers, widths, hash table, appearance "
+            "codes, cameras) do not match the checkpoint; was config.json edited, or copied from "
             "another run?"
         ) from None
 

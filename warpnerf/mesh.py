@@ -53,7 +53,7 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
     with :func:`density_level`)."""
     import warp as wp
 
-    from .ops._bridge import _wp
+    from .ops.bridge import load_warp
 
     if resolution < 2:
         raise ValueError(f"resolution must be >= 2, got {resolution}")
@@ -79,7 +79,7 @@ def extract_mesh(field_fn, lower, upper, resolution: int, level: float = 0.0, de
     if callable(level):
         level = level(vals)
     field = vals.reshape(resolution, resolution, resolution).contiguous()
-    _wp()
+    load_warp()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         verts, tris = wp.MarchingCubes.extract(

@@ -45,7 +45,7 @@ import torch
 from torch import nn
 
 from .ops import occupancy as ops
-from .ops._bridge import check_int
+from .ops.bridge import check_int
 
 __all__ = ["OccupancyGrid", "seen_cells", "frustum_bounds"]
 

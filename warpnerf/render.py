@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
-from .ops._bridge import check_int
+from .ops.bridge import check_int
 from .trace import CAP, HIT, INSIDE, INVALID, sphere_trace_steps
 
 __all__ = [

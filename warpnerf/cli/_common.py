@@ -12,7 +12,7 @@ from ..errors import UserError
 from ..options import CHECKS
 
 
-def _device(name: str) -> str:
+def parse_device(name: str) -> str:
     import torch
 
     if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
@@ -22,17 +22,17 @@ def _device(name: str) -> str:
     return name
 
 
-def _positive(kind):
+def positive_arg(kind):
     return CHECKS[(kind.__name__, "positive")]
 
 
-_nonnegative = CHECKS[("int", "nonnegative")]
-_seed = CHECKS[("int", "seed")]
-_finite = CHECKS[("float", "finite")]
-_nonnegative_float = CHECKS[("float", "nonnegative")]
+nonnegative_arg = CHECKS[("int", "nonnegative")]
+seed_arg = CHECKS[("int", "seed")]
+finite_arg = CHECKS[("float", "finite")]
+nonnegative_float = CHECKS[("float", "nonnegative")]
 
 
-def _check_out(path, flag: str = "--out", file: bool = False) -> None:
+def check_out(path, flag: str = "--out", file: bool = False) -> None:
     """UserError unless ``path`` can be written as a folder (or, with ``file``, as a file): it is
     not an existing file (folder) and its nearest existing parent is a folder."""
     p = Path(path)
@@ -45,7 +45,7 @@ def _check_out(path, flag: str = "--out", file: bool = False) -> None:
             raise UserError(f"{flag} {path}: {q} is a file, not a folder")
 
 
-def _existing(path, what: str = "run folder") -> None:
+def check_existing(path, what: str = "run folder") -> None:
     """UserError ``PATH: not found`` when nothing exists at ``path`` (a run, a point cloud): the
     loaders' own messages ("not a training run") are for paths that exist."""
     import os
@@ -54,7 +54,7 @@ def _existing(path, what: str = "run folder") -> None:
         raise UserError(f"{path}: not found (expected a {what})")
 
 
-def _saved_config(run) -> dict:
+def saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
     from ..jsonio import read_json
 
@@ -65,21 +65,21 @@ def _saved_config(run) -> dict:
     return saved if isinstance(saved, dict) else {}
 
 
-def _data_format_flags(p) -> None:
+def add_data_format_flags(p) -> None:
     """--format and --holdout (`data`, `train nerf`, `train volsdf`)."""
     from ..data.datasets import FORMATS
 
     p.add_argument("--format", default="auto", choices=FORMATS, help="data format (auto: detect)")
     p.add_argument(
         "--holdout",
-        type=_nonnegative,
+        type=nonnegative_arg,
         default=8,
         help="COLMAP/LLFF: every Nth image (sorted names) is val/test; 0 = none (default 8)",
     )
 
 
 @contextlib.contextmanager
-def _sigterm_exits():
+def sigterm_exits():
     """SIGTERM outside a training loop (loading, meshing, rendering, writing) raises SystemExit(143)
     instead of killing the process outright, so atomic writers remove their temporary files. The
     training loops install their own handler while they run (finish the step, checkpoint)."""

@@ -8,20 +8,20 @@ from __future__ import annotations
 
 from ..errors import UserError
 from ..io import json_dumps
-from ._common import _check_out, _device
+from ._common import check_out, parse_device
 
 
 def cmd_demo(args) -> int:
     from ..demo import run_demo
 
-    _check_out(args.out)
+    check_out(args.out)
     m = run_demo(
         args.out,
         iters=args.iters,
         size=args.size,
         frames=args.frames,
         video_size=args.video_size,
-        device=_device(args.device),
+        device=parse_device(args.device),
         progress=not args.quiet,
     )
     print(f"wrote {args.out}/metrics.json, videos and images")
@@ -47,8 +47,8 @@ def cmd_bench(args) -> int:
     from ..bench import run_bench
 
     if args.json:
-        _check_out(args.json, "--json", file=True)
-    run_bench(args.kernel, device=_device(args.device), json_path=args.json, quick=args.quick)
+        check_out(args.json, "--json", file=True)
+    run_bench(args.kernel, device=parse_device(args.device), json_path=args.json, quick=args.quick)
     return 0
 
 

@@ -12,14 +12,14 @@ import sys
 from ..errors import UserError, exit_status
 from ..fields.model import fields_with
 from ..options import add_flags
-from ._common import _data_format_flags, _positive, _sigterm_exits
+from ._common import add_data_format_flags, positive_arg, sigterm_exits
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
 from .train import (
-    _box_flags,
-    _nerf_flags,
-    _sdf_flags,
+    add_box_flags,
+    add_nerf_flags,
+    add_sdf_flags,
     cmd_train_box,
     cmd_train_method,
     cmd_train_nerf,
@@ -201,11 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     d.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
-    d.add_argument("--iters", type=_positive(int), default=300,
+    d.add_argument("--iters", type=positive_arg(int), default=300,
                    help="optimisation steps of the box fit (default 300)")  # fmt: skip
-    d.add_argument("--size", type=_positive(int), default=64, help="training image size")
-    d.add_argument("--frames", type=_positive(int), default=40, help="spiral video frames")
-    d.add_argument("--video-size", type=_positive(int), default=128,
+    d.add_argument("--size", type=positive_arg(int), default=64, help="training image size")
+    d.add_argument("--frames", type=positive_arg(int), default=40, help="spiral video frames")
+    d.add_argument("--video-size", type=positive_arg(int), default=128,
                    help="spiral video width and height, pixels (default 128)")  # fmt: skip
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=cmd_demo)
@@ -214,22 +214,22 @@ def build_parser() -> argparse.ArgumentParser:
                        "(neural SDF from points) or box (fit an SDF box to images)")  # fmt: skip
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
     tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
-    _box_flags(tb)
+    add_box_flags(tb)
     tb.set_defaults(func=cmd_train_box, subparser=tb)
 
     tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
-    _nerf_flags(tn, "nerf")
+    add_nerf_flags(tn, "nerf")
     tn.set_defaults(func=cmd_train_nerf, subparser=tn)
 
     tv = tsub.add_parser(
         "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
         "--field volsdf with VolSDF's defaults"
     )  # fmt: skip
-    _nerf_flags(tv, "volsdf")
+    add_nerf_flags(tv, "volsdf")
     tv.set_defaults(func=cmd_train_nerf, subparser=tv)
 
     ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
-    _sdf_flags(ts)
+    add_sdf_flags(ts)
     ts.set_defaults(func=cmd_train_sdf, subparser=ts)
     _registered_train_commands(tsub)
 
@@ -271,9 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
         "data", help="check a dataset folder and print a JSON summary (format, splits, cameras)"
     )
     dp.add_argument("dir", help="Blender, nerfstudio, COLMAP or LLFF folder")
-    _data_format_flags(dp)
+    add_data_format_flags(dp)
     dp.add_argument(
-        "--downscale", type=_positive(int), default=1,
+        "--downscale", type=positive_arg(int), default=1,
         help="load the images at 1/N resolution, as train --downscale N (default 1)",
     )  # fmt: skip
     dp.add_argument(
@@ -318,7 +318,7 @@ def main(argv=None) -> int:
         if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
                             "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
-        with _sigterm_exits(), recorded, viewer_after_training(args):  # (train --viewer)
+        with sigterm_exits(), recorded, viewer_after_training(args):  # (train --viewer)
             return args.func(args)
 
     code = exit_status(f"warpnerf {args.command}", run)

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..io import check_foreign, json_dumps, remove_own
-from ._common import _check_out, _device, _existing
+from ._common import check_existing, check_out, parse_device
 
 
 def _renders(run, command: str) -> None:
@@ -86,10 +86,10 @@ def _reads_run(cmd):
 def cmd_eval(args) -> int:
     from ..train.nerf_eval import evaluate_geometry, evaluate_run
 
-    _existing(args.run)
+    check_existing(args.run)
     _renders(args.run, "eval")
     if args.geometry is not None:  # reads the run, writes nothing: prints the figures
-        device = _device(args.device) if args.device else None
+        device = parse_device(args.device) if args.device else None
         _check_clean(args.clean)
         print(json_dumps(evaluate_geometry(args.run, args.geometry, args.mesh_resolution,
                                            args.geometry_points, device, clean=args.clean,
@@ -99,14 +99,14 @@ def cmd_eval(args) -> int:
     if args.clean is not None:
         raise UserError("--clean needs --geometry (eval) or the mesh command")
     if args.out:
-        _check_out(args.out)
+        check_out(args.out)
     elif Path(args.run).is_dir():
         sub = f"eval_{args.split}" + ("_sphere" if args.renderer == "sphere" else "")
-        _check_out(Path(args.run) / sub, "eval output")
+        check_out(Path(args.run) / sub, "eval output")
     m = evaluate_run(
         args.run,
         args.split,
-        device=_device(args.device) if args.device else None,
+        device=parse_device(args.device) if args.device else None,
         max_images=args.max_images,
         out_dir=args.out,
         chunk=args.chunk,
@@ -128,18 +128,18 @@ def cmd_eval(args) -> int:
 def cmd_render(args) -> int:
     from ..train.nerf_eval import render_run
 
-    _existing(args.run)
+    check_existing(args.run)
     _renders(args.run, "render")
     if Path(args.run).is_dir():
         name = args.path if args.path in ("spiral", "orbit") else Path(args.path).stem
         sub = f"render_{name}" + ("_sphere" if args.renderer == "sphere" else "")
-        _check_out(Path(args.run) / sub, "render output")
+        check_out(Path(args.run) / sub, "render output")
     res = render_run(
         args.run,
         args.path,
         args.frames,
         args.size,
-        device=_device(args.device) if args.device else None,
+        device=parse_device(args.device) if args.device else None,
         renderer=args.renderer,
         progress=not args.quiet,
     )
@@ -165,7 +165,7 @@ class _MeshSource(NamedTuple):
 def _mesh_source(args) -> _MeshSource:
     """What `warpnerf mesh` extracts: an SDF scene (on --device, default cpu) or a run (on its
     own device unless --device moves it)."""
-    dev = _device(args.device or "cpu")
+    dev = parse_device(args.device or "cpu")
     if (args.run is None) == (args.sdf is None):
         raise UserError("give a run folder or --sdf SCENE (one of them)")
     if args.sdf is not None:
@@ -179,7 +179,7 @@ def _mesh_source(args) -> _MeshSource:
                            f"sdf {args.sdf}", None, dev)  # fmt: skip
     from ..train.methods import method_of_run
 
-    _existing(args.run)
+    check_existing(args.run)
     method = method_of_run(args.run)
     if method.mesh is None:
         raise UserError(f"{args.run}: a {method.what} run has no surface for `warpnerf mesh` "
@@ -230,7 +230,7 @@ def cmd_mesh(args) -> int:
                         f"got {args.decimate}")  # fmt: skip
     if not args.out.endswith(".ply"):
         raise UserError(f"--out must be a .ply file, got {args.out}")
-    _check_out(args.out, file=True)
+    check_out(args.out, file=True)
     png = str(Path(args.out).with_suffix(".png"))
     if not args.no_screenshot:  # the named .ply is the user's to replace; a PNG beside it is not
         check_foreign([png])
@@ -343,14 +343,14 @@ def cmd_mesh(args) -> int:
 def cmd_export(args) -> int:
     from ..export import export_cameras, export_pointcloud
 
-    _existing(args.run)
+    check_existing(args.run)
     _renders(args.run, "export")
-    _check_out(args.out, file=True)
+    check_out(args.out, file=True)
     if args.what == "pointcloud":
         if not args.out.endswith(".ply"):
             raise UserError(f"--out must be a .ply file, got {args.out}")
         res = export_pointcloud(args.run, args.out, args.views, args.stride, args.min_opacity,
-                                _device(args.device) if args.device else None,
+                                parse_device(args.device) if args.device else None,
                                 progress=not args.quiet)  # fmt: skip
     else:
         res = export_cameras(args.run, args.out)

@@ -31,10 +31,10 @@ from ..train.presets import (
 )
 from ..train.sdf import SDFConfig
 from ._common import (
-    _check_out,
-    _device,
-    _existing,
-    _saved_config,
+    check_existing,
+    check_out,
+    parse_device,
+    saved_config,
 )
 from .view import live_hooks, tensorboard_every, watch_flags
 
@@ -47,7 +47,7 @@ def cmd_train_method(args) -> int:
     """`train <command>` of a registered method (train/methods.py) with a config and a
     trainer: the config from its flags, the method's trainer, its result printed as JSON."""
     method = args.method
-    _check_out(args.out)
+    check_out(args.out)
     cfg = method.config(**from_flags(method.config, args))
     with _resume_hint(args, getattr(cfg, "iters", None)):
         res = method.train(cfg, args.out, resume=args.resume, progress=not args.quiet)
@@ -76,7 +76,7 @@ def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
     (``new_config(args) -> (config, device)`` for a new run; on --resume :func:`_resumed`),
     ``train(config, device, resume=..., progress=..., tensorboard=..., hooks=...)``, and
     ``report(result)`` printed as JSON."""
-    _check_out(args.out)
+    check_out(args.out)
     cfg, device = _resumed(args, cls) if args.resume else new_config(args)
     with _resume_hint(args, cfg.iters):
         res = train(cfg, device, resume=args.resume, progress=not args.quiet,
@@ -94,7 +94,7 @@ def cmd_train_box(args) -> int:
         cfg = BoxFitConfig(**from_flags(BoxFitConfig, args))
         if not cfg.far > cfg.near >= 0:
             raise UserError(f"need 0 <= --near < --far, got --near {cfg.near} and --far {cfg.far}")
-        return cfg, _device(args.device or DEVICE)
+        return cfg, parse_device(args.device or DEVICE)
 
     def train(cfg, device, **kw):  # (a resumed fit reads its data folder from the run)
         data = None if args.resume else args.data
@@ -136,7 +136,7 @@ def _resume_device(args, cls):
         raise UserError("--resume needs --iters (the total number of steps to reach)")
     given = [k for k in _given_dests(args) if k not in _RESUME_FLAGS]
     if given:
-        saved = _saved_config(args.out)  # ({}: no run there, or no readable config: "drop")
+        saved = saved_config(args.out)  # ({}: no run there, or no readable config: "drop")
         changed = [(k, _saved_value(k, saved, cls) if saved else _UNKNOWN) for k in given]
         changed = [(k, s) for k, s in changed if not _same(k, getattr(args, k), s)]
         if changed:
@@ -152,8 +152,8 @@ def _resume_device(args, cls):
                 "(only --iters, --device and --max-seconds may change; flags equal to the saved "
                 "ones may stay)"
             )
-    _existing(args.out, "training run to continue (--out RUN --resume)")
-    return _device(args.device) if args.device else None
+    check_existing(args.out, "training run to continue (--out RUN --resume)")
+    return parse_device(args.device) if args.device else None
 
 
 _UNKNOWN = object()  # a saved value that cannot be known (no readable config.json)
@@ -265,7 +265,7 @@ def nerf_config_from_args(args):
     cls = VolSDFConfig if args.model == "volsdf" else NeRFConfig
     kw = from_flags(cls, args, groups=_GROUPS[args.model])
     kw["n_fine"] = args.fine_samples  # (None: not given, the preset's or FINE_SAMPLES)
-    kw["device"] = _device(args.device or cls.device)
+    kw["device"] = parse_device(args.device or cls.device)
     # --field auto: the hash field on CUDA, the paper's MLP on a CPU; --preset default on CUDA:
     # the measured GPU recipe (presets.NERF_PRESETS["gpu"]), saved as "gpu"
     auto = "auto" if cls is NeRFConfig else cls.field
@@ -366,10 +366,10 @@ def cmd_train_nerf(args) -> int:
             f"train volsdf trains an SDF field ({', '.join(sdf)}); use train nerf for --field "
             f"{'|'.join(fields_with(geometry='density'))}"
         )
-    _check_out(args.out)
+    check_out(args.out)
     if args.resume:
         cfg, device = _resumed(args, NeRFConfig)
-        field = _saved_config(args.out).get("field", "volsdf")
+        field = saved_config(args.out).get("field", "volsdf")
         if args.model == "volsdf" and field_traits(field).geometry != "sdf":
             raise UserError(
                 f"{args.out}: a NeRF run with --field {field}, not a VolSDF run; continue it with "
@@ -380,7 +380,7 @@ def cmd_train_nerf(args) -> int:
     # started by torchrun (WORLD_SIZE > 1): one rank of a data-parallel run (train/distributed.py)
     from ..train.distributed import from_env
 
-    want = cfg.device if not args.resume else device or _saved_config(args.out).get("device")
+    want = cfg.device if not args.resume else device or saved_config(args.out).get("device")
     dist, rank_device = from_env(str(want or "cpu"))
     if dist is not None:
         device = rank_device if args.resume else device
@@ -418,7 +418,7 @@ def cmd_train_sdf(args) -> int:
         kw = apply_preset(kw, preset_values(SDF_PRESETS, kw["preset"], kw["field"]))
         batch, layers = kw.get("batch", SDFConfig.batch), kw.get("n_layers", SDFConfig.n_layers)
         kw.update(n_random=batch, skip=max(1, layers // 2))
-        kw["device"] = _device(args.device or SDFConfig.device)
+        kw["device"] = parse_device(args.device or SDFConfig.device)
         return SDFConfig(**kw), None  # (the device is the config's)
 
     def report(m):
@@ -434,7 +434,7 @@ def cmd_train_sdf(args) -> int:
     return _train_command(args, SDFConfig, new_config, train, report)
 
 
-def _box_flags(tb) -> None:
+def add_box_flags(tb) -> None:
     """`train box`: BoxFitConfig's flags (warpnerf.options) and the command's own."""
     tb.add_argument("--data", help="folder with transforms*.json and PNG images")
     tb.add_argument("--out", required=True, help="run folder (config, checkpoint, result)")
@@ -451,7 +451,7 @@ def _box_flags(tb) -> None:
     add_flags(tb, BoxFitConfig, unset=("iters",))
 
 
-def _sdf_flags(ts) -> None:
+def add_sdf_flags(ts) -> None:
     """`train sdf`: SDFConfig's flags (warpnerf.options) and the command's own."""
     ts.add_argument("--points", help=SDFConfig.__dataclass_fields__["points"].metadata["help"])
     ts.add_argument("--out", required=True, help="run folder")
@@ -476,7 +476,7 @@ def _section_title(section) -> str:
     return f"{section.TITLE} (--field {', '.join(readers)})" if readers else section.TITLE
 
 
-def _nerf_flags(tn, model: str) -> None:
+def add_nerf_flags(tn, model: str) -> None:
     """The flags of `train nerf` and `train volsdf`: built from NeRFConfig / VolSDFConfig
     (warpnerf.options; defaults and help are the config's), plus the command's own."""
     cls = VolSDFConfig if model == "volsdf" else NeRFConfig

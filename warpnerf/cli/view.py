@@ -10,7 +10,7 @@ import sys
 
 from ..errors import UserError
 from ..options import number_type
-from ._common import _device, _existing, _positive
+from ._common import check_existing, parse_device, positive_arg
 
 
 def _host_port_flags(p, port_flag: str) -> None:
@@ -32,9 +32,9 @@ def view_flags(v) -> None:
                    help="longest side of the finest still frame, pixels (default 800; "
                    "where that would take long, still frames start smaller, ~2 s each, and "
                    "refine up to it)")  # fmt: skip
-    v.add_argument("--frame-ms", type=_positive(float), default=100.0,
+    v.add_argument("--frame-ms", type=positive_arg(float), default=100.0,
                    help="render time aimed at while the camera moves (default 100 ms)")  # fmt: skip
-    v.add_argument("--exit-after", type=_positive(float), default=None, metavar="S",
+    v.add_argument("--exit-after", type=positive_arg(float), default=None, metavar="S",
                    help="stop the server after S seconds (scripts, tests)")  # fmt: skip
 
 
@@ -48,7 +48,7 @@ def watch_flags(p) -> None:
     )
     p.add_argument(
         "--log-every",
-        type=_positive(int),
+        type=positive_arg(int),
         default=10,
         metavar="N",
         help="TensorBoard: scalars every N steps (default 10; history.json has all)",
@@ -144,8 +144,8 @@ def cmd_view(args) -> int:
     from ..viewer import Viewer, load_scene
 
     check_port(args.port)
-    _existing(args.run)
-    scene = load_scene(args.run, _device(args.device) if args.device else None, args.mesh)
+    check_existing(args.run)
+    scene = load_scene(args.run, parse_device(args.device) if args.device else None, args.mesh)
     viewer = Viewer(
         scene, host=args.host, port=args.port, run=args.run,
         max_resolution=args.max_resolution, frame_seconds=args.frame_ms / 1e3,

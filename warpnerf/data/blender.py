@@ -23,10 +23,10 @@ import torch
 
 from ..errors import UserError
 from ..jsonio import read_json
-from ._images import read_all, read_image
 from ._paths import OPT_IN, outside_reason
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format
+from .images import read_all, read_image
 
 __all__ = ["load_blender", "find_transforms", "detect_blender", "data_root", "INDEX_FILES"]
 
@@ -78,7 +78,7 @@ def check_folder(root) -> Path:
 def has_nerfstudio_fields(path: Path) -> bool:
     """Whether a ``transforms.json`` carries nerfstudio camera fields (``fl_x``, ``w``, ``h`` or
     ``camera_model``, at the top level or in ``frames[0]``)."""
-    js, frames = _read_json(path)
+    js, frames = read_transforms(path)
     return any(k in js or k in frames[0] for k in _NERFSTUDIO_KEYS)
 
 
@@ -91,11 +91,11 @@ def detect_blender(root: Path, split: str) -> bool:
     return (
         path.is_file()
         and not has_nerfstudio_fields(path)
-        and "camera_angle_x" in _read_json(path)[0]
+        and "camera_angle_x" in read_transforms(path)[0]
     )
 
 
-def _read_json(path: Path) -> tuple[dict, list]:
+def read_transforms(path: Path) -> tuple[dict, list]:
     """Parses a transforms file: a JSON object whose 'frames' is a non-empty list of objects."""
     js = read_json(path, "transforms file")
     if not isinstance(js, dict):
@@ -106,7 +106,7 @@ def _read_json(path: Path) -> tuple[dict, list]:
     return js, frames
 
 
-def _number(v, field: str, path, positive: bool = True, integer: bool = False) -> float:
+def check_number(v, field: str, path, positive: bool = True, integer: bool = False) -> float:
     """``v`` as a float, or UserError naming ``path`` and ``field`` (finite; > 0; integral)."""
     ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
     ok = ok and (not positive or v > 0) and (not integer or float(v).is_integer())
@@ -178,7 +178,7 @@ def _confine(root: Path, file_path: str, img_path, i, path) -> None:
         )
 
 
-def _composite(img: np.ndarray, bg: np.ndarray) -> np.ndarray:
+def composite_rgba(img: np.ndarray, bg: np.ndarray) -> np.ndarray:
     """RGBA (straight alpha) over ``bg``: rgb * a + bg * (1 - a); RGB passes through."""
     if img.shape[-1] == 4:
         a = img[..., 3:]
@@ -186,7 +186,7 @@ def _composite(img: np.ndarray, bg: np.ndarray) -> np.ndarray:
     return img
 
 
-def _area_downscale(img: np.ndarray, d: int) -> np.ndarray:
+def area_downscale(img: np.ndarray, d: int) -> np.ndarray:
     """Mean over d x d blocks after cropping the bottom / right to a multiple of d."""
     if d == 1:
         return img
@@ -194,7 +194,7 @@ def _area_downscale(img: np.ndarray, d: int) -> np.ndarray:
     return img[: h * d, : w * d].reshape(h, d, w, d, img.shape[-1]).mean((1, 3))
 
 
-def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
+def load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
     """Reads, validates, composites and downscales frames[indices].
 
     ``sizes`` (optional): the declared (h, w) of each selected frame, checked against the file.
@@ -214,12 +214,12 @@ def _load_frames(root, path, frames, indices, req: LoadRequest, sizes=None):
         hw = img.shape[:2]
         if hw[0] < downscale or hw[1] < downscale:  # (checked for the first in order below)
             return img[:0, :0, :3]
-        rgb = _composite(img, bg)
+        rgb = composite_rgba(img, bg)
         if req.alpha:  # the alpha as a fourth channel (1 without one), split off by make_dataset
             a = img[..., 3:] if img.shape[-1] == 4 else np.ones_like(img[..., :1])
             alphas[j] = img.shape[-1] == 4
             rgb = np.concatenate([rgb, a], -1)
-        return _area_downscale(rgb, downscale).astype(np.float32)
+        return area_downscale(rgb, downscale).astype(np.float32)
 
     first = None
 
@@ -291,7 +291,7 @@ def load_blender(root, split: str = "train", **options) -> Dataset:
     Every ``file_path`` must stay inside ``root``: relative, without ``..``, and resolving
     (through symlinks) inside the folder, unless ``allow_outside=True``
     (``--allow-outside-paths``). Images are read with bounded decoding
-    (:func:`warpnerf.data._images.read_image`: PNG or JPEG, size checked from the header, the
+    (:func:`warpnerf.data.images.read_image`: PNG or JPEG, size checked from the header, the
     first frame only, colour modes converted to RGB(A)).
 
     ``options`` are those of :class:`~warpnerf.data.dataset.LoadRequest` (background,
@@ -304,7 +304,7 @@ def load_blender(root, split: str = "train", **options) -> Dataset:
 def _load(req: LoadRequest) -> Dataset:
     root = check_folder(req.root)
     path = find_transforms(root, req.split)
-    js, frames = _read_json(path)
+    js, frames = read_transforms(path)
     if "camera_angle_x" not in js and "fl_x" not in js:
         raise UserError(f"{path}: needs 'camera_angle_x' (radians) or 'fl_x'/'fl_y' (pixels)")
     if path.name == "transforms.json":
@@ -313,17 +313,17 @@ def _load(req: LoadRequest) -> Dataset:
         indices = list(range(len(frames)))[: req.max_images]
     # Intrinsics are validated before reading any image.
     if "fl_x" in js:
-        fx = _number(js["fl_x"], "fl_x", path)
-        fy = _number(js["fl_y"], "fl_y", path) if "fl_y" in js else fx
+        fx = check_number(js["fl_x"], "fl_x", path)
+        fy = check_number(js["fl_y"], "fl_y", path) if "fl_y" in js else fx
     else:
-        fov = _number(js["camera_angle_x"], "camera_angle_x", path)
+        fov = check_number(js["camera_angle_x"], "camera_angle_x", path)
         if fov >= math.pi:
             raise UserError(f"{path}: field 'camera_angle_x' must be in (0, pi) radians, got {fov}")
     downscale = req.downscale
-    images, c2w, paths, (full_h, full_w) = _load_frames(root, path, frames, indices, req)
+    images, c2w, paths, (full_h, full_w) = load_frames(root, path, frames, indices, req)
     if "fl_x" in js:
-        cx = _number(js["cx"], "cx", path, positive=False) if "cx" in js else 0.5 * full_w
-        cy = _number(js["cy"], "cy", path, positive=False) if "cy" in js else 0.5 * full_h
+        cx = check_number(js["cx"], "cx", path, positive=False) if "cx" in js else 0.5 * full_w
+        cy = check_number(js["cy"], "cy", path, positive=False) if "cy" in js else 0.5 * full_h
     else:
         fx = fy = 0.5 * full_w / math.tan(0.5 * fov)
         cx, cy = 0.5 * full_w, 0.5 * full_h

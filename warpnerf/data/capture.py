@@ -39,13 +39,13 @@ import torch
 
 from ..errors import UserError
 from ..files import open_input
-from ._arrays import load_npy
-from ._images import read_all, read_image
 from ._paths import OPT_IN, outside_reason
-from .blender import _area_downscale, _composite, data_root
+from .arrays import load_npy
+from .blender import area_downscale, composite_rgba, data_root
 from .cameras import MAX_CENTRE, check_intrinsics, check_poses
 from .colmap import MAX_WORLD, find_model, qvec_to_rotmat, read_model
 from .dataset import HOLDOUT, REGISTRY, Dataset, LoadRequest, holdout_indices, register_format
+from .images import read_all, read_image
 
 __all__ = ["detect_capture", "capture_info", "load_capture", "reprojection_errors", "NDC_NEAR"]
 
@@ -560,7 +560,7 @@ def _load(req: LoadRequest, fmt: str | None) -> Dataset:
             )
         if min(img.shape[:2]) < extra:
             raise UserError(f"downscale {extra} is larger than the image {p}")
-        return _area_downscale(_composite(img, bg), extra).astype(np.float32)
+        return area_downscale(composite_rgba(img, bg), extra).astype(np.float32)
 
     images = read_all(paths, read_one, dtype=np.uint8 if req.uint8 else np.float32)
     return Dataset(

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from ..errors import UserError
 from . import capture as _capture
-from .blender import _read_json, check_folder, data_root, has_nerfstudio_fields
+from .blender import check_folder, data_root, has_nerfstudio_fields, read_transforms
 from .dataset import HOLDOUT, REGISTRY, Dataset, FormatChoices, LoadRequest, is_capture
 
 __all__ = ["load_dataset", "detect_format", "data_summary", "FORMATS"]
@@ -42,7 +42,7 @@ def detect_format(root, split: str = "train") -> str:
             return fmt.name
     path = root / "transforms.json"
     if path.is_file():
-        _read_json(path)  # a malformed file is named first
+        read_transforms(path)  # a malformed file is named first
         if not has_nerfstudio_fields(path):
             raise UserError(
                 f"{path}: no camera fields: needs 'camera_angle_x' (Blender) or "

@@ -36,12 +36,12 @@ import numpy as np
 
 from ..errors import UserError
 from .blender import (
-    _load_frames,
-    _number,
-    _read_json,
     check_folder,
+    check_number,
     has_nerfstudio_fields,
+    load_frames,
     make_dataset,
+    read_transforms,
 )
 from .cameras import check_intrinsics, scene_bounds_problem
 from .dataset import Dataset, LoadRequest, register_format
@@ -71,7 +71,7 @@ def _frame_camera(js: dict, frame: dict, i: int, path) -> tuple[list[float], tup
         )
     for key in DISTORTION_FIELDS:
         v, name = _field(js, frame, i, key)
-        if v is not None and _number(v, name, path, positive=False) != 0.0:
+        if v is not None and check_number(v, name, path, positive=False) != 0.0:
             raise UserError(
                 f"{path}: field '{name}' = {v!r}: non-zero lens distortion is not supported "
                 "(pinhole cameras only); undistort the images first"
@@ -85,7 +85,7 @@ def _frame_camera(js: dict, frame: dict, i: int, path) -> tuple[list[float], tup
                 f"nerfstudio format needs {', '.join(_REQUIRED)})"
             )
         positive, integer = key not in ("cx", "cy"), key in ("w", "h")
-        vals[key] = _number(v, name, path, positive=positive, integer=integer)
+        vals[key] = check_number(v, name, path, positive=positive, integer=integer)
     k = [vals["fl_x"], vals["fl_y"], vals["cx"], vals["cy"]]
     hw = (int(vals["h"]), int(vals["w"]))
     check_intrinsics([k], hw[::-1], path, lambda _: f"frames[{i}] (fl_x, fl_y, cx, cy, w, h)")
@@ -117,7 +117,7 @@ def _load(req: LoadRequest) -> Dataset:
     path = root / "transforms.json"
     if not path.is_file():
         raise UserError(f"{root}: no transforms.json found (nerfstudio format)")
-    js, frames = _read_json(path)
+    js, frames = read_transforms(path)
     # Every frame's camera is checked (JSON only, cheap), whichever split is loaded.
     cams = [_frame_camera(js, fr, i, path) for i, fr in enumerate(frames)]
     indices = _split_indices(frames, req, path)
@@ -130,7 +130,7 @@ def _load(req: LoadRequest) -> Dataset:
                 f"{sizes[0][1]}x{sizes[0][0]} (fields 'w', 'h'); all images of a split must "
                 "have one size"
             )
-    images, c2w, paths, _ = _load_frames(root, path, frames, indices, req, sizes)
+    images, c2w, paths, _ = load_frames(root, path, frames, indices, req, sizes)
     k = np.array([c for c, _ in cams], dtype=np.float64) / req.downscale
     return make_dataset(req, images, c2w, k, paths, "nerfstudio")
 
@@ -161,7 +161,7 @@ def exported_scene(root) -> dict | None:
     path = Path(root) / "transforms.json"
     if not path.is_file():
         return None
-    js, _ = _read_json(path)
+    js, _ = read_transforms(path)
     sc = js.get("warpnerf_scene")
     if sc is None:
         return None
@@ -169,7 +169,7 @@ def exported_scene(root) -> dict | None:
     if not isinstance(sc, dict) or not {"near", "far", "aabb"} <= set(sc) <= keys:
         raise UserError(f"{path}: field 'warpnerf_scene' must be an object with near, far, aabb "
                         "(and optionally inner)")  # fmt: skip
-    vals = {k: _number(sc[k], f"warpnerf_scene.{k}", path, positive=k != "near") for k in sc}
+    vals = {k: check_number(sc[k], f"warpnerf_scene.{k}", path, positive=k != "near") for k in sc}
     problem = scene_bounds_problem(vals["near"], vals["far"], vals["aabb"], vals.get("inner"))
     if problem is not None:  # (the rule of a run's saved scene)
         raise UserError(f"{path}: field 'warpnerf_scene.{problem[0]}' {problem[1]}")

@@ -10,7 +10,7 @@ import contextlib
 
 import torch
 
-from . import _bridge
+from . import bridge
 
 __all__ = ["render_packed", "render_dense", "packed_info_from_ray_indices"]
 
@@ -29,7 +29,7 @@ def composite_kernels(float32_sigma: str = "tiled", block_dim: int = 32):
     round-off (tests/test_composite_tiled.py)."""
     if float32_sigma not in ("tiled", "sequential"):
         raise ValueError(f"float32_sigma must be 'tiled' or 'sequential', got {float32_sigma!r}")
-    block_dim = _bridge.check_int("block_dim", block_dim, lo=1, hi=1024)
+    block_dim = bridge.check_int("block_dim", block_dim, lo=1, hi=1024)
     saved = dict(_IMPL)
     _IMPL.update(float32_sigma=float32_sigma, block_dim=block_dim)
     try:
@@ -72,12 +72,12 @@ class _Composite(torch.autograd.Function):
         rgb, depth, opacity, t_final = new(n_rays, 3), new(n_rays), new(n_rays), new(n_rays)
         trans, weights = new(n), new(n if want_weights else 0)
         n_eff = new(n_rays, dtype=torch.int32)
-        a = _bridge.arr
+        a = bridge.arr
         head = [a(packed_info), n_dense, a(t_starts), a(t_ends), a(values)]
         tail = [
             a(rgbs),
             a(background),
-            _bridge.scalar(t_threshold, dt),
+            bridge.scalar(t_threshold, dt),
             int(want_weights),
             a(rgb),
             a(depth),
@@ -89,11 +89,9 @@ class _Composite(torch.autograd.Function):
         ]
         ctx.tiled = _use_tiled(values, use_alpha)
         if ctx.tiled:
-            _bridge.launch_tiled(
-                K.composite_fwd_tiled, n_rays, _IMPL["block_dim"], head + tail, dev
-            )
+            bridge.launch_tiled(K.composite_fwd_tiled, n_rays, _IMPL["block_dim"], head + tail, dev)
         else:
-            _bridge.launch(K.composite_fwd, n_rays, head + [int(use_alpha)] + tail, dev)
+            bridge.launch(K.composite_fwd, n_rays, head + [int(use_alpha)] + tail, dev)
         ctx.save_for_backward(
             packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final
         )
@@ -122,15 +120,15 @@ class _Composite(torch.autograd.Function):
         # zero gradient; the kernels write every sample that a ray's range covers
         v_values = torch.zeros_like(values)
         v_rgbs = torch.zeros_like(rgbs)
-        a = _bridge.arr
+        a = bridge.arr
         head = [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values)]
         upstream = [a(v_rgb), a(v_depth), a(v_opacity), a(v_weights), a(v_values), a(v_rgbs)]
         if ctx.tiled:
             inputs = head + [a(rgbs), a(background), a(trans), a(n_eff), a(t_final)] + upstream
-            _bridge.launch_tiled(K.composite_bwd_tiled, n_rays, _IMPL["block_dim"], inputs, dev)
+            bridge.launch_tiled(K.composite_bwd_tiled, n_rays, _IMPL["block_dim"], inputs, dev)
         else:
             inputs = head + [int(ctx.use_alpha), a(rgbs), a(background), a(trans), a(n_eff)]
-            _bridge.launch(K.composite_bwd, n_rays, inputs + upstream, dev)
+            bridge.launch(K.composite_bwd, n_rays, inputs + upstream, dev)
         v_background = None
         if ctx.needs_input_grad[7]:
             # d rgb / d background = T_m, the forward's own final transmittance (not 1 - opacity,
@@ -146,13 +144,13 @@ def packed_info_from_ray_indices(ray_indices: torch.Tensor, n_rays: int) -> torc
     Raises ValueError unless the indices are sorted and lie in [0, n_rays) (one pass over them and
     one host sync on CUDA), IndexDtypeError (a TypeError and ValueError) for a float tensor.
     """
-    n_rays = _bridge.check_int("n_rays", n_rays)
-    _bridge.check_index("ray_indices", ray_indices, (None,))
+    n_rays = bridge.check_int("n_rays", n_rays)
+    bridge.check_index("ray_indices", ray_indices, (None,))
     n = ray_indices.shape[0]
-    if n > _bridge.INT32_MAX:
+    if n > bridge.INT32_MAX:
         raise ValueError(f"{n} samples exceed int32 offsets: render fewer samples at once")
     if n:
-        ordered, lo_ok, hi_ok = _bridge.host_flags(
+        ordered, lo_ok, hi_ok = bridge.host_flags(
             (ray_indices[1:] >= ray_indices[:-1]).all(),
             ray_indices[0] >= 0,  # sorted: the ends bound all of them
             ray_indices[-1] < n_rays,
@@ -166,7 +164,7 @@ def packed_info_from_ray_indices(ray_indices: torch.Tensor, n_rays: int) -> torc
     return torch.stack([starts, counts], -1).to(torch.int32)
 
 
-def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
+def check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
     """Raises ValueError unless ``packed_info`` [n_rays, 2] lays out exactly the samples of the
     sorted ``ray_indices`` [n]: start, count >= 0, start + count <= n, every ray's first and last
     sample belong to it, and the counts add up to n (so segments are disjoint and cover every
@@ -188,7 +186,7 @@ def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
             (ri[0] >= 0) & (ri[-1] < n_rays),
             ((first == rays) & (last == rays) | (counts <= 0)).all(),
         ]
-    ok = _bridge.host_flags(*flags) + [1] * (6 - len(flags))
+    ok = bridge.host_flags(*flags) + [1] * (6 - len(flags))
     if not ok[0]:
         raise ValueError("packed_info has a negative start or count")
     if not ok[1]:
@@ -204,10 +202,11 @@ def _check_packed_info(packed_info, ray_indices, n: int, n_rays: int) -> None:
         )
 
 
-def _background(background, n_rays, device, dtype):
+def background_rows(background, n_rays, device, dtype) -> torch.Tensor:
+    """The background as [1, 3] or [n_rays, 3] rows (black for None); checks its shape."""
     if background is None:
         return torch.zeros(1, 3, device=device, dtype=dtype)
-    bg = _bridge.constant(background, device, dtype)  # (numbers: made once, no sync per call)
+    bg = bridge.constant(background, device, dtype)  # (numbers: made once, no sync per call)
     if bg.dim() == 0:
         bg = bg.expand(3)
     if bg.shape == (3,):
@@ -219,7 +218,8 @@ def _background(background, n_rays, device, dtype):
     )
 
 
-def _values(sigmas, alphas):
+def density_or_alpha(sigmas, alphas) -> tuple:
+    """(values, 1 if they are alphas else 0): exactly one of sigmas, alphas must be given."""
     if (sigmas is None) == (alphas is None):
         raise ValueError("pass exactly one of sigmas (densities) or alphas (per-sample opacities)")
     return (sigmas, 0) if alphas is None else (alphas, 1)
@@ -266,28 +266,28 @@ def render_packed(
     Returns:
         rgb [n_rays, 3], depth [n_rays], opacity [n_rays] (and weights [n] if return_weights).
     """
-    values, use_alpha = _values(sigmas, alphas)
-    n_rays = _bridge.check_int("n_rays", n_rays)
+    values, use_alpha = density_or_alpha(sigmas, alphas)
+    n_rays = bridge.check_int("n_rays", n_rays)
     n = values.shape[0] if values.dim() == 1 else -1
     dev, dt = values.device, values.dtype
-    _bridge.check_float("sigmas" if not use_alpha else "alphas", values, (None,))
+    bridge.check_float("sigmas" if not use_alpha else "alphas", values, (None,))
     for name, t, shape in (
         ("t_starts", t_starts, (n,)),
         ("t_ends", t_ends, (n,)),
         ("rgbs", rgbs, (n, 3)),
     ):
-        _bridge.check_float(name, t, shape, dt, dev)
-    if n > _bridge.INT32_MAX:
+        bridge.check_float(name, t, shape, dt, dev)
+    if n > bridge.INT32_MAX:
         raise ValueError(f"{n} samples exceed int32 offsets: render fewer samples at once")
-    _bridge.check_index("ray_indices", ray_indices, (n,))
+    bridge.check_index("ray_indices", ray_indices, (n,))
     if packed_info is None:
         packed_info = packed_info_from_ray_indices(ray_indices.to(dev), n_rays)
     else:
-        _bridge.check_index("packed_info", packed_info, (n_rays, 2))
+        bridge.check_index("packed_info", packed_info, (n_rays, 2))
         packed_info = packed_info.to(dev)
         if check:
-            _check_packed_info(packed_info, ray_indices.to(dev), n, n_rays)
-    bg = _background(background, n_rays, dev, dt)
+            check_packed_info(packed_info, ray_indices.to(dev), n, n_rays)
+    bg = background_rows(background, n_rays, dev, dt)
     rgb, depth, opacity, weights = _Composite.apply(
         packed_info.to(dev, torch.int32).contiguous(),
         0,
@@ -319,11 +319,11 @@ def render_dense(
     Returns:
         rgb [n_rays, 3], depth [n_rays], opacity [n_rays] (and weights [n_rays, n_samples]).
     """
-    values, use_alpha = _values(sigmas, alphas)
+    values, use_alpha = density_or_alpha(sigmas, alphas)
     name = "alphas" if use_alpha else "sigmas"
-    _bridge.check_float(name, values, (None, None))
+    bridge.check_float(name, values, (None, None))
     n_rays, n_s = values.shape
-    if values.numel() > _bridge.INT32_MAX:
+    if values.numel() > bridge.INT32_MAX:
         raise ValueError(f"{values.numel()} samples exceed int32 offsets: render fewer at once")
     dev, dt = values.device, values.dtype
     for nm, t, shape in (
@@ -331,8 +331,8 @@ def render_dense(
         ("t_ends", t_ends, (n_rays, n_s)),
         ("rgbs", rgbs, (n_rays, n_s, 3)),
     ):
-        _bridge.check_float(nm, t, shape, dt, dev)
-    bg = _background(background, n_rays, dev, dt)
+        bridge.check_float(nm, t, shape, dt, dev)
+    bg = background_rows(background, n_rays, dev, dt)
     empty_info = torch.empty(n_rays, 2, device=dev, dtype=torch.int32)
     if n_s == 0:
         rgb = bg.expand(n_rays, 3) + 0 * values.sum()

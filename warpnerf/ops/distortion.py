@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from . import _bridge
-from .composite import _check_packed_info, packed_info_from_ray_indices
+from . import bridge
+from .composite import check_packed_info, packed_info_from_ray_indices
 
 __all__ = ["distortion_loss"]
 
@@ -18,8 +18,8 @@ class _Distortion(torch.autograd.Function):
 
         n_rays = packed_info.shape[0]
         out = torch.empty(n_rays, device=weights.device, dtype=weights.dtype)
-        a = _bridge.arr
-        _bridge.launch(K.distortion_fwd, n_rays,
+        a = bridge.arr
+        bridge.launch(K.distortion_fwd, n_rays,
                        [a(packed_info), a(s_starts), a(s_ends), a(weights), a(out)],
                        weights.device)  # fmt: skip
         ctx.save_for_backward(packed_info, s_starts, s_ends, weights)
@@ -31,8 +31,8 @@ class _Distortion(torch.autograd.Function):
 
         packed_info, s_starts, s_ends, weights = ctx.saved_tensors
         v_weights = torch.zeros_like(weights)  # (samples of no ray keep a zero gradient)
-        a = _bridge.arr
-        _bridge.launch(K.distortion_bwd, packed_info.shape[0],
+        a = bridge.arr
+        bridge.launch(K.distortion_bwd, packed_info.shape[0],
                        [a(packed_info), a(s_starts), a(s_ends), a(weights),
                         a(v_loss.contiguous()), a(v_weights)], weights.device)  # fmt: skip
         return None, None, None, v_weights
@@ -60,27 +60,27 @@ def distortion_loss(
     CUDA; ``check=False`` is for the library's own marched samples. Rays with no samples get 0;
     a NaN or Inf input makes its ray's loss NaN/Inf.
     """
-    n_rays = _bridge.check_int("n_rays", n_rays)
+    n_rays = bridge.check_int("n_rays", n_rays)
     n = weights.shape[0] if weights.dim() == 1 else -1
     dev, dt = weights.device, weights.dtype
-    _bridge.check_float("weights", weights, (None,))
+    bridge.check_float("weights", weights, (None,))
     for name, t in (("s_starts", s_starts), ("s_ends", s_ends)):
-        _bridge.check_float(name, t, (n,), dt, dev)
-    if n > _bridge.INT32_MAX:
+        bridge.check_float(name, t, (n,), dt, dev)
+    if n > bridge.INT32_MAX:
         raise ValueError(f"{n} samples exceed int32 offsets")
-    _bridge.check_index("ray_indices", ray_indices, (n,))
+    bridge.check_index("ray_indices", ray_indices, (n,))
     ri = ray_indices.to(dev)
     if packed_info is None:
         packed_info = packed_info_from_ray_indices(ri, n_rays)
     else:
-        _bridge.check_index("packed_info", packed_info, (n_rays, 2))
+        bridge.check_index("packed_info", packed_info, (n_rays, 2))
         packed_info = packed_info.to(dev)
         if check:
-            _check_packed_info(packed_info, ri, n, n_rays)
+            check_packed_info(packed_info, ri, n, n_rays)
     if check and n:
         m = s_starts + s_ends
         same_ray = ri[1:] == ri[:-1]
-        ordered, forward = _bridge.host_flags(
+        ordered, forward = bridge.host_flags(
             (~same_ray | ~(m[1:] < m[:-1])).all(), ~(s_ends < s_starts).any()
         )
         if not forward:

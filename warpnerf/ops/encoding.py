@@ -14,7 +14,7 @@ from functools import cached_property
 
 import torch
 
-from . import _bridge
+from . import bridge
 
 __all__ = ["HashGrid", "hash_encode", "hash_encode_given"]
 
@@ -33,7 +33,7 @@ class HashGrid:
 
     def __post_init__(self):
         for name in ("n_levels", "n_features", "log2_size", "base_res", "max_res"):
-            _bridge.check_int(name, getattr(self, name), lo=-(2**62), hi=2**62)
+            bridge.check_int(name, getattr(self, name), lo=-(2**62), hi=2**62)
         if not (1 <= self.n_levels <= 64 and 1 <= self.n_features <= 64):
             raise ValueError(
                 f"n_levels and n_features must be in [1, 64], got {self.n_levels}, "
@@ -45,7 +45,7 @@ class HashGrid:
             raise ValueError(
                 f"need 1 <= base_res <= max_res <= 2^20, got {self.base_res}, {self.max_res}"
             )
-        if self.n_rows * self.n_features > _bridge.INT32_MAX:  # the kernels index rows in int32
+        if self.n_rows * self.n_features > bridge.INT32_MAX:  # the kernels index rows in int32
             raise ValueError(
                 f"the table would have {self.n_rows} rows x {self.n_features} features, more than "
                 "int32 indices reach: use fewer levels or a smaller log2_size"
@@ -113,10 +113,10 @@ class _HashEncode(torch.autograd.Function):
     def forward(ctx, x, table, grid):
         from warpnerf.kernels import encoding as K
 
-        lv = [_bridge.arr(t) for t in grid.level_tensors(x.device)]
+        lv = [bridge.arr(t) for t in grid.level_tensors(x.device)]
         out = torch.empty(x.shape[0], grid.out_dim, device=x.device, dtype=x.dtype)
-        a = _bridge.arr
-        _bridge.launch(
+        a = bridge.arr
+        bridge.launch(
             K.hash_encode_fwd,
             x.shape[0] * grid.n_levels,
             [a(x), a(table), *lv, grid.n_levels, a(out)],
@@ -133,14 +133,14 @@ class _HashEncode(torch.autograd.Function):
 
         x, table = ctx.saved_tensors
         grid = ctx.grid
-        lv = [_bridge.arr(t) for t in grid.level_tensors(x.device)]
-        a = _bridge.arr
+        lv = [bridge.arr(t) for t in grid.level_tensors(x.device)]
+        a = bridge.arr
         v_out = v_out.contiguous()
         v_table = v_x = None
         if ctx.needs_input_grad[1]:
             v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
             pairs = _IMPL["pairs"] and x.dtype == torch.float32 and grid.n_features % 2 == 0
-            _bridge.launch(
+            bridge.launch(
                 K.hash_encode_bwd_pairs if pairs else K.hash_encode_bwd,
                 x.shape[0] * grid.n_levels,
                 [a(x), a(v_out), *lv, grid.n_levels, a(v_table)],
@@ -148,7 +148,7 @@ class _HashEncode(torch.autograd.Function):
             )
         if ctx.needs_input_grad[0]:
             v_x = torch.empty_like(x)
-            _bridge.launch(
+            bridge.launch(
                 K.hash_encode_bwd_x,
                 x.shape[0],
                 [a(x), a(table), a(v_out), *lv, grid.n_levels, a(v_x)],
@@ -180,11 +180,11 @@ def hash_encode_given(x: torch.Tensor, table: torch.Tensor, grid, features: torc
     the encoding's gradient attached (the forward kernel does not run again)."""
     if not isinstance(grid, HashGrid):
         raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
-    _bridge.check_float("x", x, (None, 3))
-    _bridge.check_float(
+    bridge.check_float("x", x, (None, 3))
+    bridge.check_float(
         "table", table, (grid.n_rows, grid.n_features), dtype=x.dtype, device=x.device
     )
-    _bridge.check_float("features", features, (x.shape[0], grid.out_dim), x.dtype, x.device)
+    bridge.check_float("features", features, (x.shape[0], grid.out_dim), x.dtype, x.device)
     return _HashEncodeGiven.apply(x.contiguous(), table.contiguous(), grid, features)
 
 
@@ -201,11 +201,11 @@ def hash_encode(
     """
     if not isinstance(grid, HashGrid):
         raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
-    _bridge.check_float("x", x, (None, 3))
-    _bridge.check_float(
+    bridge.check_float("x", x, (None, 3))
+    bridge.check_float(
         "table", table, (grid.n_rows, grid.n_features), dtype=x.dtype, device=x.device
     )
-    if x.shape[0] * grid.n_levels > _bridge.INT32_MAX:  # one thread per (point, level)
+    if x.shape[0] * grid.n_levels > bridge.INT32_MAX:  # one thread per (point, level)
         raise ValueError(
             f"{x.shape[0]} points x {grid.n_levels} levels exceed int32 thread indices: "
             "encode fewer points at once"

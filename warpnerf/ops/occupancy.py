@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _bridge
+from . import bridge
 from .rays import ray_aabb_intersect
 from .sampling import Samples
 
@@ -50,7 +50,7 @@ def _box(aabb):
 def _cell_geometry(aabb, res: int):
     from warpnerf.kernels import occupancy as K  # noqa: F401  (registers the module)
 
-    wp = _bridge._wp()
+    wp = bridge.load_warp()
     box = _box(aabb)
     size = (box[3:] - box[:3]) / res
     return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
@@ -59,9 +59,9 @@ def _cell_geometry(aabb, res: int):
 def _check_rays_and_bits(origins, directions, res, bits) -> tuple:
     """(n_rays, device) of a march's rays (float32 [n, 3] on one device) after checking them and
     the grid's packed ``bits`` (uint8 [res^3 / 8] on the same device); ValueError otherwise."""
-    _bridge.check_float("origins", origins, (None, 3), torch.float32)
+    bridge.check_float("origins", origins, (None, 3), torch.float32)
     n_rays, dev = origins.shape[0], origins.device
-    _bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
+    bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
     _check_res(res)
     if bits.dtype != torch.uint8 or bits.shape != (res**3 // 8,) or bits.device != dev:
         raise ValueError(f"bits must be a uint8 tensor [{res**3 // 8}] on {dev}")
@@ -82,7 +82,7 @@ def _check_cells(cells: torch.Tensor, n_cells: int, more=()) -> list:
     if cells.numel():
         lo, hi = torch.aminmax(cells)
         flags.append((lo >= 0) & (hi < n_cells))
-    got = _bridge.host_flags(*flags)
+    got = bridge.host_flags(*flags)
     if cells.numel() and not got[-1]:
         raise ValueError(f"cells must lie in [0, {n_cells}) (the grid's res^3 cells)")
     return got[: len(more)]
@@ -104,16 +104,16 @@ def grid_cell_points(
     from warpnerf.kernels import occupancy as K
 
     _check_res(res)
-    _bridge.check_index("cells", cells, (None,))
+    bridge.check_index("cells", cells, (None,))
     m, dev = cells.shape[0], cells.device
-    _bridge.check_float("jitter", jitter, (m, 3), torch.float32, dev)
+    bridge.check_float("jitter", jitter, (m, 3), torch.float32, dev)
     if check:
         _check_cells(cells, res**3)
     lo, size = _cell_geometry(aabb, res)
     points = torch.empty(m, 3, device=dev, dtype=torch.float32)
-    wp = _bridge._wp()
-    inputs = [_bridge.arr(cells.to(torch.int32)), _bridge.arr(jitter), res, lo, size]
-    _bridge.launch(K.cell_points, m, inputs + [_bridge.arr(points, wp.vec3)], dev)
+    wp = bridge.load_warp()
+    inputs = [bridge.arr(cells.to(torch.int32)), bridge.arr(jitter), res, lo, size]
+    bridge.launch(K.cell_points, m, inputs + [bridge.arr(points, wp.vec3)], dev)
     return points
 
 
@@ -129,9 +129,9 @@ def grid_ema_update(
     from warpnerf.kernels import occupancy as K
 
     dev = density.device
-    _bridge.check_float("density", density, (None,), torch.float32)
-    _bridge.check_index("cells", cells, (None,), dev)
-    _bridge.check_float("values", values, (cells.shape[0],), torch.float32, dev)
+    bridge.check_float("density", density, (None,), torch.float32)
+    bridge.check_index("cells", cells, (None,), dev)
+    bridge.check_float("values", values, (cells.shape[0],), torch.float32, dev)
     if not 0.0 <= decay <= 1.0:
         raise ValueError(f"decay must be in [0, 1], got {decay}")
     if values.numel():
@@ -141,10 +141,10 @@ def grid_ema_update(
                 "the field returned NaN densities; the occupancy grid cannot be updated"
             )
     newmax = torch.full_like(density, -1.0)
-    a = _bridge.arr
+    a = bridge.arr
     cells = cells.to(torch.int32)
-    _bridge.launch(K.scatter_max, cells.shape[0], [a(cells), a(values), a(newmax)], dev)
-    _bridge.launch(K.ema, density.shape[0], [a(newmax), float(decay), a(density)], dev)
+    bridge.launch(K.scatter_max, cells.shape[0], [a(cells), a(values), a(newmax)], dev)
+    bridge.launch(K.ema, density.shape[0], [a(newmax), float(decay), a(density)], dev)
     return density
 
 
@@ -152,13 +152,13 @@ def grid_pack_bits(density: torch.Tensor, threshold: float) -> torch.Tensor:
     """Bitfield [n_cells / 8] uint8 of ``density > threshold`` (bit c & 7 of byte c >> 3)."""
     from warpnerf.kernels import occupancy as K
 
-    _bridge.check_float("density", density, (None,), torch.float32)
+    bridge.check_float("density", density, (None,), torch.float32)
     n = density.shape[0]
     if n % 8:
         raise ValueError(f"the number of cells must be a multiple of 8, got {n}")
     bits = torch.empty(n // 8, device=density.device, dtype=torch.uint8)
-    a = _bridge.arr
-    _bridge.launch(K.pack_bits, n // 8, [a(density), float(threshold), a(bits)], density.device)
+    a = bridge.arr
+    bridge.launch(K.pack_bits, n // 8, [a(density), float(threshold), a(bits)], density.device)
     return bits
 
 
@@ -210,15 +210,15 @@ def march_rays(
     """
     from warpnerf.kernels import occupancy as K
 
-    wp = _bridge._wp()
+    wp = bridge.load_warp()
     n_rays, dev = _check_rays_and_bits(origins, directions, res, bits)
     if isinstance(dt, torch.Tensor) or not (dt > 0 and dt < float("inf")):
         raise ValueError(f"need dt > 0 (a finite float), got {dt}")
-    max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
-    if n_rays > _bridge.INT32_MAX:
+    max_samples = bridge.check_int("max_samples", max_samples, lo=1)
+    if n_rays > bridge.INT32_MAX:
         raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
-    near = _bridge.constant(near, dev, torch.float32).expand(n_rays)
-    far = _bridge.constant(far, dev, torch.float32).expand(n_rays)
+    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
     box = _box(aabb)
     t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
     t_lo = torch.maximum(t_in, near)
@@ -234,7 +234,7 @@ def march_rays(
     jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
     lo, size = _cell_geometry(box, res)
-    a = _bridge.arr
+    a = bridge.arr
     counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
     k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
     head = [
@@ -252,7 +252,7 @@ def march_rays(
         int(max_samples),
     ]
     no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
-    _bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
+    bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
     if capacity is not None:
         return _fill_fixed(K.march, head, counts, k_next, bad, capacity, dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
@@ -263,7 +263,7 @@ def march_rays(
         _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
     offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
-        _bridge.launch(
+        bridge.launch(
             K.march,
             n_rays,
             head + [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)],
@@ -276,7 +276,7 @@ def march_rays(
 def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> tuple:
     """The fill pass into ``capacity`` slots, with no host sync (see ``march_rays``'s
     ``capacity``): each ray keeps ``clamp(capacity - offset, 0, count)`` of its samples."""
-    capacity = _bridge.check_int("capacity", capacity, lo=1)
+    capacity = bridge.check_int("capacity", capacity, lo=1)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     offsets64 = csum - counts
     kept = torch.minimum((capacity - offsets64).clamp_min(0), counts.to(torch.int64))
@@ -285,9 +285,9 @@ def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> 
     t_starts = torch.zeros(capacity, device=dev, dtype=torch.float32)
     t_ends = torch.zeros(capacity, device=dev, dtype=torch.float32)
     ray_indices = torch.zeros(capacity, device=dev, dtype=torch.int32)
-    a = _bridge.arr
+    a = bridge.arr
     fill = [1, a(offsets), a(kept), a(k_next), a(t_starts), a(t_ends), a(ray_indices)]
-    _bridge.launch(kernel, counts.shape[0], head + fill, dev)
+    bridge.launch(kernel, counts.shape[0], head + fill, dev)
     total = csum[-1] if counts.numel() else torch.zeros((), device=dev, dtype=torch.int64)
     stats = torch.stack([total, (total - capacity).clamp_min(0), bad.sum()])
     packed_info = torch.stack([offsets, kept], -1)
@@ -311,17 +311,17 @@ def _lattice_inputs(jitter, k_begin, n_rays: int, dev, bad):
     values are out of range: jitter outside [0, 1) or NaN, k_begin below -1 or beyond int32)."""
     jit, kb = _empty_f(dev), _empty_i(dev)
     if jitter is not None:
-        _bridge.check_float("jitter", jitter, (n_rays,), device=dev)
+        bridge.check_float("jitter", jitter, (n_rays,), device=dev)
         jit = jitter.to(torch.float32).contiguous()  # checked as the kernel sees it
         bad = bad | ~((jit >= 0) & (jit < 1))  # NaN included
     if k_begin is not None:
-        _bridge.check_index("k_begin", k_begin, (n_rays,), dev)
+        bridge.check_index("k_begin", k_begin, (n_rays,), dev)
         if k_begin.dtype == torch.int32:
             bad = bad | (k_begin < -1)
             kb = k_begin.contiguous()
         else:
-            bad = bad | (k_begin < -1) | (k_begin > _bridge.INT32_MAX)
-            kb = k_begin.clamp(-1, _bridge.INT32_MAX).to(torch.int32).contiguous()
+            bad = bad | (k_begin < -1) | (k_begin > bridge.INT32_MAX)
+            kb = k_begin.clamp(-1, bridge.INT32_MAX).to(torch.int32).contiguous()
     return jit, kb, bad
 
 
@@ -387,17 +387,17 @@ def march_rays_contracted(
     thousands of ``a`` costs only a few thousand steps with a cone)."""
     from warpnerf.kernels import occupancy as K
 
-    wp = _bridge._wp()
+    wp = bridge.load_warp()
     n_rays, dev = _check_rays_and_bits(origins, directions, res, bits)
     for name, v, ok in (("a", a, a > 0), ("dt", dt, dt > 0), ("cone", cone, cone >= 0)):
         if isinstance(v, torch.Tensor) or not (ok and v < float("inf")):
             raise ValueError(f"need a finite float {name} ({'>= 0' if name == 'cone' else '> 0'})"
                              f", got {v}")  # fmt: skip
-    max_samples = _bridge.check_int("max_samples", max_samples, lo=1)
-    if n_rays > _bridge.INT32_MAX:
+    max_samples = bridge.check_int("max_samples", max_samples, lo=1)
+    if n_rays > bridge.INT32_MAX:
         raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
-    near = _bridge.constant(near, dev, torch.float32).expand(n_rays)
-    far = _bridge.constant(far, dev, torch.float32).expand(n_rays)
+    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
     s_lo = lattice_s(near.clamp_min(0), float(dt), float(cone))
     s_hi = lattice_s(far.clamp_min(0), float(dt), float(cone))
     # as in march_rays: refused rays get no samples, the error comes at the one host sync
@@ -407,7 +407,7 @@ def march_rays_contracted(
     jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
     s_lo = torch.where(bad, torch.zeros_like(s_lo), s_lo).contiguous()
-    a_ = _bridge.arr
+    a_ = bridge.arr
     counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
     k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
     head = [
@@ -415,7 +415,7 @@ def march_rays_contracted(
         a_(bits), res, float(a), float(dt), float(cone), int(max_samples),
     ]  # fmt: skip
     no_f, no_i = a_(_empty_f(dev)), a_(_empty_i(dev))
-    _bridge.launch(
+    bridge.launch(
         K.march_contracted, n_rays, head + [0, no_i, a_(counts), a_(k_next), no_f, no_f, no_i],
         dev,
     )  # fmt: skip
@@ -431,7 +431,7 @@ def march_rays_contracted(
     offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         fill = [1, a_(offsets), a_(counts), a_(k_next), a_(t_starts), a_(t_ends), a_(ray_indices)]
-        _bridge.launch(K.march_contracted, n_rays, head + fill, dev)
+        bridge.launch(K.march_contracted, n_rays, head + fill, dev)
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 
@@ -446,7 +446,7 @@ def _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin):
         )
     if jitter is not None and not bool(((jitter >= 0) & (jitter < 1)).all()):
         raise ValueError("jitter must lie in [0, 1)")
-    if k_begin is not None and not bool(((k_begin >= -1) & (k_begin <= _bridge.INT32_MAX)).all()):
+    if k_begin is not None and not bool(((k_begin >= -1) & (k_begin <= bridge.INT32_MAX)).all()):
         raise ValueError("k_begin must be -1 (done) or a lattice index in [0, 2^31)")
     raise ValueError(
         f"a ray spans more than {MAX_STEPS} lattice steps of dt={dt} (directions too short, "
@@ -469,14 +469,14 @@ def live_samples_fixed(samples: Samples, sigmas: torch.Tensor, t_threshold: floa
     capacity)."""
     from warpnerf.kernels import occupancy as K
 
-    capacity = _bridge.check_int("capacity", capacity, lo=1)
+    capacity = bridge.check_int("capacity", capacity, lo=1)
     ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
-    _bridge.check_float("sigmas", sigmas, (ts.shape[0],), torch.float32, ts.device)
+    bridge.check_float("sigmas", sigmas, (ts.shape[0],), torch.float32, ts.device)
     n, n_rays, dev = ts.shape[0], info.shape[0], ts.device
     n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
-    a = _bridge.arr
+    a = bridge.arr
     inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]
-    _bridge.launch(K.live_counts, n_rays, inputs, dev)
+    bridge.launch(K.live_counts, n_rays, inputs, dev)
     ri = samples.ray_indices.long()
     start = info[:, 0].long()
     live = n_live.long()
@@ -507,25 +507,25 @@ def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, 
     """
     from warpnerf.kernels import occupancy as K
 
-    from .composite import _check_packed_info
+    from .composite import check_packed_info
 
     if not isinstance(samples, Samples) or samples.packed_info is None:
         raise ValueError("samples must be packed Samples (with packed_info and ray_indices)")
     ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
-    _bridge.check_float("samples.t_starts", ts, (None,), torch.float32)
+    bridge.check_float("samples.t_starts", ts, (None,), torch.float32)
     n, dev = ts.shape[0], ts.device
-    _bridge.check_float("samples.t_ends", te, (n,), torch.float32, dev)
-    _bridge.check_float("sigmas", sigmas, (n,), torch.float32, dev)
-    _bridge.check_index("samples.packed_info", info, (None, 2), dev)
-    _bridge.check_index("samples.ray_indices", samples.ray_indices, (n,), dev)
+    bridge.check_float("samples.t_ends", te, (n,), torch.float32, dev)
+    bridge.check_float("sigmas", sigmas, (n,), torch.float32, dev)
+    bridge.check_index("samples.packed_info", info, (None, 2), dev)
+    bridge.check_index("samples.ray_indices", samples.ray_indices, (n,), dev)
     n_rays = info.shape[0]
     if check:
-        _check_packed_info(info, samples.ray_indices, n, n_rays)
+        check_packed_info(info, samples.ray_indices, n, n_rays)
     info = info.to(torch.int32).contiguous()
     n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
-    a = _bridge.arr
+    a = bridge.arr
     inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]
-    _bridge.launch(K.live_counts, n_rays, inputs, dev)
+    bridge.launch(K.live_counts, n_rays, inputs, dev)
     ri = samples.ray_indices.long()
     pos = torch.arange(n, device=dev) - info[:, 0].long()[ri]
     return pos < n_live.long()[ri], n_live

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _bridge
+from . import bridge
 
 __all__ = ["generate_rays", "ray_aabb_intersect", "random_pixels"]
 
@@ -14,11 +14,11 @@ def _cameras(c2w, intrinsics):
         c2w = c2w.unsqueeze(0)
     if intrinsics.dim() == 1:
         intrinsics = intrinsics.unsqueeze(0)
-    _bridge.check_float("c2w", c2w, (None, None, 4))
+    bridge.check_float("c2w", c2w, (None, None, 4))
     if c2w.shape[1] not in (3, 4):
         raise ValueError(f"c2w must have shape [n_cams, 3|4, 4], got {list(c2w.shape)}")
     n_cams = c2w.shape[0]
-    _bridge.check_float("intrinsics", intrinsics, (n_cams, 4), c2w.dtype, c2w.device)
+    bridge.check_float("intrinsics", intrinsics, (n_cams, 4), c2w.dtype, c2w.device)
     return c2w.contiguous(), intrinsics.contiguous()
 
 
@@ -59,33 +59,33 @@ def generate_rays(
             raise ValueError("pass cam_idx together with px and py")
         if width is None or height is None:
             raise ValueError("width and height (positive) are needed to generate every pixel's ray")
-        width = _bridge.check_int("width", width, lo=1)
-        height = _bridge.check_int("height", height, lo=1)
+        width = bridge.check_int("width", width, lo=1)
+        height = bridge.check_int("height", height, lo=1)
         n = c2w.shape[0] * width * height
-        if n > _bridge.INT32_MAX:
+        if n > bridge.INT32_MAX:
             raise ValueError(f"n_cams * width * height = {n} rays exceed int32 indices")
         cam_idx = torch.empty(0, device=dev, dtype=torch.int64)
         px = py = torch.empty(0, device=dev, dtype=dt)
     else:
         if px is None or py is None:
             raise ValueError("pass px and py together with cam_idx")
-        _bridge.check_index("cam_idx", cam_idx, (None,))
+        bridge.check_index("cam_idx", cam_idx, (None,))
         n = cam_idx.shape[0]
-        if n > _bridge.INT32_MAX:
+        if n > bridge.INT32_MAX:
             raise ValueError(f"{n} rays exceed int32 indices: generate fewer at once")
-        _bridge.check_float("px", px.to(dt), (n,), dt, dev)
-        _bridge.check_float("py", py.to(dt), (n,), dt, dev)
+        bridge.check_float("px", px.to(dt), (n,), dt, dev)
+        bridge.check_float("py", py.to(dt), (n,), dt, dev)
         cam_idx, px, py = cam_idx.to(dev, torch.int64), px.to(dt), py.to(dt)
         if check and n:
             lo, hi = torch.aminmax(cam_idx)
-            lo_ok, hi_ok = _bridge.host_flags(lo >= 0, hi < c2w.shape[0])  # one sync
+            lo_ok, hi_ok = bridge.host_flags(lo >= 0, hi < c2w.shape[0])  # one sync
             if not (lo_ok and hi_ok):
                 raise ValueError(f"cam_idx must lie in [0, {c2w.shape[0]})")
         width = height = 0
     origins = torch.empty(n, 3, device=dev, dtype=dt)
     directions = torch.empty(n, 3, device=dev, dtype=dt)
-    a = _bridge.arr
-    _bridge.launch(
+    a = bridge.arr
+    bridge.launch(
         K.generate_rays_fwd,
         n,
         [
@@ -116,10 +116,10 @@ def random_pixels(
     gathering from images kept in host memory. The indices are drawn on the host from
     ``generator`` (a CPU generator), so a batch is the same on every device.
     Sizes must be ints: n_cams, width, height >= 1 and batch >= 0 (ValueError otherwise)."""
-    n_cams = _bridge.check_int("n_cams", n_cams, lo=1)
-    width = _bridge.check_int("width", width, lo=1)
-    height = _bridge.check_int("height", height, lo=1)
-    batch = _bridge.check_int("batch", batch, lo=0, hi=2**62)
+    n_cams = bridge.check_int("n_cams", n_cams, lo=1)
+    width = bridge.check_int("width", width, lo=1)
+    height = bridge.check_int("height", height, lo=1)
+    batch = bridge.check_int("batch", batch, lo=0, hi=2**62)
     if n_cams * width * height >= 2**62:
         raise ValueError(f"n_cams * width * height = {n_cams * width * height} pixels is too many")
     host = torch.randint(0, n_cams * width * height, (batch,), generator=generator, device="cpu")
@@ -151,9 +151,9 @@ def ray_aabb_intersect(
     """
     from warpnerf.kernels import rays as K
 
-    _bridge.check_float("origins", origins, (None, 3))
+    bridge.check_float("origins", origins, (None, 3))
     n, dev, dt = origins.shape[0], origins.device, origins.dtype
-    _bridge.check_float("directions", directions, (n, 3), dt, dev)
+    bridge.check_float("directions", directions, (n, 3), dt, dev)
     box = torch.as_tensor(aabb, dtype=dt).reshape(-1)  # checked where it is (host: no sync)
     if box.shape != (6,) or not bool(torch.isfinite(box).all() & (box[:3] <= box[3:]).all()):
         raise ValueError(
@@ -161,15 +161,15 @@ def ray_aabb_intersect(
         )
     if t_min != t_min:
         raise ValueError("t_min must not be NaN")
-    box = _bridge.constant(box.tolist(), dev, dt) if box.device.type == "cpu" else box.to(dev)
+    box = bridge.constant(box.tolist(), dev, dt) if box.device.type == "cpu" else box.to(dev)
     t_near = torch.empty(n, device=dev, dtype=dt)
     t_far = torch.empty(n, device=dev, dtype=dt)
     hit = torch.empty(n, device=dev, dtype=torch.bool)
-    a = _bridge.arr
-    _bridge.launch(
+    a = bridge.arr
+    bridge.launch(
         K.ray_aabb_fwd,
         n,
-        [a(origins), a(directions), a(box), _bridge.scalar(t_min, dt), a(t_near), a(t_far), a(hit)],
+        [a(origins), a(directions), a(box), bridge.scalar(t_min, dt), a(t_near), a(t_far), a(hit)],
         dev,
     )
     return t_near, t_far, hit

@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import torch
 
-from . import _bridge
+from . import bridge
 
 __all__ = ["stratified_samples", "importance_samples", "Samples"]
 
@@ -55,12 +55,12 @@ def stratified_samples(
     """
     from warpnerf.kernels import sampling as K
 
-    _bridge.check_float("near", near, (None,))
+    bridge.check_float("near", near, (None,))
     n_rays, dev, dt = near.shape[0], near.device, near.dtype
-    _bridge.check_float("far", far, (n_rays,), dt, dev)
-    n_samples = _bridge.check_int("n_samples", n_samples, lo=1)
-    ray_offset = _bridge.check_int("ray_offset", ray_offset, lo=0, hi=_bridge.INT32_MAX - n_rays)
-    if n_rays * n_samples > _bridge.INT32_MAX:
+    bridge.check_float("far", far, (n_rays,), dt, dev)
+    n_samples = bridge.check_int("n_samples", n_samples, lo=1)
+    ray_offset = bridge.check_int("ray_offset", ray_offset, lo=0, hi=bridge.INT32_MAX - n_rays)
+    if n_rays * n_samples > bridge.INT32_MAX:
         raise ValueError(
             f"n_rays * n_samples = {n_rays * n_samples} exceeds int32 offsets: sample fewer rays"
         )
@@ -78,8 +78,8 @@ def stratified_samples(
         ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
     t_starts = torch.empty(n, device=dev, dtype=dt)
     t_ends = torch.empty(n, device=dev, dtype=dt)
-    a = _bridge.arr
-    _bridge.launch(
+    a = bridge.arr
+    bridge.launch(
         K.stratified_fwd,
         n_rays,
         [
@@ -132,15 +132,15 @@ def importance_samples(
 
     if not isinstance(samples, Samples):
         raise ValueError(f"samples must be a Samples tuple, got {type(samples).__name__}")
-    n_fine = _bridge.check_int("n_fine", n_fine, lo=1)
-    ray_offset = _bridge.check_int("ray_offset", ray_offset, lo=0, hi=_bridge.INT32_MAX // 2)
+    n_fine = bridge.check_int("n_fine", n_fine, lo=1)
+    ray_offset = bridge.check_int("ray_offset", ray_offset, lo=0, hi=bridge.INT32_MAX // 2)
     ts, te, packed_info = samples.t_starts, samples.t_ends, samples.packed_info
     packed = packed_info is not None
-    _bridge.check_float("samples.t_starts", ts, (None,) if packed else (None, None))
+    bridge.check_float("samples.t_starts", ts, (None,) if packed else (None, None))
     dev, dt = ts.device, ts.dtype
-    _bridge.check_float("samples.t_ends", te, tuple(ts.shape), dt, dev)
-    _bridge.check_float("weights", weights, tuple(ts.shape), dt, dev)
-    if ts.numel() > _bridge.INT32_MAX:
+    bridge.check_float("samples.t_ends", te, tuple(ts.shape), dt, dev)
+    bridge.check_float("weights", weights, tuple(ts.shape), dt, dev)
+    if ts.numel() > bridge.INT32_MAX:
         raise ValueError(f"{ts.numel()} samples exceed int32 offsets: sample fewer rays at once")
     ts, te, w = ts.detach().contiguous(), te.detach().contiguous(), weights.detach().contiguous()
     if packed:
@@ -155,7 +155,7 @@ def importance_samples(
         in_range &= packed_info[:, 0].long() + counts <= ts.shape[0]
     else:
         n_rays, n_c = ts.shape
-        if n_rays * (n_c + n_fine) > _bridge.INT32_MAX:
+        if n_rays * (n_c + n_fine) > bridge.INT32_MAX:
             raise ValueError("n_rays * (n_coarse + n_fine) exceeds int32 offsets: use fewer rays")
         if samples.ray_indices is not None:
             raise ValueError("samples: dense samples (no packed_info) must have ray_indices None")
@@ -182,7 +182,7 @@ def importance_samples(
     ]  # one device sync for all the checks
     if not ok_range:
         raise ValueError("samples.packed_info has a (start, count) outside the samples")
-    if n_out > _bridge.INT32_MAX:
+    if n_out > bridge.INT32_MAX:
         raise ValueError(f"{n_out} output samples exceed int32 offsets: use fewer rays or n_fine")
     if not finite_w:
         raise ValueError("weights must be finite (a NaN/Inf weight would skew its ray's PDF)")
@@ -210,8 +210,8 @@ def importance_samples(
         out_ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
     out_starts = torch.empty(n_out, device=dev, dtype=dt)
     out_ends = torch.empty(n_out, device=dev, dtype=dt)
-    a = _bridge.arr
-    _bridge.launch(
+    a = bridge.arr
+    bridge.launch(
         K.importance_fwd,
         n_rays,
         [
@@ -221,7 +221,7 @@ def importance_samples(
             int(n_c),
             a(in_info),
             int(n_fine),
-            _bridge.scalar(PDF_PADDING, dt),
+            bridge.scalar(PDF_PADDING, dt),
             int(perturb),
             (int(seed) ^ _IMPORTANCE_SALT) & 0x7FFFFFFF,
             ray_offset,
@@ -242,11 +242,11 @@ def _check_packed(samples: Samples, n: int, dev: torch.device) -> int:
     """Checks a packed Samples' packed_info [n_rays, 2] int32 and ray_indices [n] int64; n_rays."""
     info, ray_indices = samples.packed_info, samples.ray_indices
     if isinstance(info, torch.Tensor) and (info.dtype.is_floating_point or info.dtype.is_complex):
-        raise _bridge.IndexDtypeError(
+        raise bridge.IndexDtypeError(
             f"samples.packed_info must be an int32 tensor [n_rays, 2], got {info.dtype}"
         )
     if isinstance(ray_indices, torch.Tensor) and ray_indices.dtype.is_floating_point:
-        raise _bridge.IndexDtypeError(
+        raise bridge.IndexDtypeError(
             f"samples.ray_indices must be an int64 tensor [n], got {ray_indices.dtype}"
         )
     if not isinstance(info, torch.Tensor) or info.dtype != torch.int32 or info.dim() != 2:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from ..trace import Trace
-from . import _bridge
+from . import bridge
 
 __all__ = ["scene_sdf", "sphere_trace"]
 
@@ -16,14 +16,14 @@ def _scene(scene, device):
     if not callable(getattr(scene, "arrays", None)):
         raise TypeError(f"scene must be an SDFScene, got {type(scene).__name__}")
     a = scene.arrays(device)
-    wp = _bridge._wp()
+    wp = bridge.load_warp()
     return [
-        _bridge.arr(a["kinds"]),
-        _bridge.arr(a["params"], wp.vec4),
-        _bridge.arr(a["rots"], wp.mat33),
-        _bridge.arr(a["centers"], wp.vec3),
-        _bridge.arr(a["ops"]),
-        _bridge.arr(a["ks"]),
+        bridge.arr(a["kinds"]),
+        bridge.arr(a["params"], wp.vec4),
+        bridge.arr(a["rots"], wp.mat33),
+        bridge.arr(a["centers"], wp.vec3),
+        bridge.arr(a["ops"]),
+        bridge.arr(a["ks"]),
     ]
 
 
@@ -31,15 +31,15 @@ def scene_sdf(points: torch.Tensor, scene):  # points [n, 3] float32
     """(sdf [n], ids [n] int32) of an :class:`~warpnerf.fields.SDFScene` at points."""
     from warpnerf.kernels import sphere_trace as K
 
-    _bridge.check_float("points", points, (None, 3), dtype=torch.float32)
+    bridge.check_float("points", points, (None, 3), dtype=torch.float32)
     n, dev = points.shape[0], points.device
     sdf = torch.empty(n, device=dev, dtype=torch.float32)
     ids = torch.empty(n, device=dev, dtype=torch.int32)
-    wp = _bridge._wp()
-    _bridge.launch(
+    wp = bridge.load_warp()
+    bridge.launch(
         K.scene_sdf_fwd,
         n,
-        [_bridge.arr(points, wp.vec3), *_scene(scene, dev), _bridge.arr(sdf), _bridge.arr(ids)],
+        [bridge.arr(points, wp.vec3), *_scene(scene, dev), bridge.arr(sdf), bridge.arr(ids)],
         dev,
     )
     return sdf, ids
@@ -66,10 +66,10 @@ def sphere_trace(
     """
     from warpnerf.kernels import sphere_trace as K
 
-    _bridge.check_float("origins", origins, (None, 3), dtype=torch.float32)
+    bridge.check_float("origins", origins, (None, 3), dtype=torch.float32)
     n, dev = origins.shape[0], origins.device
-    _bridge.check_float("directions", directions, (n, 3), torch.float32, dev)
-    max_iters = _bridge.check_int("max_iters", max_iters, lo=1)
+    bridge.check_float("directions", directions, (n, 3), torch.float32, dev)
+    max_iters = bridge.check_int("max_iters", max_iters, lo=1)
     if not (eps > 0 and normal_eps > 0 and 1.0 <= omega < 2.0):
         raise ValueError("need eps > 0, normal_eps > 0, 1 <= omega < 2 and max_iters >= 1")
     if n:
@@ -86,10 +86,10 @@ def sphere_trace(
     points = torch.empty(n, 3, **f32)
     normals = torch.empty(n, 3, **f32)
     ids = torch.empty(n, device=dev, dtype=torch.int32)
-    wp = _bridge._wp()
+    wp = bridge.load_warp()
     v3 = wp.vec3
-    a = _bridge.arr
-    _bridge.launch(
+    a = bridge.arr
+    bridge.launch(
         K.sphere_trace_fwd,
         n,
         [

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from warpnerf.ops.composite import _background, _values, packed_info_from_ray_indices
+from warpnerf.ops.composite import background_rows, density_or_alpha, packed_info_from_ray_indices
 
 __all__ = ["render_dense", "render_packed"]
 
@@ -40,9 +40,9 @@ def render_dense(
     return_weights=False,
 ):
     """Reference for :func:`warpnerf.render_dense` (shapes [n_rays, n_samples])."""
-    values, use_alpha = _values(sigmas, alphas)
+    values, use_alpha = density_or_alpha(sigmas, alphas)
     n_rays = values.shape[0]
-    bg = _background(background, n_rays, values.device, values.dtype)
+    bg = background_rows(background, n_rays, values.device, values.dtype)
     alpha, tau = _alpha_tau(values, t_ends - t_starts, use_alpha)
     # Exclusive cumulative sum: log T_i = -sum_{j<i} tau_j.
     log_t = -torch.cumsum(torch.cat([torch.zeros_like(tau[:, :1]), tau[:, :-1]], 1), 1)
@@ -74,7 +74,7 @@ def render_packed(
     return_weights=False,
 ):
     """Reference for :func:`warpnerf.render_packed` (packed samples, sorted ray_indices)."""
-    values, use_alpha = _values(sigmas, alphas)
+    values, use_alpha = density_or_alpha(sigmas, alphas)
     if packed_info is None:
         packed_info = packed_info_from_ray_indices(ray_indices, n_rays)
     starts, counts = packed_info[:, 0].long(), packed_info[:, 1].long()

@@ -17,7 +17,7 @@ from ..errors import UserError
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..fields.model import FieldTraits, field_traits, fields_with
 from ..fields.settings import HashConfig, MLPConfig, SDFDensityConfig
-from ..ops._bridge import INT32_MAX
+from ..ops.bridge import INT32_MAX
 from ..options import check_at_least, option, with_defaults
 from .loop import LoopConfig
 from .presets import PRESET_NAMES, preset_option

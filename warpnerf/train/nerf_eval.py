@@ -24,7 +24,7 @@ from ..io import (
     write_video,
 )
 from ..metrics import psnr, ssim
-from ..ops._bridge import INT32_MAX
+from ..ops.bridge import INT32_MAX
 from .loop import snapshot_name
 from .nerf import (
     CHECKPOINT,

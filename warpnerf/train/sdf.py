@@ -231,7 +231,7 @@ def load_points(path) -> tuple:
     normals = None
     try:
         if path.suffix == ".npz":
-            from ..data._arrays import load_npz
+            from ..data.arrays import load_npz
 
             d = load_npz(path, "point cloud")  # (bounded inflation, no pickles)
             key = next((k for k in ("points", "verts", "vertices") if k in d), None)
