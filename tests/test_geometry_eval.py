@@ -1,4 +1,4 @@
-"""Geometry evaluation's depth error (warpnerf/train/nerf_eval.py): the analytic first hits of the
+"""Geometry evaluation's depth error (train/geometry_eval.py): the analytic first hits of the
 materials scene and of spheres, and the rendered depth of a constructed hash_sdf model (which
 starts as a sphere) against them. No dataset needed; the CLI path is in test_hash_sdf.py."""
 
@@ -9,13 +9,13 @@ import math
 import pytest
 import torch
 
-from warpnerf.train.nerf_eval import (
+from warpnerf.data.materials_truth import (
     MATERIALS_SPHERES,
-    depth_error,
     materials_depth,
     materials_reference,
     sphere_depth,
 )
+from warpnerf.train.geometry_eval import depth_error
 
 
 def test_materials_depth_hits_the_spheres_and_the_disk():
@@ -91,7 +91,7 @@ def test_materials_visibility_and_shapes():
     import numpy as np
 
     from warpnerf.data.cameras import look_at
-    from warpnerf.train.nerf_eval import (
+    from warpnerf.data.materials_truth import (
         MATERIALS_NAMES,
         MATERIALS_SPHERES,
         materials_shape_ids,

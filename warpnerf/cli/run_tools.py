@@ -84,7 +84,8 @@ def _reads_run(cmd):
 
 @_reads_run
 def cmd_eval(args) -> int:
-    from ..train.nerf_eval import evaluate_geometry, evaluate_run
+    from ..train.geometry_eval import evaluate_geometry
+    from ..train.nerf_eval import evaluate_run
 
     check_existing(args.run)
     _renders(args.run, "eval")

@@ -1,5 +1,6 @@
-"""Camera-path files: keyframes a user places in the viewer (``warpnerf view``), rendered to
-video by ``warpnerf render RUN --path FILE``.
+"""Camera paths of ``warpnerf render``: the built-in ones around the training cameras
+(:func:`camera_path`, ``--path spiral|orbit``) and camera-path files, keyframes a user places in
+the viewer (``warpnerf view``), rendered to video by ``warpnerf render RUN --path FILE``.
 
 The file is JSON::
 
@@ -33,9 +34,11 @@ import torch
 
 from ..errors import UserError
 from ..jsonio import read_json
-from .cameras import MAX_DEPTH, check_poses
+from .cameras import MAX_DEPTH, camera_target, check_poses, look_at
 
 __all__ = [
+    "camera_path",
+    "PATHS",
     "CameraPath",
     "load_camera_path",
     "interpolate_path",
@@ -315,3 +318,32 @@ def _path_frames(keyframes, frames: int, loop: bool = False):
         m[:3, :3] = quat_to_matrix(_slerp(quats[i], quats[(i + 1) % n], t))
         m[:3, 3] = c
         yield m
+
+
+def camera_path(c2w: torch.Tensor, kind: str, frames: int) -> torch.Tensor:
+    """[frames, 4, 4] cameras around the training cameras' target: centre = the point nearest to
+    all optical axes, radius = their mean distance to it, up = their mean up vector; "orbit" keeps
+    their mean elevation, "spiral" swings it by +-15 degrees."""
+    if kind not in PATHS:
+        raise UserError(f"--path must be spiral or orbit, got {kind!r}")
+    c2w = c2w.double().cpu()
+    o, centre = c2w[:, :3, 3], camera_target(c2w)
+    up = torch.nn.functional.normalize(c2w[:, :3, 1].mean(0), dim=0)
+    rel = o - centre
+    radius = float(rel.norm(dim=-1).mean())
+    elev = float(torch.asin((torch.nn.functional.normalize(rel, dim=-1) @ up).clamp(-1, 1)).mean())
+    a = torch.nn.functional.normalize(
+        torch.linalg.cross(up, torch.tensor([0.3, 0.2, 0.9], dtype=torch.float64)), dim=0
+    )
+    b = torch.linalg.cross(up, a)
+    mats = []
+    for f in range(frames):
+        s = f / frames
+        el = elev + (math.radians(15) * math.sin(2 * math.pi * s) if kind == "spiral" else 0.0)
+        az = 2 * math.pi * s
+        direction = math.cos(el) * (math.cos(az) * a + math.sin(az) * b) + math.sin(el) * up
+        mats.append(look_at(centre + radius * direction, centre, up, dtype=torch.float64))
+    return torch.stack(mats).float()
+
+
+PATHS = ("spiral", "orbit")  # the built-in camera paths of `render --path`
