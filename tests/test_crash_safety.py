@@ -221,6 +221,7 @@ def test_mesh_video_and_image_writers_failing_midway_leave_nothing(tmp_path, mon
     mesh screenshot failing after writing part of the file: the previous target (if any) is
     untouched and no temporary file is left."""
     import warpnerf.mesh as mesh_mod
+    import warpnerf.ply as ply_mod
     from warpnerf.io import write_image, write_video
     from warpnerf.mesh import read_ply, write_ply
 
@@ -244,7 +245,7 @@ def test_mesh_video_and_image_writers_failing_midway_leave_nothing(tmp_path, mon
         def __exit__(self, *exc):
             self.fh.close()
 
-    monkeypatch.setattr(mesh_mod, "open", HalfFile, raising=False)
+    monkeypatch.setattr(ply_mod, "open", HalfFile, raising=False)
     with pytest.raises(OSError, match="I/O error"):
         write_ply(tmp_path / "m.ply", v[:3] + 1, f[:1])
     monkeypatch.undo()

@@ -25,7 +25,8 @@ warpnerf wrote earlier is bounded by the bytes actually read, never by ``st_size
   (:func:`make_folder`: ``eval_*``, ``render_*``, ``snapshots``, export's ``images``), checked with
   ``lstat`` to be real folders.
 
-Reading: :func:`open_input` / :func:`read_input` are the one way a command opens a file it is
+Reading (:mod:`warpnerf.safe_open`, re-exported here): :func:`open_input` /
+:func:`read_input` are the one way a command opens a file it is
 given or a run holds (run configs, checkpoints, run records, camera paths, SDF scenes, dataset
 indexes, images, COLMAP models, arrays): non-blocking (a FIFO is refused, never waited on), a
 regular file only (a device, socket or folder is refused by name), no link followed unless the
@@ -40,13 +41,26 @@ need a path).
 from __future__ import annotations
 
 import contextlib
-import io
 import json
 import os
 import stat
 import tempfile
 import threading
 from pathlib import Path
+
+from .safe_open import (
+    CLOEXEC,
+    NOFOLLOW,
+    NONBLOCK,
+    file_kind,
+    open_input,
+    open_regular,
+    read_input,
+    read_regular,
+    read_upto,
+    refusal,
+    user_error,
+)
 
 __all__ = [
     "MANIFEST",
@@ -69,133 +83,6 @@ MANIFEST = ".warpnerf-files.json"  # per folder: the files warpnerf wrote there 
 LOCK = ".warpnerf.lock"  # per output folder: held (flock) by the process writing into it
 _MANIFEST_MAX_BYTES = 1 << 28  # 256 MiB: about 3 million records
 _COMPACT_MIN_BYTES = 1 << 20  # the log is never rewritten below this size
-_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
-_NONBLOCK = getattr(os, "O_NONBLOCK", 0)
-_CLOEXEC = getattr(os, "O_CLOEXEC", 0)
-
-
-def _user_error(text: str):
-    from .errors import UserError
-
-    return UserError(text)
-
-
-def _kind(mode: int) -> str:
-    kinds = ((stat.S_ISLNK, "symbolic link"), (stat.S_ISDIR, "folder"), (stat.S_ISFIFO, "FIFO"),
-             (stat.S_ISSOCK, "socket"), (stat.S_ISCHR, "character device"),
-             (stat.S_ISBLK, "block device"))  # fmt: skip
-    for test, name in kinds:
-        if test(mode):
-            return name
-    return "special file"
-
-
-def _refuse(path, mode: int, what: str, reading: bool = False):
-    """The UserError for a link or a special file where warpnerf reads or writes its ``what``
-    (``reading``: a file a command reads, :func:`open_input`)."""
-    if reading:
-        if stat.S_ISLNK(mode):
-            return _user_error(
-                f"{path}: is a symbolic link; warpnerf reads its {what} without following links "
-                "(put the file itself there)"
-            )
-        return _user_error(f"{path}: is a {_kind(mode)}, not a regular file; expected the {what}")
-    if stat.S_ISLNK(mode):
-        return _user_error(
-            f"{path}: is a symbolic link; warpnerf does not follow links where it writes (its "
-            f"{what}); remove the link or choose another output"
-        )
-    return _user_error(
-        f"{path}: is a {_kind(mode)}, not a regular file; warpnerf refuses it as its {what} "
-        "(remove it or choose another output)"
-    )
-
-
-def _open(path, flags: int, what: str, mode: int = 0o666, follow: bool = False,
-          reading: bool = False) -> int:  # fmt: skip
-    """``os.open`` that never follows a link at ``path`` (unless ``follow``), never blocks on a
-    FIFO and returns the descriptor of a regular file only (:class:`UserError` naming ``path``
-    otherwise)."""
-    try:
-        fd = os.open(path, flags | (0 if follow else _NOFOLLOW) | _NONBLOCK | _CLOEXEC, mode)
-    except OSError as e:
-        try:
-            st = os.stat(path) if follow else os.lstat(path)
-        except OSError:
-            raise e from None
-        if not stat.S_ISREG(st.st_mode):  # ELOOP (a link), ENXIO (a FIFO without reader), ...
-            raise _refuse(path, st.st_mode, what, reading) from None
-        raise
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise _refuse(path, st.st_mode, what, reading)
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
-
-
-def _read_upto(fd: int, limit: int) -> bytes:
-    """At most ``limit`` bytes of an open file, counted as they are read."""
-    parts, n = [], 0
-    while n < limit:
-        b = os.read(fd, min(limit - n, 1 << 20))
-        if not b:
-            break
-        parts.append(b)
-        n += len(b)
-    return b"".join(parts)
-
-
-def read_regular(path, max_bytes: int, what: str = "file") -> bytes | None:
-    """The bytes of ``path``, a file warpnerf wrote earlier (or the file a command is about to
-    replace), read without following a link and never blocking on a FIFO; None when absent.
-    :class:`UserError` naming ``path`` for a link, a special file, or more than ``max_bytes``
-    bytes (read: at most ``max_bytes + 1``, whatever ``st_size`` says)."""
-    try:
-        fd = _open(path, os.O_RDONLY, what)
-    except FileNotFoundError:
-        return None
-    try:
-        data = _read_upto(fd, max_bytes + 1)
-    finally:
-        os.close(fd)
-    if len(data) > max_bytes:
-        raise _user_error(f"{path}: larger than {max_bytes} bytes; not a {what} warpnerf wrote "
-                          "(remove it or choose another output)")  # fmt: skip
-    return data
-
-
-def open_input(path, what: str = "file", follow: bool = False):
-    """The file ``path`` that a command reads (a file named on its command line, in a run or a
-    dataset), opened for binary reading: never blocking on a FIFO, a regular file only, a link
-    at ``path`` followed only when ``follow``. :class:`UserError` naming ``path`` and ``what``
-    for a missing file, a link (unless ``follow``), a FIFO, device, socket or folder; other
-    ``OSError`` (permissions, I/O) propagate for the caller to word."""
-    try:
-        fd = _open(path, os.O_RDONLY, what, follow=follow, reading=True)
-    except FileNotFoundError:
-        raise _user_error(f"{path}: no such file (expected the {what})") from None
-    raw = io.FileIO(fd, "rb")
-    raw.name = str(path)  # (what readers' messages show, not the descriptor's number)
-    return io.BufferedReader(raw)
-
-
-def _size_text(n: int) -> str:
-    return f"{n >> 20} MiB" if n >= 1 << 20 and not n % (1 << 20) else f"{n} bytes"
-
-
-def read_input(path, what: str, max_bytes: int, follow: bool = False) -> bytes:
-    """The bytes of ``path`` opened by :func:`open_input`, at most ``max_bytes`` counted as they
-    are read (whatever ``st_size`` says): a larger file is a :class:`UserError` naming ``path``
-    and the limit of its kind."""
-    with open_input(path, what, follow) as fh:
-        data = _read_upto(fh.fileno(), max_bytes + 1)
-    if len(data) > max_bytes:
-        raise _user_error(f"{path}: larger than {_size_text(max_bytes)}, the most a {what} "
-                          "holds; not a file of this kind")  # fmt: skip
-    return data
 
 
 def _create_temp(folder: Path, prefix: str, suffix: str = "") -> tuple[int, str]:
@@ -236,10 +123,10 @@ def make_folder(path, what: str = "output folder") -> Path:
         os.mkdir(path)
     st = os.lstat(path)
     if stat.S_ISLNK(st.st_mode):
-        raise _user_error(f"{path}: is a symbolic link; warpnerf writes its {what} only into a "
+        raise user_error(f"{path}: is a symbolic link; warpnerf writes its {what} only into a "
                           "real folder (remove the link or choose another output)")  # fmt: skip
     if not stat.S_ISDIR(st.st_mode):
-        raise _user_error(f"{path}: exists and is a {_kind(st.st_mode)}, not a folder; move it "
+        raise user_error(f"{path}: exists and is a {file_kind(st.st_mode)}, not a folder; move it "
                           "away or choose another output")  # fmt: skip
     return path
 
@@ -313,14 +200,14 @@ def _entries(folder: Path) -> dict:
         c = _CACHE.get(key)
         if c is not None and c.ident == _ident(st):
             return c.entries
-        fd = _open(p, os.O_RDONLY, "manifest")
+        fd = open_regular(p, os.O_RDONLY, "manifest")
         try:
             st = os.fstat(fd)
-            data = _read_upto(fd, _MANIFEST_MAX_BYTES + 1)
+            data = read_upto(fd, _MANIFEST_MAX_BYTES + 1)
         finally:
             os.close(fd)
         if len(data) > _MANIFEST_MAX_BYTES:
-            raise _user_error(
+            raise user_error(
                 f"{p}: the manifest is larger than {_MANIFEST_MAX_BYTES} bytes, which warpnerf "
                 "never writes; remove it (warpnerf then treats the folder's files as not its own)"
             )
@@ -363,7 +250,7 @@ def record(path) -> None:
     key = os.path.abspath(folder)
     with _LOCK:
         _entries(folder)  # (refuses a planted manifest; fills the cache)
-        fd = _open(folder / MANIFEST, os.O_RDWR | os.O_APPEND | os.O_CREAT, "manifest")
+        fd = open_regular(folder / MANIFEST, os.O_RDWR | os.O_APPEND | os.O_CREAT, "manifest")
         try:
             before = os.fstat(fd)
             if before.st_size and _last_byte(fd, before.st_size) != b"\n":
@@ -438,7 +325,7 @@ def check_foreign(paths) -> None:
         owned = owned_files(folder, present)
         for n in present:
             if n not in owned:
-                raise _user_error(
+                raise user_error(
                     f"{folder / n}: exists and was not written by warpnerf; refusing to replace "
                     "it (move it away or choose another output)"
                 )
@@ -497,7 +384,7 @@ def output_lock(folder, what: str = "output folder"):
         if fd is not None:
             break
     else:
-        raise _user_error(f"{path}: the lock file keeps disappearing (removed by another "
+        raise user_error(f"{path}: the lock file keeps disappearing (removed by another "
                           "process as it is opened); try again")  # fmt: skip
     try:
         os.ftruncate(fd, 0)
@@ -549,15 +436,15 @@ def _open_lock(path: Path, what: str, folder: Path) -> int | None:
     when the file it locked is no longer the one in the folder (its holder removed it as it was
     opened: try again). :class:`UserError` when another process holds it."""
     try:
-        fd = _open(path, os.O_RDWR | os.O_CREAT, "lock file", 0o644)
+        fd = open_regular(path, os.O_RDWR | os.O_CREAT, "lock file", 0o644)
     except FileNotFoundError:  # the folder went (an empty one removed by its last holder)
         return None
     except OSError as e:
-        raise _user_error(f"{path}: cannot create the lock file ({e.strerror or e})") from None
+        raise user_error(f"{path}: cannot create the lock file ({e.strerror or e})") from None
     try:
         links = os.fstat(fd).st_nlink
         if links > 1:  # a hard link to a file elsewhere: never truncated
-            raise _user_error(f"{path}: the lock file has other names (hard links); warpnerf "
+            raise user_error(f"{path}: the lock file has other names (hard links); warpnerf "
                               "refuses to write it (remove it)")  # fmt: skip
         for busy in range(_BUSY_TRIES):
             try:
@@ -567,7 +454,7 @@ def _open_lock(path: Path, what: str, folder: Path) -> int | None:
                 if busy + 1 == _BUSY_TRIES:
                     os.lseek(fd, 0, os.SEEK_SET)
                     holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-                    raise _user_error(
+                    raise user_error(
                         f"{folder}: this {what} is in use by another warpnerf process (pid "
                         f"{holder}); wait for it to finish or choose another output"
                     ) from None
@@ -596,7 +483,7 @@ def lock_holder(folder) -> str | None:
     from .errors import UserError
 
     try:
-        fd = _open(folder / LOCK, os.O_RDONLY, "lock file")
+        fd = open_regular(folder / LOCK, os.O_RDONLY, "lock file")
     except (OSError, UserError):  # absent, a link, a special file, unreadable
         return None
     try:
@@ -643,7 +530,7 @@ def _check_replaceable(path: Path, what: str = "output") -> None:
     except FileNotFoundError:
         return
     if not (stat.S_ISREG(st.st_mode) or stat.S_ISLNK(st.st_mode)):
-        raise _refuse(path, st.st_mode, what)
+        raise refusal(path, st.st_mode, what)
 
 
 @contextlib.contextmanager
@@ -685,7 +572,7 @@ def atomic_path(path, replace_foreign: bool = False):
 def _fsync(path) -> None:
     """Flushes a file's data to disk (best effort: a folder cannot be opened on every OS)."""
     try:
-        fd = os.open(path, os.O_RDONLY | _NOFOLLOW | _NONBLOCK | _CLOEXEC)
+        fd = os.open(path, os.O_RDONLY | NOFOLLOW | NONBLOCK | CLOEXEC)
     except OSError:
         return
     try:

@@ -47,20 +47,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.camera_path import (
-    MAX_FRAMES,
-    MAX_KEYFRAMES,
-    CameraPath,
-    matrix_to_quat,
-    quat_to_matrix,
-)
+from ..data.camera_path import MAX_FRAMES
 from ..errors import UserError
-from .gate import Gate, bounded, check_address, client_pose, exposure
+from .gate import Gate, check_address, client_pose, exposure
+from .path_editor import PathEditor, gl_to_opencv, opencv_to_gl
 from .scene import Aborted, RunScene
 
 __all__ = ["Viewer", "opencv_to_gl", "gl_to_opencv", "signals_to"]
 
-_FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> OpenGL camera axes
 MAX_RESOLUTION = 4096  # pixels on the longest side of a frame
 BLOCK_SECONDS = 0.2  # a frame checks whether it is still wanted about this often
 FIRST_WIDTH = 16  # pixels across the first frame, which measures the render speed
@@ -106,21 +100,6 @@ def _quiet_viser() -> None:
         log.addFilter(NoProbe())
 
 
-def opencv_to_gl(wxyz, position) -> np.ndarray:
-    """OpenGL camera-to-world [4, 4] of a viser camera (rotation ``wxyz`` of OpenCV camera axes:
-    x right, y down, looking down +z; ``position`` in world)."""
-    m = np.eye(4)
-    m[:3, :3] = quat_to_matrix(np.asarray(wxyz, dtype=np.float64)) @ _FLIP
-    m[:3, 3] = np.asarray(position, dtype=np.float64)
-    return m
-
-
-def gl_to_opencv(c2w) -> tuple:
-    """(wxyz, position) of viser's OpenCV-axes camera for an OpenGL camera-to-world [4, 4]."""
-    c2w = np.asarray(c2w, dtype=np.float64)
-    return matrix_to_quat(c2w[:3, :3] @ _FLIP), c2w[:3, 3].copy()
-
-
 class _ClientState:
     def __init__(self, client):
         self.client = client
@@ -133,7 +112,7 @@ class _ClientState:
         self.shown = (-1, -1, 0, False)
 
 
-class Viewer:
+class Viewer(PathEditor):
     """A viser server showing ``scene`` (:class:`~warpnerf.viewer.scene.RunScene`).
 
     ``live`` False: a background thread renders frames (``warpnerf view``). ``live`` True: the
@@ -311,96 +290,6 @@ class Viewer:
         clear.on_click(guard("clear", lambda _: self._set_path([])))
         save.on_click(guard("save path", lambda e: self._save_path(e.client)))
 
-    # ------------------------------------------------------------------------ camera path
-
-    def _add_keyframe(self, client) -> None:
-        st = self._clients.get(client.client_id)
-        if st is None or st.pose is None:
-            return
-        if len(self._path) >= MAX_KEYFRAMES:
-            self._say(f"not added: a path has at most {MAX_KEYFRAMES} keyframes", self.path_info)
-            return
-        self._set_path(self._path + [st.pose])
-
-    def _set_path(self, keys: list) -> None:
-        self._path = keys
-        s = self.server.scene
-        for h in self._path_handles:
-            h.remove()
-        self._path_handles = []
-        for i, (c2w, fov, aspect, _) in enumerate(keys):
-            wxyz, pos = gl_to_opencv(c2w)
-            self._path_handles.append(s.add_camera_frustum(
-                f"/path/key_{i}", fov=fov, aspect=aspect, scale=0.08, wxyz=wxyz, position=pos,
-                color=(220, 40, 40),
-            ))  # fmt: skip
-        if len(keys) >= 2:
-            cams = self.path(min(400, 20 * len(keys))).cameras().numpy()
-            pts = cams[:, :3, 3]
-            self._path_handles.append(s.add_line_segments(
-                "/path/line", np.stack([pts[:-1], pts[1:]], 1), (220, 40, 40), thickness=2.0,
-                thickness_units="screen",
-            ))  # fmt: skip
-        self.path_info.content = f"keyframes: {len(keys)}"
-
-    def path_frame_count(self) -> int:
-        """The panel's "Frames", checked (a browser may send any number): ValueError unless an
-        integer in 1..:data:`~warpnerf.data.camera_path.MAX_FRAMES`."""
-        return bounded(self.path_frames.value, 1, MAX_FRAMES, "Frames")
-
-    def path(self, frames: int | None = None) -> CameraPath:
-        """The camera path being edited (the first keyframe's field of view and aspect, and each
-        keyframe's near/far as the viewer renders it, so `render --path` sees what it showed);
-        ``frames`` default: the panel's (:meth:`path_frame_count`)."""
-        keys = self._path
-        fov, aspect = (keys[0][1], keys[0][2]) if keys else (0.8, 1.0)
-        rule = self.scene.window
-        windows = [rule(k[0][:3, 3]) for k in keys] if rule is not None and keys else None
-        frames = self.path_frame_count() if frames is None else frames
-        return CameraPath([k[0] for k in keys], fov, aspect, frames,
-                          self.path_loop.value is True, windows)  # fmt: skip
-
-    def path_target(self) -> Path:
-        """Where "Save path" writes: the file name typed in the panel, inside the run folder (or
-        the working folder without one). The browser chooses the name only: no folders, so a
-        client can never write elsewhere on the machine."""
-        name = str(self.path_file.value)[:1000].strip()
-        if (not name or "/" in name or "\\" in name or name in (".", "..") or "\0" in name
-                or not name.endswith(".json") or len(name) > 200):  # fmt: skip
-            raise UserError(f"{name[:60]!r}: give a plain file name ending in .json (it is saved "
-                            "in the run folder)")  # fmt: skip
-        return (self.run if self.run is not None else Path(".")) / name
-
-    def _start_preview(self, client) -> None:
-        """The "Preview" button: flies this browser's camera along the path in a thread; a
-        newer click (or the browser leaving) ends the one before: one flight per browser."""
-        cid = client.client_id
-        with self._lock:
-            n = self._previews.get(cid, 0) + 1
-            self._previews[cid] = n
-        threading.Thread(target=self._guarded("preview", self._preview), args=(client, 20.0, n),
-                         daemon=True).start()  # fmt: skip
-
-    def _preview(self, client, fps: float = 20.0, number: int | None = None) -> None:
-        """Flies the browser's camera along the path (frames at ``fps``; the viewer renders what
-        it can keep up with), each camera computed when it is shown (a path of 100000 frames
-        costs no memory); stops early when ``number`` is no longer the browser's latest
-        preview, the browser leaves or the viewer closes."""
-        if not self._path:
-            return
-        path = self.path()
-        cid = client.client_id
-        for c2w in path.iter_cameras():
-            if self._stop.is_set() or (number is not None and self._previews.get(cid) != number):
-                return
-            st = self._clients.get(cid)
-            if st is not None and st.gone:
-                return
-            wxyz, pos = gl_to_opencv(c2w)
-            with client.atomic():
-                client.camera.wxyz, client.camera.position = wxyz, pos
-            time.sleep(1.0 / fps)
-
     def _reload(self) -> None:
         try:
             step = self.scene.reload()
@@ -411,15 +300,6 @@ class Viewer:
         except Exception as e:  # a checkpoint being replaced, a broken file: keep the old one
             msg = f"reload failed: {e}"
         self._say(msg)
-
-    def _save_path(self, client) -> None:
-        try:
-            target = self.path_target()
-            self.path().save(target)
-            msg = f"saved {len(self._path)} keyframes to {target}"
-        except (UserError, OSError, ValueError) as e:
-            msg = f"not saved: {e}"
-        self._say(msg, self.path_info)
 
     # ---------------------------------------------------------------------------- clients
 
