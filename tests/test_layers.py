@@ -27,6 +27,7 @@ LAYERS = {
     "fields": 4,
     "occupancy": 4,
     "render": 5,
+    "render_marched": 5,
     "mesh": 5,
     "mesh_clean": 5,
     "train": 6,

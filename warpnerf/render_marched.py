@@ -1,0 +1,272 @@
+"""Rendering with an occupancy grid (:func:`render_marched`): rays marched through the grid's
+occupied cells, the field evaluated on the kept samples in rounds within a sample budget, and the
+fixed-shape variant a captured CUDA graph replays (:func:`render_marched_fixed`). Part of the
+rendering pipelines of :mod:`warpnerf.render`, which re-exports both."""
+
+from __future__ import annotations
+
+import torch
+
+from .ops import render_packed
+from .ops.bridge import check_int
+
+__all__ = ["render_marched", "render_marched_fixed", "SAMPLE_BUDGET"]
+
+
+SAMPLE_BUDGET = 1 << 23  # rendering: most samples the field sees in one call (memory bound)
+
+
+def render_marched(
+    grid,
+    field,
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] unit length
+    near,  # float or [n_rays]
+    far,  # float or [n_rays]
+    *,
+    perturb: bool = False,
+    generator: torch.Generator | None = None,
+    background=1.0,
+    t_threshold: float = 1e-4,
+    max_samples: int = 1024,
+    round_samples: int = 0,
+    half: bool = False,
+    sample_budget: int = SAMPLE_BUDGET,
+    jitter: torch.Tensor | None = None,
+    ray_images: torch.Tensor | None = None,
+    distortion_s=None,
+):
+    """Volume rendering with an occupancy grid: packed marching + early termination.
+
+    ``grid`` (:class:`warpnerf.OccupancyGrid`) emits lattice samples of step ``grid.dt`` in
+    occupied cells (the lattice shifted by a random fraction of a step per ray when ``perturb``,
+    drawn from ``generator`` on the rays' device, or given as ``jitter`` [n_rays] in [0, 1): a
+    data-parallel rank passes its share of the global batch's draws; ``ray_images`` [n_rays]:
+    each ray's training image, for a field with appearance codes). ``field`` is a module
+    with ``density(positions) -> (sigmas [n], features)`` and ``color(features, directions) ->
+    rgbs [n, 3]``. Densities of all marched samples are computed first without gradients; each
+    ray keeps its samples before transmittance drops below ``t_threshold`` (the compositing
+    kernels' own rule, so forward and backward see the same samples); the field then runs again
+    with gradients on the kept samples only.
+
+    Without gradients (rendering) the field's density runs once on the marched samples, their
+    weights are composited, and the colour MLP runs only on samples whose weight reaches
+    ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight).
+    ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
+    rays finish), compositing each round onto the rays' running colour and transmittance and
+    dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
+    (a round is composited whole); 0 marches everything in one round (on the H100 one round
+    was faster on lego: every round costs host syncs and launches). ``half`` (rendering on
+    CUDA only) runs the field's MLPs under float16 autocast; densities, weights and compositing
+    stay float32. ``sample_budget`` bounds the samples the field sees in one call while
+    rendering (its activations are most of the memory, whatever the number of rays): a round
+    that marched more samples evaluates densities in slices of that size, then recomputes the
+    features of the samples whose colour is needed (the default, 2^23 = 8192 rays x 1024
+    samples, is never reached by the default rendering chunk).
+
+    Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
+    ``n_marched`` / ``n_kept`` (ints); with gradients and ``distortion_s`` (a map of ray
+    distances t to a normalised coordinate s, increasing) also ``distortion`` [n_rays], each
+    ray's distortion loss (:func:`warpnerf.ops.distortion_loss`) of its kept samples' weights.
+
+    The packed samples are the grid's own: they are composited without re-checking their indices
+    (``render_packed(check=False)``), so no host sync is added to the marching's own.
+    """
+    from .ops.occupancy import live_samples
+    from .ops.sampling import Samples
+
+    max_samples = check_int("max_samples", max_samples, lo=1)
+    round_samples = check_int("round_samples", round_samples)
+    sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
+    if not torch.is_grad_enabled():
+        return _render_rounds(
+            grid, field, origins, directions, near, far, background, t_threshold,
+            round_samples or max_samples, max_samples, half, sample_budget,
+        )  # fmt: skip
+    n_rays, dev = origins.shape[0], origins.device
+    if jitter is None and perturb:
+        jitter = torch.rand(n_rays, device=dev, generator=generator)
+    smp, _ = grid.march(origins, directions, near, far, jitter=jitter, max_samples=max_samples)
+    ri = smp.ray_indices
+    positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    with torch.no_grad():
+        enc, sigmas = _first_pass(field, positions)
+    keep, n_live = live_samples(smp, sigmas, t_threshold, check=False)
+    idx = torch.nonzero(keep).squeeze(1)
+    counts = n_live.to(torch.int64)
+    info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
+    kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
+    sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx])
+    out = _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
+                      ray_images, distortion_s)  # fmt: skip
+    out.update(n_marched=int(smp.t_starts.shape[0]), n_kept=int(idx.shape[0]))
+    return out
+
+
+def _first_pass(field, positions):
+    """(encoding or None, sigmas) of a marcher's first, gradient-free pass: a field that can
+    hand over its encoding (``encode``) keeps it for the second pass."""
+    if getattr(field, "encode", None) is None:
+        return None, field.density(positions)[0]
+    enc = field.encode(positions)
+    return enc, field.density(positions, encoded=enc)[0]
+
+
+def _second_pass(field, positions, enc):
+    """(sigmas, features) of the kept samples, with gradients (the encoding reused)."""
+    return field.density(positions) if enc is None else field.density(positions, encoded=enc)
+
+
+def render_marched_fixed(
+    grid,
+    field,
+    origins: torch.Tensor,  # [n_rays, 3] float32
+    directions: torch.Tensor,  # [n_rays, 3] unit length
+    near,  # float or [n_rays]
+    far,  # float or [n_rays] (a ray with far <= near gets no samples: an unused slot)
+    *,
+    marched: int,
+    kept: int,
+    jitter: torch.Tensor | None = None,
+    background=1.0,
+    t_threshold: float = 1e-4,
+    max_samples: int = 1024,
+    ray_images: torch.Tensor | None = None,
+    distortion_s=None,
+):
+    """:func:`render_marched` with static shapes and no host sync, for a training step captured
+    in a CUDA graph (:mod:`warpnerf.train.graph_step`): the marched samples fill ``marched``
+    slots, the live ones (before each ray's transmittance drops below ``t_threshold``) are
+    compacted into ``kept`` slots, and the field runs on all slots of each (unused ones hold
+    finite positions no ray composites, so their gradients are zero). Rays past a full buffer
+    lose samples, deterministically by ray order (``stats`` counts them; the trainer sizes the
+    buffers from the previous steps so that this stays rare). With enough capacity, every ray's
+    samples, colour and gradients are :func:`render_marched`'s.
+
+    Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays] (and ``distortion`` [n_rays] with
+    ``distortion_s``) and ``stats``, an int64 device tensor [5]: (samples marched, marched
+    samples dropped, rays refused, live samples, live samples dropped).
+    """
+    from .ops.occupancy import live_samples_fixed
+
+    smp, _, march_stats = grid.march(origins, directions, near, far, jitter=jitter,
+                                     max_samples=max_samples, capacity=marched)  # fmt: skip
+    ri = smp.ray_indices
+    positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    with torch.no_grad():
+        enc, sigmas = _first_pass(field, positions)
+    live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
+    sigmas, feats = _second_pass(field, positions[src], None if enc is None else enc[src])
+    color_kw = None
+    if getattr(field, "kind", "density") == "sdf":  # its eikonal term: the live slots only
+        n_live = live_stats[0].clamp_max(kept)
+        color_kw = {"valid": torch.arange(kept, device=directions.device) < n_live}
+    out = _shade_kept(field, directions, live, sigmas, feats, background, t_threshold,
+                      ray_images, distortion_s, color_kw)  # fmt: skip
+    out["stats"] = torch.cat([march_stats, live_stats])
+    return out
+
+
+def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold, ray_images,
+                distortion_s, color_kw=None) -> dict:  # fmt: skip
+    """The marchers' last part: colours of the kept samples (with their densities and
+    features from the field's second pass), compositing, and each ray's distortion loss when
+    ``distortion_s`` is given. ``color_kw``: more keywords for the field's ``color``."""
+    dirs = directions[kept.ray_indices]
+    kw = dict(color_kw or {})
+    if ray_images is not None:
+        kw["image_ids"] = ray_images[kept.ray_indices]
+    rgbs = field.color(feats, dirs, **kw)
+    rgb, depth, opacity, *weights = render_packed(
+        kept.t_starts, kept.t_ends, kept.ray_indices, sigmas, rgbs, directions.shape[0],
+        background=background, packed_info=kept.packed_info, t_threshold=t_threshold,
+        check=False, return_weights=distortion_s is not None,
+    )  # fmt: skip
+    out = {"rgb": rgb, "depth": depth, "opacity": opacity}
+    if distortion_s is not None:
+        from .ops.distortion import distortion_loss
+
+        out["distortion"] = distortion_loss(
+            distortion_s(kept.t_starts), distortion_s(kept.t_ends), kept.ray_indices, weights[0],
+            directions.shape[0], packed_info=kept.packed_info, check=False,
+        )  # fmt: skip
+    return out
+
+
+COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipped
+
+
+def _render_rounds(
+    grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
+    sample_budget=SAMPLE_BUDGET,
+):  # fmt: skip
+    n_rays, dev, dt = o.shape[0], o.device, o.dtype
+    use_half = half and dev.type == "cuda"
+    rgb = torch.zeros(n_rays, 3, device=dev, dtype=dt)
+    depth = torch.zeros(n_rays, device=dev, dtype=dt)
+    trans = torch.ones(n_rays, device=dev, dtype=dt)
+    near = torch.as_tensor(near, device=dev, dtype=dt).expand(n_rays)
+    far = torch.as_tensor(far, device=dev, dtype=dt).expand(n_rays)
+    alive = torch.arange(n_rays, device=dev)
+    k = torch.zeros(n_rays, device=dev, dtype=torch.int32)
+    n_marched, budget = 0, round_samples * n_rays
+    while alive.numel():
+        per_ray = min(max(round_samples, budget // alive.numel()), cap)
+        oa, da = o[alive], d[alive]
+        smp, k_next = grid.march(
+            oa, da, near[alive], far[alive], k_begin=k[alive], max_samples=per_ray
+        )
+        ri = smp.ray_indices
+        n_marched += smp.t_starts.shape[0]
+        pos = oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1)
+        n = pos.shape[0]
+        with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
+            if n <= sample_budget:  # one call; the colour head reuses its features
+                sig, feats = field.density(pos)
+            else:  # bounded memory: densities in slices, features recomputed where needed
+                sig = torch.cat([field.density(pos[s : s + sample_budget])[0]
+                                 for s in range(0, n, sample_budget)])  # fmt: skip
+                feats = None
+        sig = sig.to(dt)
+        # Weights first (no colours): the colour MLP runs only where a sample's weight in the
+        # image, T_ray * w, reaches COLOR_WEIGHT_EPS; the rest add at most their weight's sum.
+        _, z, op, w = render_packed(
+            smp.t_starts,
+            smp.t_ends,
+            ri,
+            sig,
+            sig.new_zeros(1, 3).expand(sig.shape[0], 3),
+            alive.numel(),
+            packed_info=smp.packed_info,
+            return_weights=True,
+            check=False,
+        )
+        t_a = trans[alive]
+        seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
+        rs = ri[seen]
+        c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
+        with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
+            if feats is not None:
+                col = field.color(feats[seen], da[rs])
+            else:
+                col = torch.cat([
+                    field.color(field.density(pos[sl])[1], da[ri[sl]])
+                    for sl in seen.split(sample_budget)
+                ])  # fmt: skip
+        c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))
+        rgb[alive] += t_a.unsqueeze(-1) * c
+        depth[alive] += t_a * z
+        t_a = t_a * (1.0 - op)
+        trans[alive] = t_a
+        k[alive] = k_next
+        alive = alive[(k_next >= 0) & (t_a >= t_threshold)]
+    bg = torch.as_tensor(background, device=dev, dtype=dt)
+    bg = bg.expand(3) if bg.dim() == 0 else bg
+    rgb = rgb + trans.unsqueeze(-1) * bg
+    return {
+        "rgb": rgb,
+        "depth": depth,
+        "opacity": 1.0 - trans,
+        "n_marched": n_marched,
+        "n_kept": n_marched,
+    }
