@@ -62,6 +62,14 @@ def _modules() -> dict:
     return mods
 
 
+def _from_module(node: ast.ImportFrom, pkg: str) -> str:
+    """The dotted module a ``from ... import`` names, relative imports resolved against ``pkg``."""
+    if not node.level:
+        return node.module or ""
+    up = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+    return ".".join(up + ([node.module] if node.module else []))
+
+
 def _imports(mods: dict) -> dict:
     """{module: {imported modules of the package}} and a set of all top-level names imported."""
     edges = {m: set() for m in mods}
@@ -71,11 +79,7 @@ def _imports(mods: dict) -> dict:
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    up = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
-                    base = ".".join(up + ([node.module] if node.module else []))
-                else:
-                    base = node.module or ""
+                base = _from_module(node, pkg)
                 subs = [f"{base}.{a.name}" for a in node.names]
                 names = [n for n in subs if n in mods] or [base]
             else:
@@ -233,11 +237,7 @@ def private_imports(path: Path) -> list:
             out += [f"{rel}: {a.name}" for a in node.names if private_module(a.name)
                     and not (loose and "." not in a.name)]  # fmt: skip
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                up = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
-                base = ".".join(up + ([node.module] if node.module else []))
-            else:
-                base = node.module or ""
+            base = _from_module(node, pkg)
             for a in node.names:
                 name = a.name
                 if (name.startswith("_") and not name.startswith("__")) or private_module(base):
