@@ -24,7 +24,7 @@ from .mlp import run_mlp
 from .model import FieldTraits, RadianceModel, register_field
 from .settings import HashConfig
 
-__all__ = ["HashNeRFField"]
+__all__ = ["HashNeRFField", "hash_grid_of", "with_occupancy_grid"]
 
 GEO_FEATURES = 16  # density MLP outputs: raw density + 15 features for the colour MLP
 
@@ -146,7 +146,7 @@ class HashNeRFField(nn.Module):
 # helpers the hash fields' builders share (hash_sdf.py)
 
 
-def _hash_grid(cfg):
+def hash_grid_of(cfg):
     """The hash encoding of a config's :class:`HashConfig` section."""
     return HashGrid(**section_of(cfg, HashConfig).grid_kwargs())
 
@@ -158,7 +158,7 @@ def _contraction(cfg) -> dict:
     return {"contract": float(cfg.aabb), "cone": float(cfg.march_cone)}
 
 
-def _on_grid(cfg, f, box) -> RadianceModel:
+def with_occupancy_grid(cfg, f, box) -> RadianceModel:
     """The model of a hash field ``f``: with the occupancy grid when ``cfg.grid_res`` > 0 (then
     no fine pass), else ``f`` serves the fine pass too when there is one."""
     from ..occupancy import OccupancyGrid
@@ -185,6 +185,6 @@ def _hash(cfg) -> RadianceModel:
         if cfg.appearance_images < 1:  # (a run's config without the count: no mean code)
             raise UserError("appearance_dim needs appearance_images >= 1 (the training images)")
         app = (cfg.appearance_images, cfg.appearance_dim)
-    f = HashNeRFField(box, _hash_grid(cfg), cfg.hidden, cfg.view_dependence, app,
+    f = HashNeRFField(box, hash_grid_of(cfg), cfg.hidden, cfg.view_dependence, app,
                       contract=_contraction(cfg).get("contract", 0.0))  # fmt: skip
-    return _on_grid(cfg, f, box)
+    return with_occupancy_grid(cfg, f, box)

@@ -55,7 +55,7 @@ from torch import nn
 
 from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
-from .hash_nerf import _hash_grid, _on_grid
+from .hash_nerf import hash_grid_of, with_occupancy_grid
 from .model import FieldTraits, RadianceModel, register_field
 from .sdf_volume import laplace_cdf, sdf_box
 from .settings import HashConfig, SDFDensityConfig
@@ -314,9 +314,9 @@ def _hash_sdf(cfg) -> RadianceModel:
     """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
     box = cfg.resolve().aabb_box()
     f = HashSDFField(
-        box, _hash_grid(cfg), cfg.hidden, view_dependence=cfg.view_dependence,
+        box, hash_grid_of(cfg), cfg.hidden, view_dependence=cfg.view_dependence,
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
         level_every=cfg.c2f_every, density=cfg.sdf_density, beta_final=cfg.beta_final,
         anneal_steps=cfg.beta_anneal_steps, color_direction=cfg.color_direction,
     )  # fmt: skip
-    return _on_grid(cfg, f, box)
+    return with_occupancy_grid(cfg, f, box)
