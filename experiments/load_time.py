@@ -20,6 +20,7 @@ def main():
     p.add_argument("--repeats", type=int, default=3)
     a = p.parse_args()
     import warpnerf.data._images as images
+
     from warpnerf.data import load_dataset
 
     print("| split | " + " | ".join(f"{t} threads" for t in a.threads.split(",")) + " |")
