@@ -19,8 +19,7 @@ def main():
     p.add_argument("--threads", default="1,2,8")
     p.add_argument("--repeats", type=int, default=3)
     a = p.parse_args()
-    import warpnerf.data._images as images
-
+    import warpnerf.data.images as images
     from warpnerf.data import load_dataset
 
     print("| split | " + " | ".join(f"{t} threads" for t in a.threads.split(",")) + " |")
