@@ -20,13 +20,13 @@ import torch
 
 def _old_bridge(on: bool):
     """Swaps the bridge's ``arr`` and ``_overload`` for the wp.array versions (``on``) or back."""
-    from warpnerf.ops import _bridge
+    from warpnerf.ops import bridge as _bridge
 
     if not hasattr(_bridge, "_new"):
         _bridge._new = (_bridge.arr, _bridge._overload)
 
         def arr_wp(t, dtype=None):
-            return _bridge._wp().from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
+            return _bridge.load_warp().from_torch(t.contiguous(), dtype=dtype, requires_grad=False)
 
         _bridge._old = (arr_wp, lambda kernel, inputs: kernel)
     _bridge.arr, _bridge._overload = _bridge._old if on else _bridge._new
