@@ -365,3 +365,15 @@ def test_limits_leave_room_for_the_largest_valid_files(tmp_path):
     p.save(tmp_path / "p.json")
     assert (tmp_path / "p.json").stat().st_size * 2 < JSON_LIMITS["camera path"]
     assert len(load_camera_path(tmp_path / "p.json").keyframes) == MAX_KEYFRAMES
+
+
+def test_ply_readers_refuse_a_fifo(tmp_path, fifo):
+    """read_ply and read_ply_points (meshes and point clouds a command is given) open through
+    the one bounded regular-file reader: a FIFO is a one-line error, not a hang."""
+    from warpnerf.errors import UserError
+    from warpnerf.ply import read_ply, read_ply_points
+
+    p = fifo(str(tmp_path / "mesh.ply"))
+    for read in (read_ply, read_ply_points):
+        with pytest.raises(UserError, match="mesh.ply"):
+            read(p)

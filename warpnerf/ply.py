@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .io import atomic_path
+from .safe_open import open_input, read_input
 
 __all__ = ["write_ply", "read_ply", "read_ply_points", "MAX_PLY_BYTES"]
 
@@ -73,7 +74,7 @@ def read_ply(path, colors: bool = False, normals: bool = False):
         size = path.stat().st_size
         if size > MAX_PLY_BYTES:
             raise bad(f"{size} bytes, more than the {MAX_PLY_BYTES} accepted")
-        with open(path, "rb") as fh:
+        with open_input(path, "PLY file", follow=True) as fh:  # (no FIFO, regular files only)
             head = fh.read(_PLY_MAX_HEADER + 64)
     except OSError as e:
         raise bad(f"cannot read: {e.strerror or e}") from None
@@ -87,7 +88,7 @@ def read_ply(path, colors: bool = False, normals: bool = False):
     if size - start < least:
         raise bad(f"the header promises more elements than its {size} bytes hold")
     try:
-        with open(path, "rb") as fh:
+        with open_input(path, "PLY file", follow=True) as fh:
             ply = plyfile.PlyData.read(fh, known_list_len={"face": {"vertex_indices": 3}})
         vert = ply["vertex"].data
         names = vert.dtype.names or ()
@@ -185,9 +186,8 @@ def read_ply_points(path):
     def bad(msg):
         return UserError(f"{path}: unreadable PLY file ({msg})")
 
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
+    try:  # (bounded, no FIFO, regular files only)
+        data = read_input(path, "PLY file", MAX_PLY_BYTES, follow=True)
     except OSError as e:
         raise bad(f"cannot read: {e.strerror or e}") from None
     fmt, elements, start = _ply_header(data, bad)
