@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from warpnerf.cli import main
-from warpnerf.data.cameras import look_at, ndc_rays
-from warpnerf.occupancy import OccupancyGrid, frustum_bounds, seen_cells
+from warpnerf.data.cameras import frustum_bounds, look_at, ndc_rays
+from warpnerf.occupancy import OccupancyGrid, seen_cells
 from warpnerf.ops import occupancy as O
 from warpnerf.reference import view_cull as R
 from warpnerf.reference.rays import generate_rays

@@ -47,7 +47,7 @@ from torch import nn
 from .ops import occupancy as ops
 from .ops.bridge import check_int
 
-__all__ = ["OccupancyGrid", "seen_cells", "frustum_bounds"]
+__all__ = ["OccupancyGrid", "seen_cells", "pinhole_bounds"]
 
 
 class OccupancyGrid(nn.Module):
@@ -108,15 +108,18 @@ class OccupancyGrid(nn.Module):
         return float(ops.unpack_bits(self.bits).float().mean())
 
     @torch.no_grad()
-    def cull(self, c2w, intrinsics, width: int, height: int, *, distortion=None, ndc=None,
+    def cull(self, c2w, intrinsics, width: int, height: int, *, bounds=None, ndc=None,
              chunk: int = 1 << 24) -> float:  # fmt: skip
         """View culling: marks the cells no camera sees (:func:`seen_cells`; the cameras
         ``c2w`` [N, 3|4, 4] OpenGL, ``intrinsics`` [N, 4] fx, fy, cx, cy in pixels of W x H
-        images, ``distortion`` [N, 4] or None, ``ndc`` the NDC camera (fx, fy, W, H) of a
+        images, ``bounds`` [N, 4] their image tangents where lens distortion widens them
+        (:func:`warpnerf.data.cameras.frustum_bounds`; None: :func:`pinhole_bounds`), ``ndc``
+        the NDC camera (fx, fy, W, H) of a
         forward-facing run whose grid covers NDC space) as unseen, empties them now and keeps
         them empty through every update (in place: a captured step reads the same buffers).
         Returns the fraction of cells culled."""
-        bounds = frustum_bounds(intrinsics, width, height, distortion)
+        if bounds is None:
+            bounds = pinhole_bounds(intrinsics, width, height)
         dev = self.seen.device
         seen = seen_cells(self.res, self.box, c2w.to(dev), bounds.to(dev), contract=self.contract,
                           ndc=ndc, chunk=chunk)  # fmt: skip
@@ -185,37 +188,16 @@ class OccupancyGrid(nn.Module):
 # ---- view culling (see the module's docstring for the rule) ----
 
 NDC_NEAR = 1.0  # the near plane of the NDC map (warpnerf.data.cameras.ndc_rays' default)
-_EDGE_SAMPLES = 257  # points per image edge whose undistorted rays bound a distorted camera
 
 
-def frustum_bounds(intrinsics, width: int, height: int, distortion=None) -> torch.Tensor:
-    """[N, 4] float64 (x_lo, x_hi, y_lo, y_hi): each camera's image [0, W] x [0, H] (pixel
-    edges) as the tangents ``x / d``, ``y / d`` of its rays in camera space (y up, d the depth
-    along -z): ``x_lo = -cx / fx``, ``x_hi = (W - cx) / fx``, ``y_lo = -(H - cy) / fy``,
-    ``y_hi = cy / fy``. With ``distortion`` [N, 4] (k1, k2, p1, p2): the extremes of the
-    undistorted rays through the image's border (sampled densely, widened by the largest step
-    between neighbouring samples)."""
+def pinhole_bounds(intrinsics, width: int, height: int) -> torch.Tensor:
+    """[N, 4] float64 (x_lo, x_hi, y_lo, y_hi): each pinhole camera's image [0, W] x [0, H]
+    (pixel edges) as the tangents ``x / d``, ``y / d`` of its rays in camera space (y up, d the
+    depth along -z). Lens distortion widens them: :func:`warpnerf.data.cameras.frustum_bounds`."""
     k = torch.as_tensor(intrinsics).reshape(-1, 4).double()
     fx, fy, cx, cy = k.unbind(-1)
     w, h = float(width), float(height)
-    if distortion is None or not bool(torch.as_tensor(distortion).abs().max() > 0):
-        return torch.stack([-cx / fx, (w - cx) / fx, -(h - cy) / fy, cy / fy], -1)
-    from .data.cameras import undistort_points
-
-    t = torch.linspace(0, 1, _EDGE_SAMPLES, dtype=torch.float64, device=k.device)
-    z, o = torch.zeros_like(t), torch.ones_like(t)
-    px = torch.cat([t * w, t * w, z, o * w])  # the four edges, each in order along it
-    py = torch.cat([z, o * h, t * h, t * h])
-    n, m = k.shape[0], px.shape[0]
-    dist = torch.as_tensor(distortion, dtype=torch.float64, device=k.device).reshape(-1, 4)
-    x, y = undistort_points(((px - cx[:, None]) / fx[:, None]).reshape(-1),
-                            ((py - cy[:, None]) / fy[:, None]).reshape(-1),
-                            dist.repeat_interleave(m, 0))  # fmt: skip
-    x, y = x.reshape(n, 4, -1), -y.reshape(n, 4, -1)  # (y up)
-    slack = torch.maximum(x.diff(dim=-1).abs().amax((1, 2)), y.diff(dim=-1).abs().amax((1, 2)))
-    x, y = x.reshape(n, -1), y.reshape(n, -1)
-    return torch.stack([x.amin(-1) - slack, x.amax(-1) + slack, y.amin(-1) - slack,
-                        y.amax(-1) + slack], -1)  # fmt: skip
+    return torch.stack([-cx / fx, (w - cx) / fx, -(h - cy) / fy, cy / fy], -1)
 
 
 def _frustum_planes(c2w, bounds) -> tuple:
@@ -321,7 +303,8 @@ def seen_cells(res: int, aabb, c2w, bounds, *, contract: float = 0.0, ndc=None,
                chunk: int = 1 << 24) -> torch.Tensor:  # fmt: skip
     """Bool [res^3]: the grid's cells that some camera sees (the view-culling rule of the
     module's docstring). ``aabb`` the grid's box [6]; ``c2w`` [N, 3|4, 4] OpenGL cameras;
-    ``bounds`` [N, 4] their image tangents (:func:`frustum_bounds`); ``contract`` the inner
+    ``bounds`` [N, 4] their image tangents (:func:`pinhole_bounds`, or
+    :func:`warpnerf.data.cameras.frustum_bounds` with lens distortion); ``contract`` the inner
     half-size a of a contracted grid (0: bounded); ``ndc`` (fx, fy, W, H): the grid covers the
     NDC space of that camera (near plane 1).
 

@@ -10,7 +10,10 @@ import torch
 
 from ..errors import UserError
 
-__all__ = ["look_at", "camera_target", "intrinsics_from_fov", "spiral_path", "orbit_views"]
+__all__ = [
+    "look_at", "camera_target", "intrinsics_from_fov", "spiral_path", "orbit_views",
+    "frustum_bounds",
+]  # fmt: skip
 
 # Limits every dataset loader applies to its cameras (check_poses, check_intrinsics):
 MAX_CENTRE = 1e6  # |camera centre| in the units rays are made in (float32 rays)
@@ -339,3 +342,34 @@ def check_intrinsics(intrinsics, size, where, labels=None) -> None:
                 f"{2 * math.degrees(math.atan(MAX_TAN)):.4g}): (fx, fy, cx, cy) = "
                 f"{k[i].tolist()} for a {w}x{h} image"
             )
+
+
+_EDGE_SAMPLES = 257  # points per image edge whose undistorted rays bound a distorted camera
+
+
+def frustum_bounds(intrinsics, width: int, height: int, distortion=None) -> torch.Tensor:
+    """[N, 4] float64 (x_lo, x_hi, y_lo, y_hi): each camera's image [0, W] x [0, H] (pixel
+    edges) as the tangents ``x / d``, ``y / d`` of its rays in camera space (y up, d the depth
+    along -z): ``x_lo = -cx / fx``, ``x_hi = (W - cx) / fx``, ``y_lo = -(H - cy) / fy``,
+    ``y_hi = cy / fy``. With ``distortion`` [N, 4] (k1, k2, p1, p2): the extremes of the
+    undistorted rays through the image's border (sampled densely, widened by the largest step
+    between neighbouring samples)."""
+    k = torch.as_tensor(intrinsics).reshape(-1, 4).double()
+    fx, fy, cx, cy = k.unbind(-1)
+    w, h = float(width), float(height)
+    if distortion is None or not bool(torch.as_tensor(distortion).abs().max() > 0):
+        return torch.stack([-cx / fx, (w - cx) / fx, -(h - cy) / fy, cy / fy], -1)
+    t = torch.linspace(0, 1, _EDGE_SAMPLES, dtype=torch.float64, device=k.device)
+    z, o = torch.zeros_like(t), torch.ones_like(t)
+    px = torch.cat([t * w, t * w, z, o * w])  # the four edges, each in order along it
+    py = torch.cat([z, o * h, t * h, t * h])
+    n, m = k.shape[0], px.shape[0]
+    dist = torch.as_tensor(distortion, dtype=torch.float64, device=k.device).reshape(-1, 4)
+    x, y = undistort_points(((px - cx[:, None]) / fx[:, None]).reshape(-1),
+                            ((py - cy[:, None]) / fy[:, None]).reshape(-1),
+                            dist.repeat_interleave(m, 0))  # fmt: skip
+    x, y = x.reshape(n, 4, -1), -y.reshape(n, 4, -1)  # (y up)
+    slack = torch.maximum(x.diff(dim=-1).abs().amax((1, 2)), y.diff(dim=-1).abs().amax((1, 2)))
+    x, y = x.reshape(n, -1), y.reshape(n, -1)
+    return torch.stack([x.amin(-1) - slack, x.amax(-1) + slack, y.amin(-1) - slack,
+                        y.amax(-1) + slack], -1)  # fmt: skip

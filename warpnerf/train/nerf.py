@@ -12,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from ..data.cameras import frustum_bounds
 from ..errors import UserError
 from ..fields.model import RadianceModel, build_model
 from ..io import write_json
@@ -227,8 +228,9 @@ class NeRFTask(Task):
             # --view-cull: a new grid (a resumed one has its mask) empties the cells outside
             # every training camera's frustum for good (OccupancyGrid.cull)
             if getattr(cfg, "view_cull", False) and int(self.grid.n_updates) == 0:
+                bounds = frustum_bounds(train.intrinsics, self.w, self.h, train.distortion)
                 culled = self.grid.cull(train.c2w, train.intrinsics, self.w, self.h,
-                                        distortion=train.distortion,
+                                        bounds=bounds,
                                         ndc=cfg.ndc_camera())  # fmt: skip
                 log(f"view culling: {culled:.1%} of the grid's cells lie outside every "
                     "training camera's frustum")  # fmt: skip
