@@ -389,3 +389,14 @@ def test_step_captures_in_a_cuda_graph():
     for p, q in zip(eager, plain):  # (fused Adam's two variants may differ in the last bit)
         torch.testing.assert_close(p, q, rtol=1e-6, atol=1e-7)
     assert torch.equal(opt_p.state[plain[0]]["step"], opt_e.state[eager[0]]["step"])
+
+
+def test_sparse_adam_without_hash_tables_is_refused():
+    """--sparse-adam on a field without hash tables would silently be plain Adam: refused by
+    name, with the fields that have tables."""
+    from warpnerf.errors import UserError
+    from warpnerf.train.nerf_config import NeRFConfig
+
+    with pytest.raises(UserError, match="--sparse-adam .* needs a field with hash tables"):
+        NeRFConfig(data="builtin", field="mlp", sparse_adam=True).validate()
+    NeRFConfig(data="builtin", field="hash", sparse_adam=True).validate()

@@ -213,6 +213,10 @@ class NeRFConfig(*reversed(SECTIONS)):
         if not is_device(self.device):
             raise fail("device", f"must be cpu, cuda or cuda:N, got {self.device!r}")
         # across sections: what the field's traits allow
+        if getattr(self, "sparse_adam", False) and not traits.hash:
+            raise fail("sparse_adam", f"leaves hash-table rows without a gradient untouched: it "
+                       f"needs a field with hash tables ({_fields(hash=True)}), not --field "
+                       f"{self.field}")  # fmt: skip
         if self.appearance_dim and (not traits.captures or self.grid_res == 0):
             raise fail("appearance_dim", f"appearance codes need {_fields(captures=True)} with "
                        f"an occupancy grid (--grid-res > 0), not --field {self.field} "
