@@ -211,15 +211,23 @@ def cull_unseen(vertices, faces, c2w, intrinsics, width: int, height: int, **kw)
     (vertices float32, faces int32, info) with info = {"faces_unseen", "area_unseen_fraction"}."""
     v, f = merge_vertices(vertices, faces)
     if len(f) == 0:
-        return v, f.astype(np.int32), {"faces_unseen": 0, "area_unseen_fraction": 0.0}
-    seen = seen_faces(v, f, c2w, intrinsics, width, height, **kw)
+        return _keep_faces(v, f, np.zeros(0, bool), "unseen")
+    return _keep_faces(v, f, seen_faces(v, f, c2w, intrinsics, width, height, **kw), "unseen")
+
+
+def _keep_faces(v, f, keep, what: str):
+    """(vertices float32, faces int32, info) of the faces ``keep`` [F] bool of a merged mesh,
+    unused vertices dropped; info: the faces dropped (``faces_<what>``) and their fraction of
+    the area (``area_<what>_fraction``)."""
+    if len(f) == 0:  # (nothing to drop: the vertices as they are)
+        return v, f.astype(np.int32), {f"faces_{what}": 0, f"area_{what}_fraction": 0.0}
     area = face_areas(v, f)
     total = float(area.sum())
     info = {
-        "faces_unseen": int((~seen).sum()),
-        "area_unseen_fraction": float(area[~seen].sum() / total) if total > 0 else 0.0,
+        f"faces_{what}": int((~keep).sum()),
+        f"area_{what}_fraction": float(area[~keep].sum() / total) if total > 0 else 0.0,
     }
-    v, f = _compact(v, f[seen])
+    v, f = _compact(v, f[keep])
     return v, f.astype(np.int32), info
 
 
@@ -240,21 +248,14 @@ def cull_unweighted(vertices, faces, grid, lower, upper):
         raise ValueError(f"need finite lower < upper, got {lo.tolist()} .. {hi.tolist()}")
     v, f = merge_vertices(vertices, faces)
     if len(f) == 0:
-        return v, f.astype(np.int32), {"faces_unweighted": 0, "area_unweighted_fraction": 0.0}
+        return _keep_faces(v, f, np.zeros(0, bool), "unweighted")
     cent = v.astype(np.float64)[f].mean(1)
     res = np.asarray(g.shape)
     u = (cent - lo) / (hi - lo)  # [0, 1] inside the box
     inside = ((u >= 0) & (u <= 1)).all(1)  # (False for NaN)
     idx = np.clip(np.floor(np.where(inside[:, None], u, 0.0) * res), 0, res - 1).astype(np.int64)
     keep = inside & g.numpy()[idx[:, 0], idx[:, 1], idx[:, 2]]
-    area = face_areas(v, f)
-    total = float(area.sum())
-    info = {
-        "faces_unweighted": int((~keep).sum()),
-        "area_unweighted_fraction": float(area[~keep].sum() / total) if total > 0 else 0.0,
-    }
-    v, f = _compact(v, f[keep])
-    return v, f.astype(np.int32), info
+    return _keep_faces(v, f, keep, "unweighted")
 
 
 DEFAULT_CLEAN = 0.01  # a run's mesh: components under this fraction of the area are dropped
