@@ -108,6 +108,71 @@ def axis_exit(o: float, d: float, lo: float, size: float, i: int):
     return float(wp.inf)
 
 
+@wp.func
+def march_next(
+    o: wp.vec3,
+    d: wp.vec3,
+    t0: float,
+    t1: float,
+    j: float,
+    k: int,
+    bits: wp.array(dtype=wp.uint8),
+    res: int,
+    lo: wp.vec3,
+    cell_size: wp.vec3,
+    inv: wp.vec3,
+    dt: float,
+):
+    """A ray's first lattice interval at index >= k (k >= 0) whose midpoint cell is occupied:
+    (its index, or -1 when the ray has none left; its start s and end e). The marching rule of
+    the module's docstring (DDA skips over empty cells, backed off to floor()'s rounding)."""
+    found = int(-1)
+    s = float(0.0)
+    e = float(0.0)
+    while k >= 0 and found < 0:
+        s = t0 + (float(k) + j) * dt
+        if s >= t1:
+            k = -1
+        else:
+            e = wp.min(s + dt, t1)
+            m = 0.5 * (s + e)
+            p = o + d * m
+            ix = cell_coord(p[0], lo[0], inv[0], res)
+            iy = cell_coord(p[1], lo[1], inv[1], res)
+            iz = cell_coord(p[2], lo[2], inv[2], res)
+            if occupied(bits, (ix * res + iy) * res + iz) != 0:
+                found = k
+            else:
+                t_exit = wp.min(
+                    axis_exit(o[0], d[0], lo[0], cell_size[0], ix),
+                    wp.min(
+                        axis_exit(o[1], d[1], lo[1], cell_size[1], iy),
+                        axis_exit(o[2], d[2], lo[2], cell_size[2], iz),
+                    ),
+                )
+                if not (t_exit < t1):
+                    k = -1  # the rest of the ray lies in this empty cell
+                else:
+                    # first k whose midpoint t0 + (k + j + 1/2) dt is past t_exit, less a
+                    # margin ...
+                    kn = int(wp.ceil((t_exit - t0) / dt - j - 0.5 - SKIP_MARGIN))
+                    # ... then back off while the interval before it still leaves this cell by
+                    # the occupancy test's own rounding (for rays nearly parallel to a cell face
+                    # the exact exit plane and floor() disagree by ~ulp / |d|, far more than the
+                    # margin)
+                    while kn - 1 > k:
+                        sb = t0 + (float(kn - 1) + j) * dt
+                        pb = o + d * (0.5 * (sb + wp.min(sb + dt, t1)))
+                        jx = cell_coord(pb[0], lo[0], inv[0], res)
+                        jy = cell_coord(pb[1], lo[1], inv[1], res)
+                        jz = cell_coord(pb[2], lo[2], inv[2], res)
+                        if jx == ix and jy == iy and jz == iz:
+                            break
+                        kn -= 1
+                    k = wp.max(k + 1, kn)
+    return found, s, e
+
+
 @wp.kernel(enable_backward=False)
 def march(
     origins: wp.array(dtype=wp.vec3),  # [n_rays]
@@ -151,49 +216,16 @@ def march(
     if k < 0 or not (t1 > t0):
         k = -1
     while k >= 0 and n < limit:
-        s = t0 + (float(k) + j) * dt
-        if s >= t1:
+        found, s, e = march_next(o, d, t0, t1, j, k, bits, res, lo, cell_size, inv, dt)
+        if found < 0:
             k = -1
             break
-        e = wp.min(s + dt, t1)
-        m = 0.5 * (s + e)
-        p = o + d * m
-        ix = cell_coord(p[0], lo[0], inv[0], res)
-        iy = cell_coord(p[1], lo[1], inv[1], res)
-        iz = cell_coord(p[2], lo[2], inv[2], res)
-        if occupied(bits, (ix * res + iy) * res + iz) != 0:
-            if fill != 0:
-                t_starts[base + n] = s
-                t_ends[base + n] = e
-                ray_indices[base + n] = r
-            n += 1
-            k += 1
-        else:
-            t_exit = wp.min(
-                axis_exit(o[0], d[0], lo[0], cell_size[0], ix),
-                wp.min(
-                    axis_exit(o[1], d[1], lo[1], cell_size[1], iy),
-                    axis_exit(o[2], d[2], lo[2], cell_size[2], iz),
-                ),
-            )
-            if not (t_exit < t1):
-                k = -1  # the rest of the ray lies in this empty cell
-                break
-            # first k whose midpoint t0 + (k + j + 1/2) dt is past t_exit, less a margin ...
-            kn = int(wp.ceil((t_exit - t0) / dt - j - 0.5 - SKIP_MARGIN))
-            # ... then back off while the interval before it still leaves this cell by the
-            # occupancy test's own rounding (for rays nearly parallel to a cell face the exact
-            # exit plane and floor() disagree by ~ulp / |d|, far more than the margin)
-            while kn - 1 > k:
-                sb = t0 + (float(kn - 1) + j) * dt
-                pb = o + d * (0.5 * (sb + wp.min(sb + dt, t1)))
-                jx = cell_coord(pb[0], lo[0], inv[0], res)
-                jy = cell_coord(pb[1], lo[1], inv[1], res)
-                jz = cell_coord(pb[2], lo[2], inv[2], res)
-                if jx == ix and jy == iy and jz == iz:
-                    break
-                kn -= 1
-            k = wp.max(k + 1, kn)
+        if fill != 0:
+            t_starts[base + n] = s
+            t_ends[base + n] = e
+            ray_indices[base + n] = r
+        n += 1
+        k = found + 1
     if fill == 0:
         counts[r] = n
         k_next[r] = k
@@ -259,6 +291,44 @@ def lattice_t(s: float, dt: float, cone: float):
     return dt / cone * wp.exp(cone * s - 1.0)
 
 
+@wp.func
+def march_next_contracted(
+    o: wp.vec3,
+    d: wp.vec3,
+    s0: float,
+    t1: float,
+    j: float,
+    k: int,
+    bits: wp.array(dtype=wp.uint8),
+    res: int,
+    a: float,
+    dt: float,
+    cone: float,
+):
+    """:func:`march_next` on the contracted grid: every lattice interval from index k on is
+    tested (no skipping); (index or -1, start, end)."""
+    lo = -2.0 * a
+    inv = float(res) / (4.0 * a)
+    found = int(-1)
+    s = float(0.0)
+    e = float(0.0)
+    while k >= 0 and found < 0:
+        s = lattice_t(s0 + float(k) + j, dt, cone)
+        if s >= t1:
+            k = -1
+        else:
+            e = wp.min(lattice_t(s0 + float(k + 1) + j, dt, cone), t1)
+            p = contract(o + d * (0.5 * (s + e)), a)
+            ix = cell_coord(p[0], lo, inv, res)
+            iy = cell_coord(p[1], lo, inv, res)
+            iz = cell_coord(p[2], lo, inv, res)
+            if occupied(bits, (ix * res + iy) * res + iz) != 0:
+                found = k
+            else:
+                k += 1
+    return found, s, e
+
+
 @wp.kernel(enable_backward=False)
 def march_contracted(
     origins: wp.array(dtype=wp.vec3),  # [n_rays]
@@ -292,8 +362,6 @@ def march_contracted(
     k = int(0)
     if k_begin.shape[0] > 0:
         k = int(k_begin[r])
-    lo = -2.0 * a
-    inv = float(res) / (4.0 * a)
     n = int(0)
     base = int(0)
     limit = max_samples
@@ -303,22 +371,16 @@ def march_contracted(
     if k < 0:
         k = -1
     while k >= 0 and n < limit:
-        s = lattice_t(s0 + float(k) + j, dt, cone)
-        if s >= t1:
+        found, s, e = march_next_contracted(o, d, s0, t1, j, k, bits, res, a, dt, cone)
+        if found < 0:
             k = -1
             break
-        e = wp.min(lattice_t(s0 + float(k + 1) + j, dt, cone), t1)
-        p = contract(o + d * (0.5 * (s + e)), a)
-        ix = cell_coord(p[0], lo, inv, res)
-        iy = cell_coord(p[1], lo, inv, res)
-        iz = cell_coord(p[2], lo, inv, res)
-        if occupied(bits, (ix * res + iy) * res + iz) != 0:
-            if fill != 0:
-                t_starts[base + n] = s
-                t_ends[base + n] = e
-                ray_indices[base + n] = r
-            n += 1
-        k += 1
+        if fill != 0:
+            t_starts[base + n] = s
+            t_ends[base + n] = e
+            ray_indices[base + n] = r
+        n += 1
+        k = found + 1
     if fill == 0:
         counts[r] = n
         k_next[r] = k

@@ -28,6 +28,7 @@ LAYERS = {
     "occupancy": 4,
     "render": 5,
     "render_marched": 5,
+    "render_traced": 5,
     "mesh": 5,
     "mesh_clean": 5,
     "train": 6,

@@ -9,11 +9,13 @@ import torch
 
 from .ops import render_packed
 from .ops.bridge import check_int
+from .ops.tracer import COLOR_WEIGHT_EPS
+from .render_traced import SAMPLE_BUDGET, render_traced
 
 __all__ = ["render_marched", "render_marched_fixed", "SAMPLE_BUDGET"]
 
 
-SAMPLE_BUDGET = 1 << 23  # rendering: most samples the field sees in one call (memory bound)
+TRACERS = ("auto", "traced", "rounds")  # render_marched's rendering paths (without gradients)
 
 
 def render_marched(
@@ -35,6 +37,8 @@ def render_marched(
     jitter: torch.Tensor | None = None,
     ray_images: torch.Tensor | None = None,
     distortion_s=None,
+    tracer: str = "auto",
+    colors: str = "weighted",
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -49,7 +53,14 @@ def render_marched(
     kernels' own rule, so forward and backward see the same samples); the field then runs again
     with gradients on the kept samples only.
 
-    Without gradients (rendering) the field's density runs once on the marched samples, their
+    Without gradients (rendering), ``tracer`` picks the path: ``"traced"``
+    (:func:`warpnerf.render_traced.render_traced`, instant-ngp's tracer: per-ray state on the
+    device, a compacted list of live rays, a few samples per live ray and round, compositing
+    with early termination, one host sync per round; ``colors`` "weighted" or "all" is its
+    colour rule), ``"rounds"`` (the path below, kept for A/B timing), or ``"auto"`` (the
+    default: traced, unless ``round_samples > 0`` asks for rounds; ``round_samples`` and
+    ``max_samples`` are the rounds path's only). The rounds path: the field's
+    density runs once on the marched samples, their
     weights are composited, and the colour MLP runs only on samples whose weight reaches
     ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight).
     ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
@@ -78,6 +89,13 @@ def render_marched(
     max_samples = check_int("max_samples", max_samples, lo=1)
     round_samples = check_int("round_samples", round_samples)
     sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
+    if tracer not in TRACERS:
+        raise ValueError(f"tracer must be one of {TRACERS}, got {tracer!r}")
+    traced = tracer == "traced" or (tracer == "auto" and not round_samples)
+    if not torch.is_grad_enabled() and traced:
+        return render_traced(grid, field, origins, directions, near, far, background=background,
+                             t_threshold=t_threshold, half=half, sample_budget=sample_budget,
+                             colors=colors)  # fmt: skip
     if not torch.is_grad_enabled():
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
@@ -191,9 +209,6 @@ def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
             directions.shape[0], packed_info=kept.packed_info, check=False,
         )  # fmt: skip
     return out
-
-
-COLOR_WEIGHT_EPS = 1e-5  # rendering: colours of samples weighing less are skipped
 
 
 def _render_rounds(

@@ -217,19 +217,8 @@ def march_rays(
     max_samples = bridge.check_int("max_samples", max_samples, lo=1)
     if n_rays > bridge.INT32_MAX:
         raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
-    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
-    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
     box = _box(aabb)
-    t_in, t_out, hit = ray_aabb_intersect(origins, directions, box)
-    t_lo = torch.maximum(t_in, near)
-    t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo)
-    # Rays the kernel must not see, in one fused test per ray (few launches: rendering marches
-    # in many rounds): a NaN/Inf origin, direction or near, or a zero direction (1 / max |d| is
-    # inf) make x non-finite; a NaN far or an interval of more than MAX_STEPS lattice steps
-    # (k would outgrow int32 and float32 steps) fail the span test. Such rays get no samples;
-    # which check failed is worked out after the one host sync below, only when one did.
-    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
-    bad = ~(torch.isfinite(x) & ((t_hi - t_lo) < MAX_STEPS * float(dt)))
+    t_lo, t_hi, bad, near, far = lattice_bounds(origins, directions, near, far, box, dt)
     jit, kb, bad = _lattice_inputs(jitter, k_begin, n_rays, dev, bad)
     jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
@@ -260,7 +249,7 @@ def march_rays(
     # the one host sync: the sample total and whether any ray was refused
     total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
     if refused:
-        _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
+        raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
     offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         bridge.launch(
@@ -271,6 +260,28 @@ def march_rays(
         )
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+
+def lattice_bounds(origins, directions, near, far, aabb, dt: float) -> tuple:
+    """A bounded march's per-ray lattice: ``(t_lo, t_hi, bad, near, far)`` [n_rays] float32
+    (``t_lo = max(near, box entry)``, ``t_hi = min(far, box exit)``, ``t_lo`` for a miss) and
+    ``bad`` [n_rays] bool, the rays a marching kernel must not see (refused: give them no
+    samples, then :func:`raise_bad_rays` after the caller's host sync). ``near``/``far`` are
+    returned expanded to [n_rays]."""
+    n_rays, dev = origins.shape[0], origins.device
+    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
+    t_in, t_out, hit = ray_aabb_intersect(origins, directions, aabb)
+    t_lo = torch.maximum(t_in, near)
+    t_hi = torch.where(hit, torch.minimum(t_out, far), t_lo)
+    # Rays the kernel must not see, in one fused test per ray (few launches: rendering marches
+    # in many rounds): a NaN/Inf origin, direction or near, or a zero direction (1 / max |d| is
+    # inf) make x non-finite; a NaN far or an interval of more than MAX_STEPS lattice steps
+    # (k would outgrow int32 and float32 steps) fail the span test. Such rays get no samples;
+    # which check failed is worked out after the caller's one host sync, only when one did.
+    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
+    bad = ~(torch.isfinite(x) & ((t_hi - t_lo) < MAX_STEPS * float(dt)))
+    return t_lo, t_hi, bad, near, far
 
 
 def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> tuple:
@@ -396,13 +407,7 @@ def march_rays_contracted(
     max_samples = bridge.check_int("max_samples", max_samples, lo=1)
     if n_rays > bridge.INT32_MAX:
         raise ValueError(f"{n_rays} rays exceed int32 indices: march fewer at once")
-    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
-    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
-    s_lo = lattice_s(near.clamp_min(0), float(dt), float(cone))
-    s_hi = lattice_s(far.clamp_min(0), float(dt), float(cone))
-    # as in march_rays: refused rays get no samples, the error comes at the one host sync
-    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
-    bad = ~(torch.isfinite(x) & (near >= 0) & ((s_hi - s_lo) < MAX_STEPS))
+    s_lo, far, bad, near = lattice_bounds_contracted(origins, directions, near, far, dt, cone)
     jit, kb, bad = _lattice_inputs(jitter, k_begin, n_rays, dev, bad)
     jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
@@ -425,9 +430,7 @@ def march_rays_contracted(
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
     if refused:
-        if not bool((near >= 0).all()):
-            raise ValueError("near must be >= 0 for contracted marching")
-        _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
+        raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin, contracted=True)
     offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         fill = [1, a_(offsets), a_(counts), a_(k_next), a_(t_starts), a_(t_ends), a_(ray_indices)]
@@ -436,8 +439,27 @@ def march_rays_contracted(
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 
 
-def _raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin):
-    """The ValueError for rays :func:`march_rays` refused (the slow path: only after a refusal)."""
+def lattice_bounds_contracted(origins, directions, near, far, dt: float, cone: float) -> tuple:
+    """A contracted march's per-ray lattice: ``(s_lo, far, bad, near)`` [n_rays] (``s_lo`` the
+    lattice coordinate of near, far and near expanded to [n_rays]; ``bad`` as in
+    :func:`lattice_bounds`, plus a negative near)."""
+    n_rays, dev = origins.shape[0], origins.device
+    near = bridge.constant(near, dev, torch.float32).expand(n_rays)
+    far = bridge.constant(far, dev, torch.float32).expand(n_rays)
+    s_lo = lattice_s(near.clamp_min(0), float(dt), float(cone))
+    s_hi = lattice_s(far.clamp_min(0), float(dt), float(cone))
+    # as in march_rays: refused rays get no samples, the error comes at the one host sync
+    x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
+    bad = ~(torch.isfinite(x) & (near >= 0) & ((s_hi - s_lo) < MAX_STEPS))
+    return s_lo, far, bad, near
+
+
+def raise_bad_rays(origins, directions, near, far, dt, jitter=None, k_begin=None, *,
+                   contracted=False):  # fmt: skip
+    """The ValueError for rays a marcher refused (:func:`lattice_bounds`'s ``bad``; the slow
+    path: only after a refusal), naming the wrong input. ``contracted``: a negative near too."""
+    if contracted and not bool((near >= 0).all()):
+        raise ValueError("near must be >= 0 for contracted marching")
     finite = torch.isfinite(origins).all() & torch.isfinite(directions).all()
     finite &= torch.isfinite(near).all() & ~torch.isnan(far).any()
     if not bool(finite & (directions.abs().amax(-1) > 0).all()):
