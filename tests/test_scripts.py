@@ -95,6 +95,11 @@ def test_step_profile(tmp_path):
 
 def test_tools_on_a_run(tmp_path, run):
     _run([SCRIPTS / "render_profile.py", run, "--rounds", "0,4"], tmp_path)
+    out = _run([SCRIPTS / "bench_frame.py", run, "--images", "1", "--repeat", "1", "--json",
+                "f.json"], tmp_path)  # fmt: skip
+    res = json.loads((tmp_path / "f.json").read_text())
+    assert json.loads(out.splitlines()[-1])["views"] == 1
+    assert min(res["psnr_vs_rounds_min"].values()) > 50  # the tracer: the rounds path's image
     _run([SCRIPTS / "speed_vs_error.py", "sweep", run, "s.json", "--images", "1", "--divisors",
           "64,128"], tmp_path)  # fmt: skip
     _run([SCRIPTS / "speed_vs_error.py", "plot", "s.json", "--png", "s.png"], tmp_path)

@@ -114,6 +114,7 @@ def cmd_eval(args) -> int:
         march_step=args.march_step,
         round_samples=args.round_samples,
         render_half=True if args.half else None,
+        render_tracer=args.tracer,
         renderer=args.renderer,
         progress=not args.quiet,
     )

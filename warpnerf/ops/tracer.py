@@ -13,8 +13,12 @@ from .occupancy import lattice_bounds, lattice_bounds_contracted, raise_bad_rays
 __all__ = ["trace_rays", "steps_per_round", "COLOR_WEIGHT_EPS", "MIN_STEPS", "MAX_STEPS"]
 
 COLOR_WEIGHT_EPS = 1e-5  # colours of samples weighing less in the image are skipped
-MIN_STEPS = 2  # samples per live ray and round, at least (the first round's, on a busy image)
-MAX_STEPS = 64  # ... and at most (the last rounds', with few rays left)
+# Samples per live ray and round: at least MIN_STEPS (the first rounds', most rays live), at most
+# MAX_STEPS (the last rounds', few rays left). instant-ngp's C++ uses 1 and 8; here every round
+# costs Python launches and one host sync, so rounds are fewer and larger (a guess made on the
+# CPU for correctness only: time them on the GPU, scripts/bench_frame.py --min-steps/--max-steps).
+MIN_STEPS = 8
+MAX_STEPS = 128
 
 
 def steps_per_round(n_rays: int, n_alive: int, min_steps: int, max_steps: int) -> int:

@@ -57,7 +57,7 @@ __all__ = [
 
 # NeRFConfig fields that only affect rendering, so evaluation may override them, and the ranges
 # of the numbers among them (rays at once and sample counts index in int32; a float32 distance)
-RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half")
+RENDER_SETTINGS = ("chunk", "march_step", "round_samples", "render_half", "render_tracer")
 RENDER_RANGES = {"chunk": (1, INT32_MAX), "march_step": (1e-9, MAX_DEPTH),
                  "round_samples": (0, INT32_MAX)}  # fmt: skip
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"

@@ -201,6 +201,7 @@ def render_rays_of(
                 max_samples=cfg.max_samples,
                 round_samples=cfg.round_samples,
                 half=cfg.render_half,
+                tracer=cfg.render_tracer,
                 jitter=None if jitter is None else jitter[sl],
                 ray_images=None if ray_images is None else ray_images[sl],
                 distortion_s=s_of_t,

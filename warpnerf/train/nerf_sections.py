@@ -169,6 +169,8 @@ class SamplingConfig:
         "round)", check="nonnegative", groups=GRID,
     )  # fmt: skip
     render_half: bool = option(False, flag=None)  # grid on CUDA: rendering MLPs in float16
+    # grid: how renders march without gradients (render_marched's tracer: auto, traced, rounds)
+    render_tracer: str = option("auto", flag=None)
     target_samples: int = option(
         0, "with a grid: adapt rays per step to composite about this many samples (0: fixed "
         "--batch)", check="nonnegative", groups=GRID,
@@ -191,6 +193,9 @@ class SamplingConfig:
             raise fail("t_threshold", f"must be in [0, 1), got {self.t_threshold}")
         if not (math.isfinite(self.march_cone) and 0 <= self.march_cone <= 1):
             raise fail("march_cone", f"must be in [0, 1], got {self.march_cone}")
+        if self.render_tracer not in ("auto", "traced", "rounds"):
+            raise fail("render_tracer", f"must be auto, traced or rounds, got "
+                       f"{self.render_tracer!r}")  # fmt: skip
         if self.cuda_graph not in ("auto", "on", "off"):
             raise fail("cuda_graph", f"must be one of auto, on, off, got {self.cuda_graph!r}")
         if not self.grid_res:

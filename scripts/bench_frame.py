@@ -1,0 +1,127 @@
+"""Frame time of a grid run's val views: the tracer (``render_marched``'s default without
+gradients, :func:`warpnerf.render_traced.render_traced`) against the older rounds path
+(``tracer="rounds"``), with each one's PSNR against the val images and the PSNR between their
+images (the same image: >= ~50 dB). Runs on the CPU too (its smoke test); timings are for the GPU.
+
+python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [--repeat 3]
+    [--variants rounds,traced,traced-all] [--min-steps 8] [--max-steps 128] [--chunk N] [--half]
+    [--json F]
+
+Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
+view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
+``render_ms``). Variants run one after another per view (interleaved), so a drift of the
+machine's speed touches them alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+
+import torch
+
+from warpnerf.metrics import psnr
+from warpnerf.ops.tracer import MAX_STEPS, MIN_STEPS
+from warpnerf.render import render_chunks, render_marched
+from warpnerf.render_traced import render_traced
+from warpnerf.train.nerf import dataset_rays, load_data, load_run, with_refined_poses
+
+VARIANTS = ("rounds", "traced", "traced-all")
+
+
+def renderer(name, model, cfg, a):
+    """render(o, d) -> dict for a variant: the rounds path with the run's settings, or the
+    tracer with --min-steps/--max-steps and its colour rule."""
+    kw = dict(background=cfg.background, t_threshold=cfg.t_threshold, half=a.half)
+    if name == "rounds":
+        return lambda o, d, sl: render_marched(
+            model.grid, model.coarse, o[sl], d[sl], cfg.near, cfg.far, tracer="rounds",
+            max_samples=cfg.max_samples, round_samples=cfg.round_samples, **kw,
+        )  # fmt: skip
+    colors = "all" if name == "traced-all" else "weighted"
+    return lambda o, d, sl: render_traced(
+        model.grid, model.coarse, o[sl], d[sl], cfg.near, cfg.far, colors=colors,
+        min_steps=a.min_steps, max_steps=a.max_steps, **kw,
+    )  # fmt: skip
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("--data", default=None, help="the dataset folder (default: the run's)")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: the run's)")
+    p.add_argument("--split", default="val")
+    p.add_argument("--images", type=int, default=0, help="views (0: all of the split)")
+    p.add_argument("--repeat", type=int, default=3, help="timed renders per view and variant")
+    p.add_argument("--variants", default="rounds,traced,traced-all")
+    p.add_argument("--min-steps", type=int, default=MIN_STEPS, help="tracer: samples per live "
+                   "ray and round, at least")  # fmt: skip
+    p.add_argument("--max-steps", type=int, default=MAX_STEPS, help="tracer: samples per live "
+                   "ray and round, at most")  # fmt: skip
+    p.add_argument("--chunk", type=int, default=None, help="rays at once (default: the run's)")
+    p.add_argument("--half", action="store_true", help="float16 MLPs (CUDA)")
+    p.add_argument("--json", default=None, help="also write the results here")
+    a = p.parse_args()
+    names = a.variants.split(",")
+    if not set(names) <= set(VARIANTS) or "rounds" not in names:
+        raise SystemExit(f"--variants: some of {VARIANTS}, with rounds (the reference)")
+    cfg, model, _ = load_run(a.run, a.device)
+    if model.grid is None:
+        raise SystemExit("a run with an occupancy grid is needed")
+    if a.data:
+        cfg.data = a.data
+    if a.chunk:
+        cfg.chunk = a.chunk
+    ds = with_refined_poses(model, load_data(cfg, a.split), a.split)
+    n = ds.images.shape[0] if not a.images else min(a.images, ds.images.shape[0])
+    sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
+    fns = {k: renderer(k, model, cfg, a) for k in names}
+    ms = {k: [] for k in names}
+    quality = {k: [] for k in names}
+    same = {k: [] for k in names if k != "rounds"}
+    rounds = []
+    with torch.no_grad():
+        o, d = dataset_rays(cfg, ds, image=0)
+        for k in names:  # warm-up: kernels compiled, allocator primed
+            render_chunks(o.shape[0], cfg.chunk, lambda sl, k=k: fns[k](o, d, sl))
+        for i in range(n):
+            o, d = dataset_rays(cfg, ds, image=i)
+            gt = ds.images[i].to(o.device)
+            shape = gt.shape
+            imgs = {}
+            for _ in range(a.repeat):
+                for k in names:
+                    sync()
+                    t0 = time.perf_counter()
+                    out = render_chunks(o.shape[0], cfg.chunk,
+                                        lambda sl, k=k, o=o, d=d: fns[k](o, d, sl))  # fmt: skip
+                    sync()
+                    ms[k].append(1e3 * (time.perf_counter() - t0))
+                    imgs[k] = out
+            for k in names:
+                quality[k].append(psnr(imgs[k]["rgb"].reshape(shape), gt))
+                if k != "rounds":
+                    ref = imgs["rounds"]["rgb"].reshape(shape)
+                    same[k].append(psnr(imgs[k]["rgb"].reshape(shape), ref))
+            rounds.append(imgs.get("traced", imgs[names[-1]]).get("n_rounds"))
+    res = {
+        "run": a.run, "device": cfg.device, "views": n, "repeat": a.repeat, "half": a.half,
+        "min_steps": a.min_steps, "max_steps": a.max_steps, "chunk": cfg.chunk,
+        "frame_ms_median": {k: statistics.median(v) for k, v in ms.items()},
+        "psnr_vs_gt": {k: statistics.mean(v) for k, v in quality.items()},
+        "psnr_vs_rounds_min": {k: min(v) for k, v in same.items()},
+        "psnr_vs_rounds_mean": {k: statistics.mean(v) for k, v in same.items()},
+        "tracer_rounds_per_frame": rounds,
+    }  # fmt: skip
+    if cfg.device.startswith("cuda"):
+        res["gpu"] = torch.cuda.get_device_name()
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(res, f, indent=1)
+    print(json.dumps(res))
+
+
+if __name__ == "__main__":
+    main()
