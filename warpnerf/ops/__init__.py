@@ -4,6 +4,7 @@ public function."""
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
 from .distortion import distortion_loss
 from .encoding import HashGrid, hash_encode
+from .proposal import interlevel_loss, proposal_resample
 from .rays import generate_rays, random_pixels, ray_aabb_intersect
 from .sampling import Samples, importance_samples, stratified_samples
 
@@ -18,6 +19,8 @@ __all__ = [
     "render_dense",
     "packed_info_from_ray_indices",
     "distortion_loss",
+    "proposal_resample",
+    "interlevel_loss",
     "HashGrid",
     "hash_encode",
 ]

@@ -3,6 +3,7 @@
 from .composite import render_dense, render_packed
 from .distortion import distortion_loss
 from .encoding import hash_encode
+from .proposal import interlevel_loss, proposal_resample
 from .rays import generate_rays, ray_aabb_intersect
 from .sampling import stratified_samples
 
@@ -13,5 +14,7 @@ __all__ = [
     "render_dense",
     "render_packed",
     "distortion_loss",
+    "proposal_resample",
+    "interlevel_loss",
     "hash_encode",
 ]
