@@ -30,6 +30,7 @@ from warpnerf.train.nerf_config import (
     CaptureConfig,
     DataConfig,
     NeRFConfig,
+    ProposalConfig,
     SamplingConfig,
     SceneConfig,
     ValidationConfig,
@@ -100,11 +101,15 @@ def test_nerf_config_is_its_sections_and_saves_the_old_flat_keys():
     # and the training recipe's section (issue 44), which an old run reads as it trained
     recipe = {f.name for f in dataclasses.fields(RecipeConfig)}
     assert recipe == set(RECIPE_LEGACY)
+    proposal = {f.name for f in dataclasses.fields(ProposalConfig)}
     for run in ("nerf_mlp", "nerf_hash"):
         old = json.loads((OLD_RUNS / run / "config.json").read_text())
-        assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"} | recipe
+        assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"} | recipe | (
+            proposal
+        )
         loaded = NeRFConfig.from_dict(old, "config.json")
         assert {k: getattr(loaded, k) for k in recipe} == RECIPE_LEGACY
+        assert loaded.sampler == "grid"  # (proposal sampling, issue 48: an old run marched)
     cfg = NeRFConfig(field="hash", hash_levels=8, hash_max_res=256)
     assert section_of(cfg, HashConfig).grid_kwargs() == dict(
         n_levels=8, log2_size=19, base_res=16, max_res=256

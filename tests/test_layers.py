@@ -29,6 +29,7 @@ LAYERS = {
     "render": 5,
     "render_marched": 5,
     "render_traced": 5,
+    "render_proposal": 5,
     "mesh": 5,
     "mesh_clean": 5,
     "train": 6,

@@ -20,25 +20,13 @@ from ..ops.encoding import HashGrid
 from ..ops.occupancy import contract_points, is_contracted_box
 from ..options import section_of
 from .encoding import HashEncoding, SphericalHarmonics
-from .mlp import run_mlp
+from .mlp import run_mlp, trunc_exp
 from .model import FieldTraits, RadianceModel, register_field
 from .settings import HashConfig
 
 __all__ = ["HashNeRFField", "hash_grid_of", "with_occupancy_grid"]
 
 GEO_FEATURES = 16  # density MLP outputs: raw density + 15 features for the colour MLP
-
-
-class _TruncExp(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, x):
-        ctx.save_for_backward(x)
-        return torch.exp(x.clamp(max=15.0))
-
-    @staticmethod
-    def backward(ctx, g):
-        (x,) = ctx.saved_tensors
-        return g * torch.exp(x.clamp(-15.0, 15.0))
 
 
 class HashNeRFField(nn.Module):
@@ -108,7 +96,7 @@ class HashNeRFField(nn.Module):
         x = self._unit(positions)
         inside = ((x >= 0) & (x <= 1)).all(-1)
         h = run_mlp(self.density_mlp, self.encoding(x, given=encoded))
-        sigma = _TruncExp.apply(h[:, 0]) * inside.to(h.dtype)
+        sigma = trunc_exp(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 
     def color(self, h: torch.Tensor, directions: torch.Tensor | None = None, image_ids=None):
@@ -164,12 +152,18 @@ def with_occupancy_grid(cfg, f, box) -> RadianceModel:
     from ..occupancy import OccupancyGrid
 
     grid = None
-    if cfg.grid_res:
+    proposal = getattr(cfg, "sampler", "grid") == "proposal"  # (its nets replace the grid)
+    if cfg.grid_res and not proposal:
         grid = OccupancyGrid(
             box, cfg.grid_res, dt=cfg.march_step, occ_threshold=cfg.occ_threshold,
             warmup=-(-cfg.grid_warmup // cfg.grid_every), **_contraction(cfg),
         )  # fmt: skip
-    return RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
+    model = RadianceModel(f, f if cfg.n_fine > 0 and not cfg.grid_res else None, grid)
+    if proposal:
+        from .proposal import proposal_sampler_of
+
+        model.proposal = proposal_sampler_of(cfg)
+    return model
 
 
 @register_field("hash", FieldTraits(in_box=True, hash=True, grid=True, captures=True, lr=1e-2,

@@ -4,14 +4,14 @@ epilogue (``torch._addmm_activation``), so the ReLU's separate pass over the act
 quarter of a hash-field training step's elementwise memory traffic) is gone. PyTorch has no
 gradient for that op: :class:`_LinearReLU` gives the usual one (the ReLU's mask from the
 output, then the Linear's). CPU runs, float64 and autocast keep the modules as they are, so
-their results are unchanged."""
+their results are unchanged. Also the fields' density activation, :func:`trunc_exp`."""
 
 from __future__ import annotations
 
 import torch
 from torch import nn
 
-__all__ = ["run_mlp"]
+__all__ = ["run_mlp", "trunc_exp"]
 
 
 class _LinearReLU(torch.autograd.Function):
@@ -51,3 +51,21 @@ def run_mlp(mlp: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
             x = layer(x)
             i += 1
     return x
+
+
+class _TruncExp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x):
+        ctx.save_for_backward(x)
+        return torch.exp(x.clamp(max=15.0))
+
+    @staticmethod
+    def backward(ctx, g):
+        (x,) = ctx.saved_tensors
+        return g * torch.exp(x.clamp(-15.0, 15.0))
+
+
+def trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    """instant-ngp's density activation: exp(x) with x clamped at 15 in the forward pass only
+    (the gradient is exp(clamp(x, -15, 15)), never cut)."""
+    return _TruncExp.apply(x)

@@ -52,6 +52,7 @@ class RadianceModel(nn.Module):
         self.fine_field = None if fine is coarse else fine
         self.grid = grid
         self.poses = None  # pose refinement: a CameraCorrection of the training cameras
+        self.proposal = None  # --sampler proposal: a ProposalSampler (fields/proposal.py)
 
     @property
     def fine(self) -> nn.Module | None:
@@ -67,12 +68,15 @@ class RadianceModel(nn.Module):
         return self.fine if self.fine is not None else self.coarse
 
     def parts(self) -> dict:
-        """{"coarse", "fine", "grid"[, "poses"]}: each module once (None for a fine pass that
-        shares the coarse network, or that is absent; "poses" only with pose refinement): the
-        layout of a checkpoint's ``fields``."""
+        """{"coarse", "fine", "grid"[, "poses"][, "proposal"]}: each module once (None for a
+        fine pass that shares the coarse network, or that is absent; "poses" only with pose
+        refinement, "proposal" only with proposal sampling): the layout of a checkpoint's
+        ``fields``."""
         parts = {"coarse": self.coarse, "fine": self.fine_field, "grid": self.grid}
         if self.poses is not None:
             parts["poses"] = self.poses
+        if self.proposal is not None:
+            parts["proposal"] = self.proposal
         return parts
 
     def load_parts(self, saved, path) -> None:

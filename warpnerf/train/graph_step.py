@@ -66,6 +66,8 @@ def _tier_index(n: int) -> int:
 
 def unsupported(cfg, model, task) -> str | None:
     """Why this run's step cannot have static shapes (None: it can)."""
+    if getattr(model, "proposal", None) is not None:  # (fixed shapes, but its own step)
+        return "--sampler proposal is not captured yet (its step runs eagerly)"
     if model.grid is None:
         return "it needs an occupancy grid"
     if model.fine is not None:

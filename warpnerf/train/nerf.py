@@ -234,6 +234,8 @@ class NeRFTask(Task):
                                         ndc=cfg.ndc_camera())  # fmt: skip
                 log(f"view culling: {culled:.1%} of the grid's cells lie outside every "
                     "training camera's frustum")  # fmt: skip
+        elif model.proposal is not None:  # --sampler proposal: its jitter (and backgrounds)
+            self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
         self.batch = cfg.batch
         self._kept = None  # data-parallel: the last step's global sample count (on the device)
         self.keypoints = None  # --depth-loss: the training split's sparse-point observations
@@ -327,8 +329,10 @@ class NeRFTask(Task):
         )  # fmt: skip
         n = cam.shape[0]  # the global batch (every rank draws it whole)
         sl, jitter, scale, bg = slice(0, n), None, 1.0, None
-        if grid is not None:  # the lattice jitter (and backgrounds), drawn for all the batch's rays
-            jitter = torch.rand(n, device=cfg.device, generator=self.grid_gen)
+        if self.grid_gen is not None:  # the lattice jitter (and backgrounds), drawn for all the
+            # batch's rays; proposal sampling: one column per level (fields/proposal.py)
+            cols = () if grid is not None else (model.proposal.n_draws,)
+            jitter = torch.rand(n, *cols, device=cfg.device, generator=self.grid_gen)
             if self.random_bg:  # (contracted: no fixed colour behind the scene)
                 bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
         if self.dist is not None:  # this rank's share
@@ -379,6 +383,10 @@ class NeRFTask(Task):
             dist_loss = ray_mean(out["distortion"]) * scale
             terms["distortion"] = dist_loss.detach()
             loss = loss + cfg.distortion_loss * dist_loss
+        if "interlevel" in out:  # --sampler proposal: the proposal networks' loss
+            inter = ray_mean(out["interlevel"]) * scale
+            terms["interlevel"] = inter.detach()
+            loss = loss + cfg.interlevel_loss * inter
         if self.keypoints is not None:  # the depth prior at sparse points (the same on every
             # rank: every rank draws and renders the whole set, the ranks' mean is the term)
             depth_term = self._depth_term(seed)
@@ -449,6 +457,8 @@ class NeRFTask(Task):
         cfg, grid, field = self.cfg, self.grid, self.model.coarse
         if hasattr(field, "set_step"):  # coarse-to-fine hash levels (a function of the step)
             field.set_step(step)
+        if self.model.proposal is not None:  # the proposal weights' anneal exponent
+            self.model.proposal.set_step(step)
         if grid is not None and step % cfg.grid_every == 0:
             if hasattr(field, "grid_density"):  # an SDF: the densest point of each cell
                 lo, hi = grid.box[:3], grid.box[3:]

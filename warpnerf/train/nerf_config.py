@@ -23,6 +23,7 @@ from .nerf_sections import (
     GRID,
     CaptureConfig,
     DataConfig,
+    ProposalConfig,
     SamplingConfig,
     SceneConfig,
     ValidationConfig,
@@ -33,7 +34,8 @@ from .recipe import RecipeConfig
 
 __all__ = [
     "NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL", "DataConfig", "SceneConfig",
-    "SamplingConfig", "CaptureConfig", "ValidationConfig", "RecipeConfig", "SECTIONS", "GRID",
+    "SamplingConfig", "ProposalConfig", "CaptureConfig", "ValidationConfig", "RecipeConfig",
+    "SECTIONS", "GRID",
 ]  # fmt: skip
 
 
@@ -54,8 +56,9 @@ NERF_LOOP = with_defaults(
         check="positive",
     ),  # fmt: skip
 )
-SECTIONS = (DataConfig, NERF_LOOP, SceneConfig, SamplingConfig, MLPConfig, HashConfig,
-            SDFDensityConfig, RecipeConfig, CaptureConfig, ValidationConfig)  # fmt: skip
+SECTIONS = (DataConfig, NERF_LOOP, SceneConfig, SamplingConfig, ProposalConfig, MLPConfig,
+            HashConfig, SDFDensityConfig, RecipeConfig, CaptureConfig,
+            ValidationConfig)  # fmt: skip
 
 
 @dataclass

@@ -181,7 +181,19 @@ def render_rays_of(
     jitter keyed by ``seed`` and the ray's index + ``ray_offset``). ``background``: None (the
     run's colour) or per-ray colours [n_rays, 3] (grid runs). ``distortion`` (grid runs, with
     gradients): add each ray's distortion loss as ``distortion`` [n_rays]
-    (:func:`distortion_coordinate` normalises the ray distances)."""
+    (:func:`distortion_coordinate` normalises the ray distances). A run with proposal
+    sampling (``--sampler proposal``) renders with :func:`warpnerf.render_proposal.render_proposal`
+    (its ``jitter`` [n_rays, levels + 1]; with gradients it adds ``interlevel`` [n_rays])."""
+    if model.proposal is not None:
+        from ..render_proposal import render_proposal
+
+        return render_chunks(o.shape[0], chunk, lambda sl: render_proposal(
+            model.proposal, model.coarse, o[sl], d[sl], cfg.near, cfg.far, perturb=perturb,
+            generator=generator, jitter=None if jitter is None else jitter[sl],
+            background=cfg.background if background is None else background[sl],
+            t_threshold=cfg.t_threshold, ray_images=None if ray_images is None else ray_images[sl],
+            distortion=distortion,
+        ))  # fmt: skip
     if model.grid is not None:
         s_of_t = distortion_coordinate(cfg) if distortion else None
         return render_chunks(

@@ -16,6 +16,7 @@ __all__ = [
     "DataConfig",
     "SceneConfig",
     "SamplingConfig",
+    "ProposalConfig",
     "CaptureConfig",
     "ValidationConfig",
     "GRID",
@@ -208,6 +209,73 @@ class SamplingConfig:
         if not (math.isfinite(self.march_step) and 0 <= self.march_step <= MAX_DEPTH):
             raise fail("march_step", f"must be in [0, {MAX_DEPTH:g}], got {self.march_step}")
         check_at_least(self, fail, 0, "grid_warmup", "target_samples", "round_samples")
+
+
+@dataclass
+class ProposalConfig:
+    """nerfacto's proposal sampling, side by side with the occupancy grid (issue 48)."""
+
+    TITLE = "proposal sampling (contracted scenes)"
+
+    sampler: str = option(
+        "grid", "how a contracted scene (--contract on, --field hash) places samples: grid "
+        "(march the occupancy grid) or proposal (nerfacto: small hash-grid density networks "
+        "resample each ray, --proposal-samples per level, into --proposal-final samples of the "
+        "field, trained by the interlevel loss; fixed samples per ray)",
+        choices=("grid", "proposal"), groups=GRID,
+    )  # fmt: skip
+    proposal_samples: str = option(
+        "256,96", "with --sampler proposal: samples per ray of each proposal level, one "
+        "network per level (nerfacto's)", groups=GRID,
+    )  # fmt: skip
+    proposal_final: int = option(
+        48, "with --sampler proposal: the field's samples per ray", check="positive", groups=GRID
+    )
+    interlevel_loss: float = option(
+        1.0, "with --sampler proposal: weight of mip-NeRF 360's interlevel loss (each proposal "
+        "histogram bounding the field's weights from above; the mean over rays and the field's "
+        "samples, nerfacto's weight)", check="nonnegative", groups=GRID,
+    )  # fmt: skip
+    proposal_anneal: int = option(
+        1000, "with --sampler proposal: steps over which the exponent of the proposal weights "
+        "rises from 0 to 1 (nerfacto's anneal, slope 10; 0: none)", check="nonnegative",
+        groups=GRID,
+    )  # fmt: skip
+
+    def check_section(self, fail) -> None:
+        from ..fields.proposal import MAX_SAMPLES, parse_levels
+
+        if self.sampler not in ("grid", "proposal"):
+            raise fail("sampler", f"must be grid or proposal, got {self.sampler!r}")
+        try:
+            parse_levels(self.proposal_samples)
+        except ValueError as e:
+            raise fail("proposal_samples", str(e)) from None
+        if not 1 <= self.proposal_final <= MAX_SAMPLES:
+            raise fail("proposal_final", f"must be in [1, {MAX_SAMPLES}], got "
+                       f"{self.proposal_final}")  # fmt: skip
+        if not (math.isfinite(self.interlevel_loss) and self.interlevel_loss >= 0):
+            raise fail("interlevel_loss", f"must be finite and >= 0, got {self.interlevel_loss}")
+        if not 0 <= self.proposal_anneal <= 10**9:
+            raise fail("proposal_anneal", f"must be in [0, 10^9], got {self.proposal_anneal}")
+        if self.sampler != "proposal":
+            return
+        traits = getattr(self, "traits", None)
+        field = getattr(self, "field", "?")
+        if traits is None or traits.geometry != "density" or not traits.captures:
+            raise fail("sampler", f"proposal needs a NeRF field with the capture features "
+                       f"(--field hash), not --field {field}")  # fmt: skip
+        contract = getattr(self, "contract", "auto")
+        if contract == "off" or getattr(self, "grid_res", None) == 0:
+            raise fail("sampler", "proposal is for contracted scenes (--contract on; a "
+                       "COLMAP/LLFF capture that is not forward-facing has it by default; "
+                       f"--grid-res > 0), not --contract {contract} --grid-res "
+                       f"{getattr(self, 'grid_res', None)}")  # fmt: skip
+        for name, on in (("view_cull", getattr(self, "view_cull", False)),
+                         ("target_samples", getattr(self, "target_samples", 0) > 0)):  # fmt: skip
+            if on:
+                raise fail(name, "works on the occupancy grid's samples; --sampler proposal has "
+                           "no grid (fixed samples per ray)")  # fmt: skip
 
 
 @dataclass
