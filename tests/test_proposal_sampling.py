@@ -16,7 +16,7 @@ from warpnerf.errors import UserError
 from warpnerf.fields.proposal import ProposalDensity, ProposalSampler, parse_levels
 from warpnerf.ops.encoding import HashGrid
 from warpnerf.render_proposal import render_proposal, uniform_edges
-from warpnerf.train import evaluate_run, train_nerf
+from warpnerf.train import evaluate_run, render_run, train_nerf
 from warpnerf.train.nerf import load_run
 
 from .test_nerf import GRID, tiny
@@ -90,13 +90,14 @@ def test_render_proposal_shapes_and_losses():
 def test_training_reduces_the_loss_and_the_run_evaluates(tmp_path):
     """20 steps on the tiny contracted scene: the loss falls, the interlevel term is logged
     every step, the checkpoint holds the proposal networks and no grid, and the saved run
-    evaluates with the same sampler."""
+    evaluates and renders with the same sampler."""
     cfg = tiny(iters=20, val_every=20, ckpt_every=20, **PROPOSAL)
     h = train_nerf(cfg, tmp_path / "r", **QUIET)
     assert len(h["interlevel"]) == 20 and all(math.isfinite(v) and v >= 0 for v in h["interlevel"])
     first, last = sum(h["loss"][:5]) / 5, sum(h["loss"][-5:]) / 5
     assert last < 0.95 * first, (first, last)
     assert "samples_per_ray" not in h  # (the grid's adaptive batch is not used)
+    assert "batch" not in h
     ckpt = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
     assert ckpt["fields"]["grid"] is None and "nets.1.encoding.table" in ckpt["fields"]["proposal"]
     assert float(ckpt["fields"]["proposal"]["anneal"][0]) == 1.0  # (10 anneal steps, all done)
@@ -108,6 +109,8 @@ def test_training_reduces_the_loss_and_the_run_evaluates(tmp_path):
     assert math.isfinite(m["psnr"]) and m["psnr"] > 5
     with pytest.raises(UserError, match="occupancy grid"):  # grid-only settings are refused
         evaluate_run(tmp_path / "r", max_images=1, march_step=0.1)
+    r = render_run(tmp_path / "r", "orbit", frames=2, size=(8, 6))
+    assert r["frames"] == 2 and (tmp_path / "r" / "render_orbit" / "rgb_001.png").stat().st_size
 
 
 def test_resume_continues_exactly(tmp_path):
@@ -124,13 +127,13 @@ def test_resume_continues_exactly(tmp_path):
 
 
 def test_the_flags_are_checked(tmp_path):
-    """--sampler proposal needs the hash field on a contracted scene and refuses the grid's own
-    options; distortion works with it; the static-shape step says why it is not captured."""
+    """--sampler proposal needs the hash field on a contracted scene and refuses --view-cull;
+    distortion works with it; the static-shape step says why it is not captured."""
     bads = (
         (dict(sampler="proposal"), "sampler"),  # the MLP field
+        (dict(GRID, field="hash_sdf", contract="on", sampler="proposal"), "sampler"),
         (dict(GRID, sampler="proposal", contract="off"), "contract"),
         (dict(PROPOSAL, view_cull=True), "view-cull"),
-        (dict(PROPOSAL, target_samples=1000), "target-samples"),
         (dict(PROPOSAL, proposal_samples="16,x"), "proposal-samples"),
         (dict(PROPOSAL, interlevel_loss=float("nan")), "interlevel-loss"),
         (dict(PROPOSAL, sampler="nope"), "sampler"),
@@ -139,7 +142,9 @@ def test_the_flags_are_checked(tmp_path):
         with pytest.raises(UserError, match=match):
             train_nerf(tiny(**bad), tmp_path / "bad", **QUIET)
     assert not (tmp_path / "bad").exists()
-    h = train_nerf(tiny(iters=2, distortion_loss=0.1, **PROPOSAL), tmp_path / "d", **QUIET)
+    # (--target-samples, set by --preset gpu, leaves the batch at --batch)
+    h = train_nerf(tiny(iters=2, distortion_loss=0.1, **dict(PROPOSAL, target_samples=500)),
+                   tmp_path / "d", **QUIET)  # fmt: skip
     assert len(h["distortion"]) == 2 and all(v > 0 for v in h["distortion"])
     from warpnerf.train.graph_step import unsupported
 

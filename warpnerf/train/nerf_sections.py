@@ -221,7 +221,8 @@ class ProposalConfig:
         "grid", "how a contracted scene (--contract on, --field hash) places samples: grid "
         "(march the occupancy grid) or proposal (nerfacto: small hash-grid density networks "
         "resample each ray, --proposal-samples per level, into --proposal-final samples of the "
-        "field, trained by the interlevel loss; fixed samples per ray)",
+        "field, trained by the interlevel loss; fixed samples per ray, so --batch rays a step "
+        "whatever --target-samples says)",
         choices=("grid", "proposal"), groups=GRID,
     )  # fmt: skip
     proposal_samples: str = option(
@@ -271,11 +272,10 @@ class ProposalConfig:
                        "COLMAP/LLFF capture that is not forward-facing has it by default; "
                        f"--grid-res > 0), not --contract {contract} --grid-res "
                        f"{getattr(self, 'grid_res', None)}")  # fmt: skip
-        for name, on in (("view_cull", getattr(self, "view_cull", False)),
-                         ("target_samples", getattr(self, "target_samples", 0) > 0)):  # fmt: skip
-            if on:
-                raise fail(name, "works on the occupancy grid's samples; --sampler proposal has "
-                           "no grid (fixed samples per ray)")  # fmt: skip
+        # (--target-samples, which --preset gpu sets, is left unused: the batch stays --batch)
+        if getattr(self, "view_cull", False):
+            raise fail("view_cull", "culls the occupancy grid's cells; --sampler proposal has "
+                       "no grid")  # fmt: skip
 
 
 @dataclass
