@@ -121,6 +121,15 @@ def advance(p: wp.array2d(dtype=Any), r: int, k: int, n_p: int, s: Any):
     return k
 
 
+@wp.func
+def outer_measure(w_prop: wp.array2d(dtype=Any), r: int, lo: int, hi: int):
+    """The proposal weight of intervals lo..hi (summed directly: no prefix-sum cancellation)."""
+    outer = w_prop.dtype(0.0)
+    for j in range(lo, hi + 1):
+        outer += w_prop[r, j]
+    return outer
+
+
 @wp.kernel(enable_backward=False)
 def interlevel_fwd(
     s_fine: wp.array2d(dtype=Any),  # [n_rays, n_f + 1]
@@ -140,9 +149,7 @@ def interlevel_fwd(
     for i in range(n_f):
         lo = advance(s_prop, r, lo, n_p, s_fine[r, i])
         hi = advance(s_prop, r, hi, n_p, s_fine[r, i + 1])
-        outer = zero
-        for j in range(lo, hi + 1):
-            outer += w_prop[r, j]
+        outer = outer_measure(w_prop, r, lo, hi)
         w = w_fine[r, i]
         d = wp.max(w - outer, zero)
         if wp.isnan(w - outer):
@@ -172,9 +179,7 @@ def interlevel_bwd(
     for i in range(n_f):
         lo = advance(s_prop, r, lo, n_p, s_fine[r, i])
         hi = advance(s_prop, r, hi, n_p, s_fine[r, i + 1])
-        outer = zero
-        for j in range(lo, hi + 1):
-            outer += w_prop[r, j]
+        outer = outer_measure(w_prop, r, lo, hi)
         w = w_fine[r, i]
         d = w - outer
         if d > zero or wp.isnan(d):
