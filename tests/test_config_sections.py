@@ -104,12 +104,14 @@ def test_nerf_config_is_its_sections_and_saves_the_old_flat_keys():
     proposal = {f.name for f in dataclasses.fields(ProposalConfig)}
     for run in ("nerf_mlp", "nerf_hash"):
         old = json.loads((OLD_RUNS / run / "config.json").read_text())
+        # (+ render_tracer, issue 47: the no-grad renderer, auto for a run written before it)
         assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"} | recipe | (
             proposal
-        )
+        ) | {"render_tracer"}
         loaded = NeRFConfig.from_dict(old, "config.json")
         assert {k: getattr(loaded, k) for k in recipe} == RECIPE_LEGACY
         assert loaded.sampler == "grid"  # (proposal sampling, issue 48: an old run marched)
+        assert loaded.render_tracer == "auto"
     cfg = NeRFConfig(field="hash", hash_levels=8, hash_max_res=256)
     assert section_of(cfg, HashConfig).grid_kwargs() == dict(
         n_levels=8, log2_size=19, base_res=16, max_res=256
