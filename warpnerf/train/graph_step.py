@@ -34,7 +34,7 @@ import torch
 
 from ..render import render_marched_fixed
 from ._signals import nonfinite_flags
-from .losses import composite_target, eikonal_term, opacity_term, photometric, ray_mean
+from .step_loss import step_loss, unsupported_terms
 
 __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
 
@@ -70,16 +70,11 @@ def unsupported(cfg, model, task) -> str | None:
         return "--sampler proposal is not captured yet (its step runs eagerly)"
     if model.grid is None:
         return "it needs an occupancy grid"
-    if model.fine is not None:
-        return "it needs one field without a fine pass (--field hash or hash_sdf)"
-    if model.kind == "sdf" and not hasattr(model.coarse, "eikonal"):
-        return "the SDF field has no eikonal term (--field hash_sdf)"
-    if task.dist is not None:
-        return "data-parallel training is not captured yet"
+    why = unsupported_terms(task.loss_settings, model, task.dist)  # (the loss's terms)
+    if why is not None:
+        return why
     if task.host_images:
         return "images kept in host memory (--images-on host) are not captured yet"
-    if task.keypoints is not None:
-        return "--depth-loss is not captured yet"
     if model.poses is not None:
         return "--pose-refine is not captured yet"
     if task.train.distortion is not None:
@@ -274,34 +269,17 @@ class GraphStep:
             distortion_s=task.distortion_map(),
         )  # fmt: skip
         target, alpha = task.pixels(flat)
-        if shape.bg is not None:
-            target = composite_target(target, alpha, shape.bg, cfg.background)
         weight = active.to(out["rgb"].dtype)
         n_active = shape.n_active.to(out["rgb"].dtype)
-        loss, mse = photometric(out["rgb"], target, cfg.photometric_loss, weight, n_active)
+        loss, terms = step_loss(task.loss_settings, model, out, target, alpha, shape.bg, weight,
+                                n_active, box=shape.box)  # fmt: skip
         stats = out["stats"]
-        terms = {
-            "psnr": mse,
+        terms.update({
             "samples_per_ray": stats[3].to(torch.float64) / shape.n_active.to(torch.float64),
             "dropped_samples": stats[1] + stats[4],
             "_marched": stats[0],
             "_live": stats[3],
-        }
-        if task.mask_w > 0:  # the rendered opacity against the pixels' alpha
-            mask_term = opacity_term(out["opacity"], alpha, weight, n_active)
-            terms["mask"] = mask_term.detach()
-            loss = loss + task.mask_w * mask_term
-        if "distortion" in out:
-            dist_loss = ray_mean(out["distortion"], weight, n_active)
-            terms["distortion"] = dist_loss.detach()
-            loss = loss + cfg.distortion_loss * dist_loss
-        if model.kind == "sdf":  # eikonal on the live samples and on random box points
-            f = model.coarse
-            aux = f.aux_losses().get("eikonal")  # (its count compared on the device)
-            count = None if aux is None else f._aux_n["eikonal"]
-            eik = eikonal_term(f, (shape.box * 2 - 1) * cfg.aabb, aux, count)
-            loss = loss + cfg.eikonal_weight * eik
-            terms["beta"] = f.beta.detach()
+        })  # fmt: skip
         loss.backward()
         flags = nonfinite_flags(loss, params)
         flags = torch.stack([flags[0] | (stats[2] > 0), flags[1]])  # a refused ray: loudly

@@ -21,7 +21,6 @@ from .ema import KEY as EMA_KEY
 from .ema import WeightAverage
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
-from .losses import composite_target, eikonal_term, opacity_term, photometric, ray_mean
 from .nerf_config import MODEL as NERF_MODEL
 from .nerf_config import NeRFConfig, scene_settings
 from .nerf_run import (
@@ -40,6 +39,7 @@ from .nerf_run import (
     with_refined_poses,
 )
 from .recipe import mask_weight, random_background, wants_alpha
+from .step_loss import LossSettings, step_loss
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -213,6 +213,8 @@ class NeRFTask(Task):
         self.mask_w = mask_weight(cfg, train)
         if getattr(cfg, "mask_loss", 0) > 0 and self.mask_w == 0:
             log(f"--mask-loss {cfg.mask_loss:g}: the training images have no alpha; no mask loss")
+        # the step's loss terms and weights (train/step_loss.py; both steps assemble it there)
+        self.loss_settings = LossSettings.of(cfg, model, self.mask_w)
         self.flat_alpha = None
         if (self.random_bg or self.mask_w > 0) and train.alpha is not None:
             self.flat_alpha = train.alpha.reshape(-1)
@@ -370,41 +372,14 @@ class NeRFTask(Task):
                 self._next_batch(n_kept)
         if not self.host_images:
             target, alpha = self.pixels(idx)
-        if bg is not None:
-            target = composite_target(target, alpha, bg, cfg.background)
-        loss_fine, mse = photometric(out["rgb"], target, cfg.photometric_loss)
-        terms["psnr"] = mse * scale
-        loss = loss_fine * scale
-        if self.mask_w > 0:  # the rendered opacity against the pixels' alpha
-            mask_term = opacity_term(out["opacity"], alpha) * scale
-            terms["mask"] = mask_term.detach()
-            loss = loss + self.mask_w * mask_term
-        if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
-            dist_loss = ray_mean(out["distortion"]) * scale
-            terms["distortion"] = dist_loss.detach()
-            loss = loss + cfg.distortion_loss * dist_loss
-        if "interlevel" in out:  # --sampler proposal: the proposal networks' loss
-            inter = ray_mean(out["interlevel"]) * scale
-            terms["interlevel"] = inter.detach()
-            loss = loss + cfg.interlevel_loss * inter
-        if self.keypoints is not None:  # the depth prior at sparse points (the same on every
-            # rank: every rank draws and renders the whole set, the ranks' mean is the term)
-            depth_term = self._depth_term(seed)
-            terms["depth"] = depth_term.detach()
-            loss = loss + cfg.depth_loss * depth_term
-        coarse = out.get("rgb_coarse")
-        if coarse is not None and coarse.requires_grad and model.fine is not None:
-            loss = loss + photometric(coarse, target, cfg.photometric_loss)[0] * scale
-        if model.kind == "sdf":  # eikonal on the rendered samples and on random box points
-            f = model.coarse
-            box = (torch.rand(cfg.batch, 3, generator=self.gen) * 2 - 1).to(cfg.device) * cfg.aabb
-            if self.dist is None:
-                aux = model.aux_losses().get("eikonal")  # (none when no sample was coloured)
-                eik = eikonal_term(f, box, aux)
-            else:  # (every rank draws the same box points: their term needs no exchange)
-                eik = self._dp_eikonal(model.eikonal_parts(), f.eikonal(box))
-            loss = loss + cfg.eikonal_weight * eik
-            terms["beta"] = f.beta.detach()
+        # the depth prior's draws, then the eikonal term's box points (every rank draws both)
+        depth = self._depth_term(seed) if self.keypoints is not None else None
+        box = None
+        if model.kind == "sdf":
+            box = torch.rand(cfg.batch, 3, generator=self.gen).to(cfg.device)
+        loss, more = step_loss(self.loss_settings, model, out, target, alpha, bg, scale=scale,
+                               box=box, depth=depth, dist=self.dist)  # fmt: skip
+        terms.update(more)
         return loss, terms
 
     def pixels(self, idx):
@@ -493,23 +468,6 @@ class NeRFTask(Task):
             ratio, torch.ones_like(ratio), delta=0.1, reduction="none"
         )
         return (per_ray * valid).sum() / valid.sum().clamp_min(1)
-
-    def _dp_eikonal(self, parts, box_term):
-        """A data-parallel rank's eikonal term, such that the ranks' average is the one
-        process's: each field's mean at the rendered samples becomes this rank's sum over the
-        samples of every rank (their counts summed on the device, no host wait), times the
-        number of ranks; without any rendered sample anywhere, the box points' term alone."""
-        dev = box_term.device
-        counts = torch.tensor([float(n) for _, n in parts], dtype=torch.float64)
-        if dev.type == "cuda":  # (a pinned copy does not wait for the GPU)
-            counts = counts.pin_memory().to(dev, non_blocking=True)
-        total = self.dist.sum_(counts.to(dev))
-        aux = box_term.new_zeros(())
-        for k, (mean, n) in enumerate(parts):
-            if mean is not None:
-                share = (n * self.dist.world / total[k].clamp_min(1.0)).to(mean.dtype)
-                aux = aux + mean * share
-        return torch.where(total.sum() > 0, 0.5 * (aux + box_term), box_term)
 
     def record(self, history, terms):
         terms = dict(terms, psnr=psnr_of_mse(terms["psnr"]))  # the fine pass's MSE, as PSNR

@@ -1,0 +1,102 @@
+"""The step's loss assembled once (warpnerf/train/step_loss.py): one step of the eager path
+(NeRFTask.loss) and of the static-shape body a CUDA graph holds (GraphStep without capture) give
+the same loss, terms and gradients, recipe by recipe; the terms the captured step cannot compute
+are named by unsupported() and refused, never dropped."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.test_graph_step import _task, _train
+from warpnerf.train.graph_step import GraphStep, unsupported
+from warpnerf.train.step_loss import LossSettings, step_loss, unsupported_terms
+
+FORCE = (4096, 1 << 16, 1 << 15)  # room for every sample: the static body drops nothing
+CASES = {
+    "plain": {},
+    "random_background": dict(random_background="on"),
+    "mask": dict(random_background="on", mask_loss=0.5),  # (the built-in scene's alpha)
+    "distortion": dict(distortion_loss=0.01),
+    "hash_sdf": dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=8),
+}
+EXTRA = {"mask": ("mask",), "distortion": ("distortion",), "hash_sdf": ("beta",)}
+
+
+class _Keep:
+    """An optimiser that keeps the step's gradients (no update) for the comparison."""
+
+    def __init__(self, params):
+        self.params = params
+
+    def zero_grad(self, set_to_none=True):
+        for p in self.params:
+            p.grad = None
+
+    def step(self):
+        pass
+
+
+def _pair(kw):
+    """Two tasks after the same eager first step; the second with the static-shape body."""
+    tasks = []
+    for static in (False, True):
+        task = _task("cpu", **kw)
+        if task.random_bg and not task.mask_w:  # a random alpha for the built-in pixels
+            task.flat_alpha = torch.rand(task.flat.shape[0],
+                                         generator=torch.Generator().manual_seed(5))  # fmt: skip
+        if static:
+            task.graph = GraphStep(task, capture=False)
+            task.graph.force = FORCE
+        _train(task, 1)  # (step 0: eager on both, it sizes the static buffers)
+        tasks.append(task)
+    return tasks
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
+    eager, static = _pair(CASES[name])
+    params_e, params_s = eager.parameters(), static.parameters()
+    loss_e, terms_e = eager.loss(1)
+    _Keep(params_e).zero_grad()
+    loss_e.backward()
+    loss_s, terms_s, flags = static.train_step(1, _Keep(params_s), params_s)
+    assert not flags.any()
+    # (the static body's masked means sum in another order: float32 round-off)
+    assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
+    want = {"psnr", "mask", "distortion", "beta"} & set(terms_e)
+    assert want == {"psnr", "mask", "distortion", "beta"} & set(terms_s)
+    assert want == {"psnr", *EXTRA.get(name, ())}
+    for k in want:
+        assert float(terms_s[k]) == pytest.approx(float(terms_e[k]), rel=1e-6), k
+    assert terms_s["batch"] == terms_e["batch"]
+    assert float(terms_s["samples_per_ray"]) == pytest.approx(terms_e["samples_per_ray"])
+    for pe, ps in zip(params_e, params_s):
+        ge = torch.zeros_like(pe) if pe.grad is None else pe.grad
+        gs = torch.zeros_like(ps) if ps.grad is None else ps.grad
+        scale = float(ge.abs().max()) + 1e-12
+        assert float((ge - gs).abs().max()) <= 1e-5 * scale, (name, tuple(pe.shape))
+
+
+def test_terms_the_captured_step_cannot_compute_are_named_and_refused():
+    assert unsupported_terms(LossSettings()) is None
+    assert "--depth-loss" in unsupported_terms(LossSettings(depth_w=0.1))
+    assert "fine pass" in unsupported_terms(LossSettings(fine=True))
+    assert "data-parallel" in unsupported_terms(LossSettings(), dist=object())
+    out = {"rgb": torch.rand(4, 3), "opacity": torch.rand(4)}
+    target, mask, n = torch.rand(4, 3), torch.ones(4), torch.tensor(4.0)
+    with pytest.raises(ValueError, match="depth-loss"):
+        step_loss(LossSettings(depth_w=0.1), None, out, target, None, mask=mask, n=n,
+                  depth=torch.tensor(1.0))  # fmt: skip
+    with pytest.raises(ValueError, match="depth term"):  # (eager: the term must be given)
+        step_loss(LossSettings(depth_w=0.1), None, out, target, None)
+    loss, terms = step_loss(LossSettings(depth_w=0.5), None, out, target, None,
+                            depth=torch.tensor(2.0))  # fmt: skip
+    assert float(terms["depth"]) == 2.0
+    assert float(loss) == pytest.approx(float(((out["rgb"] - target) ** 2).mean()) + 1.0)
+    # a run's settings: a fine pass (no grid: refused for that first), an SDF's eikonal term
+    task = _task("cpu", field="hash", grid_res=0, n_fine=8)
+    assert "fine pass" in unsupported_terms(task.loss_settings, task.model)
+    assert "grid" in unsupported(task.cfg, task.model, task)
+    sdf = _task("cpu", field="hash_sdf").loss_settings
+    assert sdf.sdf and sdf.eikonal_w > 0 and unsupported_terms(sdf) is None
