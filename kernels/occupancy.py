@@ -384,3 +384,69 @@ def march_contracted(
     if fill == 0:
         counts[r] = n
         k_next[r] = k
+
+
+# --- The static-shape step's per-sample gathers (warpnerf.render_marched_fixed) -------------
+#
+# Positions of packed samples, o[r] + d[r] (t_start + t_end) / 2 with r the sample's ray, and
+# the compaction of each ray's live samples into a buffer of fixed capacity: kept slot i of the
+# ray r with first[r] <= i < first[r] + n_live[r] (first: the exclusive prefix sum of n_live)
+# holds sample start[r] + i - first[r]; slots past the live total repeat sample 0. One thread
+# per slot (a binary search for its ray), so every slot is written without a fill beforehand.
+
+
+@wp.kernel(enable_backward=False)
+def sample_points(
+    origins: wp.array(dtype=wp.vec3),  # [n_rays]
+    directions: wp.array(dtype=wp.vec3),  # [n_rays]
+    t_starts: wp.array(dtype=float),  # [n]
+    t_ends: wp.array(dtype=float),  # [n]
+    ray_indices: wp.array(dtype=wp.int32),  # [n]
+    positions: wp.array(dtype=wp.vec3),  # [n] out
+):
+    i = wp.tid()
+    r = ray_indices[i]
+    m = 0.5 * (t_starts[i] + t_ends[i])
+    positions[i] = origins[r] + directions[r] * m
+
+
+@wp.kernel(enable_backward=False)
+def live_compact(
+    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2] the marched samples (start, count)
+    live_end: wp.array(dtype=wp.int64),  # [n_rays] inclusive prefix sum of each ray's live count
+    n_live: wp.array(dtype=wp.int32),  # [n_rays]
+    t_starts: wp.array(dtype=float),  # [n]
+    t_ends: wp.array(dtype=float),  # [n]
+    ray_indices: wp.array(dtype=wp.int32),  # [n]
+    positions: wp.array(dtype=wp.vec3),  # [n], or [0]: no positions and directions gathered
+    directions: wp.array(dtype=wp.vec3),  # [n_rays] (or [0])
+    src: wp.array(dtype=wp.int64),  # [capacity] out: the sample each slot holds
+    kept_starts: wp.array(dtype=float),  # [capacity] out
+    kept_ends: wp.array(dtype=float),  # [capacity] out
+    kept_rays: wp.array(dtype=wp.int32),  # [capacity] out
+    kept_positions: wp.array(dtype=wp.vec3),  # [capacity] out (or [0])
+    kept_directions: wp.array(dtype=wp.vec3),  # [capacity] out: each slot's ray's direction
+):
+    i = wp.tid()
+    n_rays = live_end.shape[0]
+    s = int(0)
+    if n_rays > 0:
+        if wp.int64(i) < live_end[n_rays - 1]:
+            lo = int(0)  # the first ray whose live samples end past slot i
+            hi = n_rays - 1
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if live_end[mid] > wp.int64(i):
+                    hi = mid
+                else:
+                    lo = mid + 1
+            first = int(live_end[lo] - wp.int64(n_live[lo]))
+            s = int(packed_info[lo, 0]) + i - first
+    src[i] = wp.int64(s)
+    kept_starts[i] = t_starts[s]
+    kept_ends[i] = t_ends[s]
+    r = ray_indices[s]
+    kept_rays[i] = r
+    if kept_positions.shape[0] > 0:
+        kept_positions[i] = positions[s]
+        kept_directions[i] = directions[r]

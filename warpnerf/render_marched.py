@@ -165,32 +165,44 @@ def render_marched_fixed(
     ``distortion_s``) and ``stats``, an int64 device tensor [5]: (samples marched, marched
     samples dropped, rays refused, live samples, live samples dropped).
     """
-    from .ops.occupancy import live_samples_fixed
+    from .ops.occupancy import live_samples_fixed, sample_points
 
     smp, _, march_stats = grid.march(origins, directions, near, far, jitter=jitter,
                                      max_samples=max_samples, capacity=marched)  # fmt: skip
-    ri = smp.ray_indices
-    positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    # the samples' points, and the live ones' points and directions, by the kernels (no torch
+    # gathers), unless gradients must reach the rays (then torch's differentiable ops)
+    rays_grad = origins.requires_grad or directions.requires_grad
+    if rays_grad:
+        ri = smp.ray_indices
+        positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
+    else:
+        positions = sample_points(smp, origins, directions)
     with torch.no_grad():
         enc, sigmas = _first_pass(field, positions)
-    live, src, live_stats = live_samples_fixed(smp, sigmas.float(), t_threshold, kept)
-    sigmas, feats = _second_pass(field, positions[src], None if enc is None else enc[src])
+    gather = {} if rays_grad else {"positions": positions, "directions": directions}
+    live, src, live_stats, live_pos, dirs = live_samples_fixed(smp, sigmas.float(), t_threshold,
+                                                               kept, **gather)  # fmt: skip
+    if rays_grad:
+        live_pos = positions[src]
+    sigmas, feats = _second_pass(field, live_pos, None if enc is None else enc[src])
     color_kw = None
     if getattr(field, "kind", "density") == "sdf":  # its eikonal term: the live slots only
         n_live = live_stats[0].clamp_max(kept)
         color_kw = {"valid": torch.arange(kept, device=directions.device) < n_live}
     out = _shade_kept(field, directions, live, sigmas, feats, background, t_threshold,
-                      ray_images, distortion_s, color_kw)  # fmt: skip
+                      ray_images, distortion_s, color_kw, dirs)  # fmt: skip
     out["stats"] = torch.cat([march_stats, live_stats])
     return out
 
 
 def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold, ray_images,
-                distortion_s, color_kw=None) -> dict:  # fmt: skip
+                distortion_s, color_kw=None, dirs=None) -> dict:  # fmt: skip
     """The marchers' last part: colours of the kept samples (with their densities and
     features from the field's second pass), compositing, and each ray's distortion loss when
-    ``distortion_s`` is given. ``color_kw``: more keywords for the field's ``color``."""
-    dirs = directions[kept.ray_indices]
+    ``distortion_s`` is given. ``color_kw``: more keywords for the field's ``color``; ``dirs``:
+    the kept samples' directions when already gathered."""
+    if dirs is None:
+        dirs = directions[kept.ray_indices]
     kw = dict(color_kw or {})
     if ray_images is not None:
         kw["image_ids"] = ray_images[kept.ray_indices]

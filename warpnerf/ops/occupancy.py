@@ -23,6 +23,7 @@ __all__ = [
     "grid_pack_bits",
     "live_samples",
     "live_samples_fixed",
+    "sample_points",
     "unpack_bits",
 ]
 
@@ -477,45 +478,83 @@ def raise_bad_rays(origins, directions, near, far, dt, jitter=None, k_begin=None
 
 
 def live_samples_fixed(samples: Samples, sigmas: torch.Tensor, t_threshold: float,
-                       capacity: int):  # fmt: skip
+                       capacity: int, positions: torch.Tensor | None = None,
+                       directions: torch.Tensor | None = None):  # fmt: skip
     """Static-shape :func:`live_samples` plus compaction, with no host sync (a training step
     captured in a CUDA graph): each ray's samples before its transmittance drops below
     ``t_threshold``, packed into ``capacity`` slots in ray order (rays past a full buffer keep
     fewer, deterministically).
 
     ``samples`` must be packed by the library's own marcher (``march_rays(capacity=...)``): its
-    packed_info is trusted, slots no ray references are ignored. Returns ``(kept, src,
-    stats)``: ``kept`` Samples of ``capacity`` slots (unused ones repeat slot 0 of
+    packed_info is trusted, slots no ray references are ignored. ``positions`` [n, 3] (the
+    samples' points) and ``directions`` [n_rays, 3] (the rays'), both float32 or both None:
+    gathered into the kept slots by the same kernel. Returns ``(kept, src, stats, kept_positions,
+    kept_directions)``: ``kept`` Samples of ``capacity`` slots (unused ones repeat slot 0 of
     ``samples``, referenced by no ray), ``src`` [capacity] int64: the index in ``samples`` of
     each kept slot, ``stats`` int64 [2] on the device: (live samples, samples dropped for want of
-    capacity)."""
+    capacity), then the kept slots' positions [capacity, 3] and their rays' directions
+    [capacity, 3] (None without ``positions``)."""
     from warpnerf.kernels import occupancy as K
 
+    wp = bridge.load_warp()
     capacity = bridge.check_int("capacity", capacity, lo=1)
     ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
     bridge.check_float("sigmas", sigmas, (ts.shape[0],), torch.float32, ts.device)
     n, n_rays, dev = ts.shape[0], info.shape[0], ts.device
+    if n == 0:
+        raise ValueError("live_samples_fixed needs at least one marched slot")
+    gather = positions is not None
+    if gather:
+        bridge.check_float("positions", positions, (n, 3), torch.float32, dev)
+        bridge.check_float("directions", directions, (n_rays, 3), torch.float32, dev)
     n_live = torch.empty(n_rays, device=dev, dtype=torch.int32)
     a = bridge.arr
     inputs = [a(info), a(ts), a(te), a(sigmas.detach()), float(t_threshold), a(n_live)]
     bridge.launch(K.live_counts, n_rays, inputs, dev)
-    ri = samples.ray_indices.long()
-    start = info[:, 0].long()
     live = n_live.long()
-    keep = (torch.arange(n, device=dev) - start[ri]) < live[ri]  # (unused slots: ray 0, past it)
     csum = torch.cumsum(live, 0)
     first = csum - live  # each ray's first kept slot
     kept_n = torch.minimum((capacity - first).clamp_min(0), live)
-    dest = first[ri] + torch.arange(n, device=dev) - start[ri]
-    dest = torch.where(keep & (dest < capacity), dest, torch.full_like(dest, capacity))
-    src = torch.zeros(capacity + 1, device=dev, dtype=torch.int64)
-    src.scatter_(0, dest, torch.arange(n, device=dev))  # (the dump slot's winner is unused)
-    src = src[:capacity]
+    src = torch.empty(capacity, device=dev, dtype=torch.int64)
+    k_ts, k_te = (torch.empty_like(src, dtype=torch.float32) for _ in range(2))
+    k_ri = torch.empty_like(src, dtype=torch.int32)
+    k_pos = torch.empty(capacity if gather else 0, 3, device=dev, dtype=torch.float32)
+    k_dir = torch.empty_like(k_pos)
+    none = torch.empty(0, 3, device=dev, dtype=torch.float32)
+    v3 = wp.vec3
+    bridge.launch(K.live_compact, capacity, [
+        a(info), a(csum), a(n_live), a(ts), a(te), a(samples.ray_indices),
+        a(positions if gather else none, v3), a(directions if gather else none, v3),
+        a(src), a(k_ts), a(k_te), a(k_ri), a(k_pos, v3), a(k_dir, v3),
+    ], dev)  # fmt: skip
     total = csum[-1] if n_rays else torch.zeros((), device=dev, dtype=torch.int64)
     stats = torch.stack([total, (total - capacity).clamp_min(0)])
     packed = torch.stack([first.clamp_max(capacity), kept_n], -1).to(torch.int32)
-    kept = Samples(ts[src], te[src], samples.ray_indices[src], packed)
-    return kept, src, stats
+    kept = Samples(k_ts, k_te, k_ri, packed)
+    return kept, src, stats, (k_pos if gather else None), (k_dir if gather else None)
+
+
+def sample_points(samples: Samples, origins: torch.Tensor, directions: torch.Tensor):
+    """Points [n, 3] of packed ``samples`` at their intervals' midpoints, ``o + d (t0 + t1) / 2``
+    of each sample's ray (one kernel instead of gathers and elementwise ops). The samples'
+    ray indices are trusted (the library's own marcher made them)."""
+    from warpnerf.kernels import occupancy as K
+
+    wp = bridge.load_warp()
+    bridge.check_float("origins", origins, (None, 3), torch.float32)
+    bridge.check_float("directions", directions, (origins.shape[0], 3), torch.float32,
+                       origins.device)  # fmt: skip
+    ts, te, ri = samples.t_starts, samples.t_ends, samples.ray_indices
+    bridge.check_float("samples.t_starts", ts, (None,), torch.float32, origins.device)
+    bridge.check_float("samples.t_ends", te, (ts.shape[0],), torch.float32, origins.device)
+    bridge.check_index("samples.ray_indices", ri, (ts.shape[0],), origins.device)
+    out = torch.empty(ts.shape[0], 3, device=ts.device, dtype=torch.float32)
+    a = bridge.arr
+    bridge.launch(K.sample_points, ts.shape[0], [
+        a(origins, wp.vec3), a(directions, wp.vec3), a(ts), a(te), a(ri.to(torch.int32)),
+        a(out, wp.vec3),
+    ], ts.device)  # fmt: skip
+    return out
 
 
 def live_samples(samples: Samples, sigmas: torch.Tensor, t_threshold: float, *, check=True):

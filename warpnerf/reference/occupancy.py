@@ -150,3 +150,35 @@ def live_samples(samples, sigmas, t_threshold):
             n_live[r] += 1
             acc = acc + tau[i]
     return keep, n_live
+
+
+def sample_points(samples, origins, directions):
+    """Reference for :func:`warpnerf.ops.occupancy.sample_points`."""
+    ri = samples.ray_indices.long()
+    return origins[ri] + directions[ri] * samples.midpoints().unsqueeze(-1)
+
+
+def live_samples_fixed(samples, sigmas, t_threshold, capacity, positions=None, directions=None):
+    """Reference for :func:`warpnerf.ops.occupancy.live_samples_fixed`: each live sample
+    scattered to its slot (ray order), the other slots holding sample 0."""
+    ts, te, info = samples.t_starts, samples.t_ends, samples.packed_info
+    ri = samples.ray_indices.long()
+    n, dev = ts.shape[0], ts.device
+    live = live_samples(samples, sigmas, t_threshold)[1].long()
+    start = info[:, 0].long()
+    keep = (torch.arange(n, device=dev) - start[ri]) < live[ri]  # (unused slots: ray 0, past it)
+    csum = torch.cumsum(live, 0)
+    first = csum - live
+    kept_n = torch.minimum((capacity - first).clamp_min(0), live)
+    dest = first[ri] + torch.arange(n, device=dev) - start[ri]
+    dest = torch.where(keep & (dest < capacity), dest, torch.full_like(dest, capacity))
+    src = torch.zeros(capacity + 1, device=dev, dtype=torch.int64)
+    src.scatter_(0, dest, torch.arange(n, device=dev))  # (the dump slot's winner is unused)
+    src = src[:capacity]
+    total = csum[-1] if live.numel() else torch.zeros((), device=dev, dtype=torch.int64)
+    stats = torch.stack([total, (total - capacity).clamp_min(0)])
+    packed = torch.stack([first.clamp_max(capacity), kept_n], -1).to(torch.int32)
+    kept = Samples(ts[src], te[src], samples.ray_indices[src], packed)
+    if positions is None:
+        return kept, src, stats, None, None
+    return kept, src, stats, positions[src], directions[samples.ray_indices[src].long()]
