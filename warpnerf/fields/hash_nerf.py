@@ -46,6 +46,8 @@ class HashNeRFField(nn.Module):
             cube [-2a, 2a]^3).
     """
 
+    mlp_dtype = None  # the MLPs' autocast dtype (fields/mlp.py's mlp_precision sets it)
+
     def __init__(self, aabb, grid: HashGrid | None = None, hidden=64, view_dependence=True,
                  appearance: tuple | None = None, contract: float = 0.0):  # fmt: skip
         super().__init__()
@@ -95,7 +97,7 @@ class HashNeRFField(nn.Module):
         encoding's forward does not run again, its gradient does."""
         x = self._unit(positions)
         inside = ((x >= 0) & (x <= 1)).all(-1)
-        h = run_mlp(self.density_mlp, self.encoding(x, given=encoded))
+        h = run_mlp(self.density_mlp, self.encoding(x, given=encoded), self.mlp_dtype)
         sigma = trunc_exp(h[:, 0]) * inside.to(h.dtype)
         return sigma, h
 
@@ -114,7 +116,8 @@ class HashNeRFField(nn.Module):
             else:
                 code = self.appearance(image_ids.to(h.device, torch.int64)).to(h.dtype)
             feat.append(code)
-        return torch.sigmoid(run_mlp(self.color_mlp, torch.cat(feat, -1) if len(feat) > 1 else h))
+        x = torch.cat(feat, -1) if len(feat) > 1 else h
+        return torch.sigmoid(run_mlp(self.color_mlp, x, self.mlp_dtype))
 
     kind = "density"  # the field protocol (see VolSDFField for an "sdf" field)
 

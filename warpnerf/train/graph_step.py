@@ -261,13 +261,14 @@ class GraphStep:
         near = torch.full((rays,), float(cfg.near), device=flat.device)
         far = torch.where(active, torch.full_like(near, float(cfg.far)), near)  # unused: none
         opt.zero_grad(set_to_none=True)
-        out = render_marched_fixed(
-            task.grid, model.coarse, o, d, near, far, marched=marched, kept=kept,
-            jitter=shape.jitter, background=cfg.background if shape.bg is None else shape.bg,
-            t_threshold=cfg.t_threshold, max_samples=cfg.max_samples,
-            ray_images=cam if cfg.appearance_dim else None,
-            distortion_s=task.distortion_map(),
-        )  # fmt: skip
+        with task.mlp_precision():
+            out = render_marched_fixed(
+                task.grid, model.coarse, o, d, near, far, marched=marched, kept=kept,
+                jitter=shape.jitter, background=cfg.background if shape.bg is None else shape.bg,
+                t_threshold=cfg.t_threshold, max_samples=cfg.max_samples,
+                ray_images=cam if cfg.appearance_dim else None,
+                distortion_s=task.distortion_map(),
+            )  # fmt: skip
         target, alpha = task.pixels(flat)
         weight = active.to(out["rgb"].dtype)
         n_active = shape.n_active.to(out["rgb"].dtype)

@@ -14,6 +14,7 @@ import torch
 
 from ..data.cameras import frustum_bounds
 from ..errors import UserError
+from ..fields.mlp import mlp_precision
 from ..fields.model import RadianceModel, build_model
 from ..io import write_json
 from ..ops import random_pixels
@@ -250,6 +251,11 @@ class NeRFTask(Task):
                     + ("NDC rays (forward-facing)" if kp is not None else "no point observations")
                 )  # fmt: skip
             self.keypoints = {k: v.to(cfg.device) for k, v in kp.items()}
+        # --mlp-precision: the field's MLPs under autocast in the training step's rendering
+        self.precision = getattr(cfg, "mlp_precision", "fp32")
+        if self.precision != "fp32" and not hasattr(model.coarse, "mlp_dtype"):
+            raise UserError(f"--mlp-precision {self.precision} needs --field hash (the "
+                            f"{cfg.field} field's MLPs have no half-precision option)")  # fmt: skip
         self.graph = self._graph_step(log)
         # --ema: tiny-cuda-nn's average of the weights, for validation, the viewer, the saved run
         self.ema = WeightAverage(model, cfg.ema) if getattr(cfg, "ema", 0) > 0 else None
@@ -352,9 +358,11 @@ class NeRFTask(Task):
                             poses=model.poses)  # fmt: skip
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
         images = cam if cfg.appearance_dim else None  # each ray's image: its appearance code
-        out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed, generator=self.grid_gen,
-                             jitter=jitter, ray_images=images, ray_offset=sl.start,
-                             background=bg, distortion=cfg.distortion_loss > 0)  # fmt: skip
+        with self.mlp_precision():
+            out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed,
+                                 generator=self.grid_gen, jitter=jitter, ray_images=images,
+                                 ray_offset=sl.start, background=bg,
+                                 distortion=cfg.distortion_loss > 0)  # fmt: skip
         n_kept = out.get("n_kept")
         terms = {}
         if grid is not None:
@@ -373,7 +381,10 @@ class NeRFTask(Task):
         if not self.host_images:
             target, alpha = self.pixels(idx)
         # the depth prior's draws, then the eikonal term's box points (every rank draws both)
-        depth = self._depth_term(seed) if self.keypoints is not None else None
+        depth = None
+        if self.keypoints is not None:
+            with self.mlp_precision():
+                depth = self._depth_term(seed)
         box = None
         if model.kind == "sdf":
             box = torch.rand(cfg.batch, 3, generator=self.gen).to(cfg.device)
@@ -412,6 +423,10 @@ class NeRFTask(Task):
                 v = v.to(torch.float32).div_(255.0)
             out.append(v)
         return out[0], out[1]
+
+    def mlp_precision(self):
+        """The training step's rendering: the field's MLPs at ``--mlp-precision``."""
+        return mlp_precision(self.model.coarse, self.precision)
 
     def batch_rays(self, cam, px, py):
         """Rays of a training batch's pixels (indices the task drew itself: no range check)."""

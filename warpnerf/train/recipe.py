@@ -1,15 +1,16 @@
 """The training recipe of instant-ngp and tiny-cuda-nn, one option each (issue 44): random
 backgrounds behind RGBA pixels, occupancy cells outside every training frustum, Adam that leaves
 hash-table rows without a gradient alone, L2 on the MLP weights, an exponential moving average of
-the weights, and the Huber photometric loss. Each is a field of :class:`RecipeConfig`, a section
-of a NeRF/VolSDF run's config; a config.json written before the section existed reads the values
-those runs trained with (:data:`LEGACY`)."""
+the weights, the Huber photometric loss, the opacity (mask) loss and half-precision MLPs. Each is
+a field of :class:`RecipeConfig`, a section of a NeRF/VolSDF run's config; a config.json written
+before the section existed reads the values those runs trained with (:data:`LEGACY`)."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
+from ..fields.mlp import PRECISIONS
 from ..options import option
 
 __all__ = [
@@ -20,6 +21,7 @@ __all__ = [
 HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
 MASK_LOSS_MAX = 100.0  # --mask-loss: a weight this large would drown the photometric term
 EMA_MAX = 0.9999  # --ema above this would freeze the averaged weights for ~10^4+ steps
+PRECISION_NAMES = tuple(PRECISIONS)  # --mlp-precision's choices (fields/mlp.py)
 
 # what a run trained with before these options existed (its config.json lacks the keys)
 LEGACY = {
@@ -30,6 +32,7 @@ LEGACY = {
     "ema": 0.0,
     "photometric_loss": "mse",
     "mask_loss": 0.0,
+    "mlp_precision": "fp32",
 }
 
 
@@ -72,6 +75,12 @@ class RecipeConfig:
         "images without alpha: off (said in the log); 0: off",
         check="nonnegative",
     )  # fmt: skip
+    mlp_precision: str = option(
+        "fp32", "--field hash: the MLPs' matrix products in training steps, fp32, or bf16 / "
+        "fp16 under autocast (float32 weights; fp16's gradients scaled inside the MLP); "
+        "validation and renders stay float32",
+        choices=PRECISION_NAMES,
+    )  # fmt: skip
 
     def check_section(self, fail) -> None:
         if self.random_background not in ("auto", "on", "off"):
@@ -86,6 +95,9 @@ class RecipeConfig:
         e = self.ema
         if not (isinstance(e, (int, float)) and math.isfinite(e) and (e == 0 or 0 < e <= EMA_MAX)):
             raise fail("ema", f"must be 0 (off) or in (0, {EMA_MAX}], got {e}")
+        if self.mlp_precision not in PRECISION_NAMES:
+            raise fail("mlp_precision", f"must be one of {', '.join(PRECISION_NAMES)}, got "
+                       f"{self.mlp_precision!r}")  # fmt: skip
         m = self.mask_loss
         if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
             raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")
