@@ -76,6 +76,40 @@ def test_live_compaction_equals_the_twin_bitwise(device, capacity):
     assert bare[3] is None and bare[4] is None
 
 
+def test_sh_concat_equals_the_twin_and_the_fields_torch_path(device):
+    """[features | SH(d)] in one kernel: the twin's values (bitwise on CPU) for every degree,
+    the features' gradient passed through, directions with a gradient refused; the hash
+    field's colours are the same by either path (directions with a gradient take torch's)."""
+    from warpnerf.fields.hash_nerf import HashNeRFField
+    from warpnerf.ops.encoding import HashGrid, sh_concat
+    from warpnerf.reference.encoding import sh_concat as twin
+
+    g = torch.Generator().manual_seed(1)
+    d = torch.nn.functional.normalize(torch.randn(5000, 3, generator=g), dim=-1).to(device)
+    d[0] = torch.tensor([0.0, 0.0, 1.0])  # (poles and axes)
+    d[1] = torch.tensor([-1.0, 0.0, 0.0])
+    h = torch.randn(5000, 16, generator=g).to(device)
+    for degree in (1, 2, 3, 4):
+        got, want = sh_concat(h, d, degree), twin(h, d, degree)
+        assert got.shape == (5000, 16 + degree * degree)
+        if device.type == "cpu":
+            assert torch.equal(got, want)
+        else:  # (the kernel may fuse multiply-adds)
+            torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    hg = h.clone().requires_grad_(True)
+    v = torch.randn(5000, 32, generator=g).to(device)
+    (sh_concat(hg, d) * v).sum().backward()
+    assert torch.equal(hg.grad, v[:, :16])
+    with pytest.raises(ValueError, match="no gradient"):
+        sh_concat(h, d.clone().requires_grad_(True))
+    field = HashNeRFField([-1.0] * 3 + [1.0] * 3, HashGrid(n_levels=2, log2_size=8),
+                          hidden=16).to(device)  # fmt: skip
+    feats = torch.randn(64, 16, generator=g).to(device)
+    fast = field.color(feats, d[:64])
+    slow = field.color(feats, d[:64].clone().requires_grad_(True))
+    torch.testing.assert_close(fast, slow, rtol=0, atol=0 if device.type == "cpu" else 1e-6)
+
+
 def test_fused_relu_backward_equals_the_mask_and_where():
     g = torch.Generator().manual_seed(0)
     for dt in (torch.float32, torch.float64):

@@ -75,27 +75,6 @@ class SphericalHarmonics(nn.Module):
         self.degree, self.out_dim = degree, degree * degree
 
     def forward(self, d: torch.Tensor) -> torch.Tensor:  # [n, 3] -> [n, degree^2]
-        x, y, z = d.unbind(-1)
-        out = [torch.full_like(x, 0.28209479177387814)]
-        if self.degree > 1:
-            out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
-        if self.degree > 2:
-            x2, y2, z2 = x * x, y * y, z * z
-            out += [
-                1.0925484305920792 * x * y,
-                -1.0925484305920792 * y * z,
-                0.94617469575755997 * z2 - 0.31539156525251999,
-                -1.0925484305920792 * x * z,
-                0.54627421529603959 * (x2 - y2),
-            ]
-        if self.degree > 3:
-            out += [
-                0.59004358992664352 * y * (3 * x2 - y2),
-                2.8906114426405538 * x * y * z,
-                0.45704579946446572 * y * (1 - 5 * z2),
-                0.3731763325901154 * z * (5 * z2 - 3),
-                0.45704579946446572 * x * (1 - 5 * z2),
-                1.4453057213202769 * z * (x2 - y2),
-                0.59004358992664352 * x * (x2 - 3 * y2),
-            ]
-        return torch.stack(out, -1)
+        from ..ops.encoding import spherical_harmonics
+
+        return spherical_harmonics(d, self.degree)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..ops.encoding import HashGrid
+from ..ops.encoding import HashGrid, sh_concat
 from ..ops.occupancy import contract_points, is_contracted_box
 from ..options import section_of
 from .encoding import HashEncoding, SphericalHarmonics
@@ -27,6 +27,12 @@ from .settings import HashConfig
 __all__ = ["HashNeRFField", "hash_grid_of", "with_occupancy_grid"]
 
 GEO_FEATURES = 16  # density MLP outputs: raw density + 15 features for the colour MLP
+
+
+def _one_kernel(h: torch.Tensor, directions: torch.Tensor) -> bool:
+    """Whether the colour MLP's input [h | SH(d)] can be one kernel (sh_concat): float32, and
+    directions without a gradient (pose refinement gives them one: torch's ops then)."""
+    return h.dtype == directions.dtype == torch.float32 and not directions.requires_grad
 
 
 class HashNeRFField(nn.Module):
@@ -109,6 +115,10 @@ class HashNeRFField(nn.Module):
         if self.view_dependence:
             if directions is None:
                 raise ValueError("a view-dependent field needs directions")
+            if self.appearance is None and _one_kernel(h, directions):  # [h | SH(d)]
+                return torch.sigmoid(run_mlp(self.color_mlp,
+                                             sh_concat(h, directions, self.sh.degree),
+                                             self.mlp_dtype))  # fmt: skip
             feat.append(self.sh(directions.to(h.dtype)))
         if self.appearance is not None:
             if image_ids is None:

@@ -3,6 +3,10 @@
 ``hash_encode(x, table, grid)`` maps points x [n, 3] in [0, 1]^3 to features [n, L * F],
 differentiable with respect to ``table`` (the learnable parameters) and, when they require it,
 the positions ``x`` (pose refinement; a second kernel, launched only then).
+
+``spherical_harmonics(d, degree)`` (pure torch, differentiable) encodes directions;
+``sh_concat(features, d, degree)`` writes ``[features | SH(d)]`` in one kernel
+(kernels/harmonics.py) for directions without a gradient (a colour MLP's input).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import torch
 
 from . import bridge
 
-__all__ = ["HashGrid", "hash_encode", "hash_encode_given"]
+__all__ = ["HashGrid", "hash_encode", "hash_encode_given", "spherical_harmonics", "sh_concat"]
 
 
 @dataclass(frozen=True)
@@ -211,3 +215,70 @@ def hash_encode(
             "encode fewer points at once"
         )
     return _HashEncode.apply(x.contiguous(), table.contiguous(), grid)
+
+
+def spherical_harmonics(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
+    """Real spherical harmonics of unit directions ``d`` [n, 3] up to ``degree`` (1..4):
+    [n, degree^2] (the orthonormal basis, constants as in instant-ngp / tiny-cuda-nn). Pure
+    torch (differentiable); shared by the fields and the twin of :func:`sh_concat`."""
+    x, y, z = d.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if degree > 1:
+        out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+    if degree > 2:
+        x2, y2, z2 = x * x, y * y, z * z
+        out += [
+            1.0925484305920792 * x * y,
+            -1.0925484305920792 * y * z,
+            0.94617469575755997 * z2 - 0.31539156525251999,
+            -1.0925484305920792 * x * z,
+            0.54627421529603959 * (x2 - y2),
+        ]
+    if degree > 3:
+        out += [
+            0.59004358992664352 * y * (3 * x2 - y2),
+            2.8906114426405538 * x * y * z,
+            0.45704579946446572 * y * (1 - 5 * z2),
+            0.3731763325901154 * z * (5 * z2 - 3),
+            0.45704579946446572 * x * (1 - 5 * z2),
+            1.4453057213202769 * z * (x2 - y2),
+            0.59004358992664352 * x * (x2 - 3 * y2),
+        ]
+    return torch.stack(out, -1)
+
+
+class _ShConcat(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, features, directions, degree: int):
+        from warpnerf.kernels import harmonics as K
+
+        wp = bridge.load_warp()
+        n, f = features.shape
+        out = torch.empty(n, f + degree * degree, device=features.device, dtype=features.dtype)
+        a = bridge.arr
+        bridge.launch(K.sh_concat, n, [a(features), a(directions, wp.vec3), int(degree), a(out)],
+                      features.device)  # fmt: skip
+        ctx.f = f
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, v_out):
+        return v_out[:, : ctx.f], None, None
+
+
+def sh_concat(
+    features: torch.Tensor,  # [n, F] float32
+    directions: torch.Tensor,  # [n, 3] float32 unit directions, no gradient
+    degree: int = 4,
+) -> torch.Tensor:  # [n, F + degree^2]
+    """``torch.cat([features, spherical_harmonics(directions, degree)], -1)`` in one kernel
+    (a colour MLP's input); differentiable in ``features`` only. ValueError for directions that
+    require a gradient (use :func:`spherical_harmonics`), other dtypes or shapes."""
+    bridge.check_float("features", features, (None, None), torch.float32)
+    n, dev = features.shape[0], features.device
+    bridge.check_float("directions", directions, (n, 3), torch.float32, dev)
+    degree = bridge.check_int("degree", degree, lo=1, hi=4)
+    if directions.requires_grad:
+        raise ValueError("sh_concat gives directions no gradient: use spherical_harmonics")
+    return _ShConcat.apply(features.contiguous(), directions.contiguous(), degree)

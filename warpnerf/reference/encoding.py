@@ -1,10 +1,13 @@
-"""Pure-PyTorch twin of the hash-grid encoding (same layout, same hash, autograd backward)."""
+"""Pure-PyTorch twins of the hash-grid encoding (same layout, same hash, autograd backward) and
+of the colour input ``[features | SH(d)]``."""
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["hash_encode"]
+from warpnerf.ops.encoding import spherical_harmonics  # pure torch: shared, not twinned
+
+__all__ = ["hash_encode", "sh_concat"]
 
 _MASK = 0xFFFFFFFF
 _PRIMES = (1, 2654435761, 805459861)
@@ -35,3 +38,8 @@ def hash_encode(x, table, grid):
         outs.append(acc)
     out = torch.cat(outs, -1)
     return torch.where(bad.unsqueeze(-1), torch.full_like(out, float("nan")), out)
+
+
+def sh_concat(features, directions, degree=4):
+    """Reference for :func:`warpnerf.ops.encoding.sh_concat`."""
+    return torch.cat([features, spherical_harmonics(directions, degree)], -1)
