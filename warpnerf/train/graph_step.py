@@ -85,9 +85,14 @@ def unsupported(cfg, model, task) -> str | None:
 class _Shape:
     """One set of capacities: its static input buffers, and its graph once captured."""
 
-    def __init__(self, key: tuple, device, random_bg: bool):
+    def __init__(self, key: tuple, device, random_bg: bool, near: float, far: float):
         rays = key[0]
         self.key, self.runs, self.graph, self.out = key, 0, None, None
+        # constants of the step (made once, not filled again in every step): the slots'
+        # indices and the near and far planes
+        self.slots = torch.arange(rays, device=device)
+        self.near = torch.full((rays,), near, device=device)
+        self.far = torch.full((rays,), far, device=device)
         # the batch's flat pixel indices (unused slots: 0), then the number of rays used
         self.inputs = torch.zeros(rays + 1, device=device, dtype=torch.int64)
         self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
@@ -153,7 +158,8 @@ class GraphStep:
     def _shape(self, key) -> _Shape:
         shape = self.shapes.pop(key, None)
         if shape is None:
-            shape = _Shape(key, self.device, self.task.random_bg)
+            cfg = self.task.cfg
+            shape = _Shape(key, self.device, self.task.random_bg, float(cfg.near), float(cfg.far))
             while len(self.shapes) >= MAX_GRAPHS:
                 self.shapes.popitem(last=False)  # least recently used (its graph and pool go)
         self.shapes[key] = shape
@@ -250,16 +256,16 @@ class GraphStep:
         """Everything of a step after the draws, with no host sync: what the graph holds."""
         task = self.task
         cfg, model = task.cfg, task.model
-        rays, marched, kept = shape.key
+        _, marched, kept = shape.key
         flat, w = shape.flat, task.w
         cam = flat // (w * task.h)
         rem = flat % (w * task.h)
         py = (rem // w).to(torch.float32) + 0.5
         px = (rem % w).to(torch.float32) + 0.5
         o, d = task.batch_rays(cam, px, py)
-        active = torch.arange(rays, device=flat.device) < shape.n_active
-        near = torch.full((rays,), float(cfg.near), device=flat.device)
-        far = torch.where(active, torch.full_like(near, float(cfg.far)), near)  # unused: none
+        active = shape.slots < shape.n_active
+        near = shape.near
+        far = torch.where(active, shape.far, near)  # unused slots: no samples
         opt.zero_grad(set_to_none=True)
         with task.mlp_precision():
             out = render_marched_fixed(
