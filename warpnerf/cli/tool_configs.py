@@ -39,8 +39,8 @@ class EvalConfig:
     half: bool = option(False, "grid runs on CUDA: float16 MLPs")
     tracer: str | None = option(
         None, "grid runs: how frames march (traced: instant-ngp's tracer, rounds of a few "
-        "samples per live ray; rounds: the older path, --round-samples; auto: traced unless "
-        "--round-samples; default: the run's, auto)", choices=("auto", "traced", "rounds"),
+        "samples per live ray, 2x slower on an H200 today; rounds: --round-samples; auto: "
+        "rounds; default: the run's, auto)", choices=("auto", "traced", "rounds"),
     )  # fmt: skip
     renderer: str = option("volume", "SDF runs: sphere (trace the surface, colour at the hit; "
                            "default folder RUN/eval_SPLIT_sphere) or volume",
