@@ -244,6 +244,7 @@ def test_the_plain_command_on_cuda_trains_the_measured_gpu_recipe(monkeypatch):
     assert (cfg.field, cfg.preset, cfg.batch, cfg.target_samples) == want
     assert cfg.tf32 and cfg.ema == 0.95 and not cfg.sparse_adam and cfg.random_background == "off"
     assert cfg.iters == 40000  # (the measured schedule: the lr decays over 40,000 steps)
+    assert cfg.chunk == 1 << 19  # (rendering: a 400x400 frame in one chunk)
     cpu = _config_of(["nerf", "--data", "builtin"], monkeypatch, False)
     assert (cpu.field, cpu.preset, cpu.batch, cpu.target_samples, cpu.ema) == (
         "mlp",

@@ -96,8 +96,12 @@ NERF_PRESETS = {
 # 60 / 120 / 300 s against the 20,000-step schedule's 35.91 at 60 s and at its end (2 x H200,
 # 2026-11-28, docs/design/nerf.md "Issue 44, third round"; 100,000 steps scored 0.1 dB more
 # at each budget but makes the plain run 17 minutes long).
+# Rendering (eval, render, validation, viewer) in chunks of 2^19 rays, a 400x400 frame in one:
+# 97 ms a lego frame in the configs' 8,192-ray chunks (H200, 2026-11-28, docs/design/
+# rendering.md "Issue 47") against 9.1-11.0 ms with `eval --chunk 400000` (H100/H200, 2026-11-26).
 NERF_PRESETS["gpu"] = {
-    "hash": {"batch": 4096, "target_samples": 1 << 19, "ema": 0.95, "iters": 40000},
+    "hash": {"batch": 4096, "target_samples": 1 << 19, "ema": 0.95, "iters": 40000,
+             "chunk": 1 << 19},
 }
 
 
