@@ -45,12 +45,16 @@ def main(argv=None):
     mesh["error"] = err
     pv.OFF_SCREEN = True
     pl = pv.Plotter(shape=(1, 3), off_screen=True, window_size=(1800, 620))
-    views = (("side (from -y)", (0, -6, 0.4), (0, 0, 1)), ("below (from -z)", (0, 0, -6), (0, 1, 0)),
-             ("above, at an angle", (3.5, -4.5, 3.5), (0, 0, 1)))  # fmt: skip
+    views = (
+        ("side (from -y)", (0, -6, 0.4), (0, 0, 1)),
+        ("below (from -z)", (0, 0, -6), (0, 1, 0)),
+        ("above, at an angle", (3.5, -4.5, 3.5), (0, 0, 1)),
+    )
     for i, (name, pos, up) in enumerate(views):
         pl.subplot(0, i)
+        bar = {"title": "distance to truth"}
         pl.add_mesh(mesh.copy(), scalars="error", clim=(0, a.clim), cmap="viridis",
-                    show_scalar_bar=i == 2, scalar_bar_args={"title": "distance to truth"})  # fmt: skip
+                    show_scalar_bar=i == 2, scalar_bar_args=bar)  # fmt: skip
         pl.add_text(name, font_size=11)
         pl.camera_position = [pos, (0, 0, 0.1), up]
     title = (f"{a.title}  error mean {err.mean():.4f}, p95 {np.percentile(err, 95):.4f}, "

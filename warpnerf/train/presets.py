@@ -100,8 +100,13 @@ NERF_PRESETS = {
 # 97 ms a lego frame in the configs' 8,192-ray chunks (H200, 2026-11-28, docs/design/
 # rendering.md "Issue 47") against 9.1-11.0 ms with `eval --chunk 400000` (H100/H200, 2026-11-26).
 NERF_PRESETS["gpu"] = {
-    "hash": {"batch": 4096, "target_samples": 1 << 19, "ema": 0.95, "iters": 40000,
-             "chunk": 1 << 19},
+    "hash": {
+        "batch": 4096,
+        "target_samples": 1 << 19,
+        "ema": 0.95,
+        "iters": 40000,
+        "chunk": 1 << 19,
+    },
 }
 
 
