@@ -19,6 +19,7 @@ H100 the grid is what makes lego train in minutes, see docs/design/rendering.md)
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -70,9 +71,11 @@ def _main(argv) -> int:
     for name, grid_res in (("grid", args.grid_res), ("no_grid", 0)):
         cfg = _nerf_args.config(args, grid_res=grid_res, **common)
         if grid_res:
-            resolve_data(cfg)  # the box and step the data decides
-            cfg.march_step = args.march_step or 2 * cfg.aabb * 3**0.5 / 256
-            cfg.grid_warmup = min(cfg.grid_warmup, args.iters // 4)
+            box = resolve_data(cfg).aabb  # the box the data decides, then the step from it
+            cfg = dataclasses.replace(
+                cfg, march_step=args.march_step or 2 * box * 3**0.5 / 256,
+                grid_warmup=min(cfg.grid_warmup, args.iters // 4),
+            )  # fmt: skip
         rows[name] = train_and_evaluate(cfg, out / name, max_images=args.eval_images)
         hist = json.loads((out / name / "history.json").read_text())
         rows[name]["samples_per_ray"] = (

@@ -5,6 +5,7 @@ python3 scripts/render_profile.py RUN [--rounds 0,8,16,32,64]
 """
 
 import argparse
+import dataclasses
 import json
 import math
 import time
@@ -36,7 +37,7 @@ def main():
     R.render_packed = counting
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
     for rs in [int(x) for x in a.rounds.split(",")]:
-        cfg.round_samples = rs
+        cfg = dataclasses.replace(cfg, round_samples=rs).freeze()
         times = []
         with torch.no_grad():
             for _ in range(6):

@@ -375,7 +375,7 @@ def test_eight_bit_images_train_as_their_float_values():
         ds = Dataset(images=images, c2w=orbit_views(n, radius=4.0),
                      intrinsics=torch.tensor([[8.0, 8.0, w / 2, h / 2]]).repeat(n, 1))  # fmt: skip
         cfg = NeRFConfig(data="generated", field="hash", batch=32, aabb=1.5, near=2.0, far=6.0,
-                         **{k: v for k, v in GRID.items() if k != "field"})  # fmt: skip
+                         **{k: v for k, v in GRID.items() if k != "field"}).resolve()  # fmt: skip
         task = NeRFTask(cfg, build_model(cfg), ds, None, log=lambda *a: None)
         opt = task.optimizer(task.parameters(), cfg.lr)
         losses.append([float(bare_step(task, opt, i).detach()) for i in range(3)])

@@ -115,10 +115,8 @@ def test_random_background_mode_and_its_refusal_without_a_grid():
 
     cfg = resolve_data(NeRFConfig(data="builtin", field="hash", random_background="auto"))
     assert random_background(cfg, DS()) and not random_background(cfg, Opaque())
-    cfg.random_background = "on"
-    assert random_background(cfg, Opaque())
-    cfg.random_background = "off"
-    assert not random_background(cfg, DS())
+    assert random_background(dataclasses.replace(cfg, random_background="on"), Opaque())
+    assert not random_background(dataclasses.replace(cfg, random_background="off"), DS())
     with pytest.raises(UserError, match="--random-background needs"):
         NeRFConfig(data="builtin", field="mlp", random_background="on").validate()
 

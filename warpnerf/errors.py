@@ -7,6 +7,7 @@ __all__ = [
     "describe_failure",
     "available_memory",
     "check_fits",
+    "check_device",
     "exit_status",
 ]
 
@@ -103,6 +104,29 @@ def human_bytes(n: float) -> str:
             return f"{n:.1f} {unit}"
         n /= 1024
     return f"{n:.1f} PiB"
+
+
+def check_device(device: str, where: str | None = None) -> str:
+    """``device`` ("cpu", "cuda" or "cuda:N"), or a UserError when it is not one or cannot be
+    used here: the one device check of every command, new runs and saved ones alike.
+    ``where``: the run folder a saved device comes from (None: the ``--device`` flag)."""
+    ok = isinstance(device, str) and (
+        device in ("cpu", "cuda") or (device[:5] == "cuda:" and device[5:].isdigit())
+    )
+    if not ok:
+        raise UserError(f"--device must be cpu or cuda, got {device!r}")
+    if device == "cpu":
+        return device
+    import torch
+
+    said = f"--device {device}" if where is None else f"{where}: device {device}"
+    if not torch.cuda.is_available():
+        raise UserError(f"{said}: no CUDA device is available to PyTorch here (pass --device cpu)")
+    count = torch.cuda.device_count()
+    if device[5:] and int(device[5:]) >= count:  # (cuda:N past the devices there are)
+        raise UserError(f"{said}: PyTorch sees {count} CUDA device(s) here (cuda:0 to "
+                        f"cuda:{count - 1})")  # fmt: skip
+    return device
 
 
 def available_memory(device: str = "cpu") -> int:

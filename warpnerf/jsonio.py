@@ -13,16 +13,21 @@ code that walks or rewrites the value later).
 
 from __future__ import annotations
 
+import contextlib
+import copy
 import json
 import math
+import os
 import reprlib
+import stat
 import typing
 from pathlib import Path
 
 from .errors import UserError
 
-__all__ = ["read_json", "check_fields", "field_error", "is_device", "show", "MAX_JSON_BYTES",
-           "JSON_LIMITS", "MAX_JSON_DEPTH", "MAX_INT"]  # fmt: skip
+__all__ = ["read_json", "read_run_config", "one_read_per_command", "check_fields", "field_error",
+           "is_device", "show", "MAX_JSON_BYTES", "JSON_LIMITS", "MAX_JSON_DEPTH",
+           "MAX_INT"]  # fmt: skip
 
 MAX_JSON_BYTES = 64 << 20  # 64 MiB: a JSON file of a kind not in JSON_LIMITS
 # bytes a JSON file of each kind may hold (its ``what`` in read_json), each far above the largest
@@ -77,6 +82,43 @@ def read_json(path, what: str = "JSON file", max_bytes: int | None = None):
             f"{path}: not valid JSON for the {what} (nested deeper than {MAX_JSON_DEPTH} levels)"
         )
     return value
+
+
+_RUN_CONFIGS: dict | None = None  # inside one_read_per_command: the run configs read, by file
+
+
+@contextlib.contextmanager
+def one_read_per_command():
+    """While this holds (a ``warpnerf`` command), :func:`read_run_config` reads each run's
+    config.json from the disk once: the resume checks, the method registry and the run's
+    loader ask for the same file, and get copies of the one read. A file replaced meanwhile
+    (another inode, size or time) is read again."""
+    global _RUN_CONFIGS
+    outer, _RUN_CONFIGS = _RUN_CONFIGS, {} if _RUN_CONFIGS is None else _RUN_CONFIGS
+    try:
+        yield
+    finally:
+        _RUN_CONFIGS = outer
+
+
+def read_run_config(path):
+    """A run folder's config.json ``path`` parsed (any JSON value: the callers check its form),
+    with :func:`read_json`'s bounds and one-line errors; read once per command (see
+    :func:`one_read_per_command`), each caller getting its own copy."""
+    path = Path(path)
+    key = None
+    if _RUN_CONFIGS is not None:
+        try:
+            st = os.lstat(path)
+        except OSError:
+            st = None
+        if st is not None and stat.S_ISREG(st.st_mode):  # (others: read_json names them)
+            key = (str(path.absolute()), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+    if key is None:
+        return read_json(path, "run config")
+    if key not in _RUN_CONFIGS:
+        _RUN_CONFIGS[key] = read_json(path, "run config")
+    return copy.deepcopy(_RUN_CONFIGS[key])
 
 
 def _deeper_than(value, limit: int) -> bool:

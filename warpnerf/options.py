@@ -26,7 +26,7 @@ import math
 
 __all__ = [
     "option", "add_flags", "from_flags", "apply_preset", "flag_of", "number_type", "CHECKS",
-    "with_defaults", "section_of", "section_declaring", "check_at_least",
+    "with_defaults", "section_of", "section_declaring", "check_at_least", "Settings",
 ]  # fmt: skip
 
 _AUTO = "auto"
@@ -106,6 +106,36 @@ def option(
     if isinstance(default, (list, dict)):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
+
+
+class Settings:
+    """The base of a run's config: built (from flags, a preset or a saved config.json),
+    resolved and checked once, then :meth:`freeze` makes it read-only: setting a field of a
+    frozen config raises ``dataclasses.FrozenInstanceError``. A changed config is a new one,
+    ``dataclasses.replace(cfg, ...)`` (not frozen, to be checked and frozen in its turn);
+    values that change while a run trains live on its task, not on its config."""
+
+    def freeze(self):
+        """Makes this config read-only (and returns it)."""
+        object.__setattr__(self, "_frozen", True)
+        return self
+
+    @property
+    def frozen(self) -> bool:
+        return self.__dict__.get("_frozen", False)
+
+    def __setattr__(self, name, value):
+        if self.__dict__.get("_frozen", False):
+            raise dataclasses.FrozenInstanceError(
+                f"cannot set {name!r}: a {type(self).__name__} is read-only once resolved and "
+                "checked (make a changed copy with dataclasses.replace)"
+            )
+        object.__setattr__(self, name, value)
+
+    def __delattr__(self, name):
+        if self.__dict__.get("_frozen", False):
+            raise dataclasses.FrozenInstanceError(f"cannot delete {name!r}: read-only config")
+        object.__delattr__(self, name)
 
 
 def with_defaults(cls, **changes):

@@ -79,7 +79,7 @@ def one_run(train_argv, refine, perturbed, iters, seed):
     hist = run_loop(task, LoopSettings.of(cfg, "pose", iters=iters), run=None)
     secs = time.perf_counter() - t0
     val = load_data(cfg, "val")
-    cfg.val_images = len(val)
+    cfg = dataclasses.replace(cfg, val_images=len(val)).freeze()
     with torch.no_grad():
         psnr = validate(task.model, cfg, val)
         refined = given if task.model.poses is None else task.model.poses.corrected_c2w(given)

@@ -8,18 +8,13 @@ import signal
 import threading
 from pathlib import Path
 
-from ..errors import UserError
+from ..errors import UserError, check_device
 from ..options import CHECKS
 
 
 def parse_device(name: str) -> str:
-    import torch
-
-    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
-        raise UserError(f"--device must be cpu or cuda, got {name!r}")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError("--device cuda: no CUDA device is available to PyTorch here")
-    return name
+    """The --device flag's value, checked (:func:`~warpnerf.errors.check_device`)."""
+    return check_device(name)
 
 
 def positive_arg(kind):
@@ -56,10 +51,10 @@ def check_existing(path, what: str = "run folder") -> None:
 
 def saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
-    from ..jsonio import read_json
+    from ..jsonio import read_run_config
 
     try:
-        saved = read_json(Path(run) / "config.json", "run config")
+        saved = read_run_config(Path(run) / "config.json")
     except UserError:
         return {}
     return saved if isinstance(saved, dict) else {}

@@ -318,7 +318,10 @@ def main(argv=None) -> int:
         if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
                             "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
-        with sigterm_exits(), recorded, viewer_after_training(args):  # (train --viewer)
+        from ..jsonio import one_read_per_command
+
+        # (each run folder's config.json is read from the disk once in the command)
+        with sigterm_exits(), recorded, one_read_per_command(), viewer_after_training(args):
             return args.func(args)
 
     code = exit_status(f"warpnerf {args.command}", run)
@@ -373,19 +376,14 @@ def nerf_task_from_argv(argv: list, dist=None, device: str | None = None):
     ``dist``/``device``: one rank of a data-parallel run and its device (``from_env``)."""
     import torch
 
-    from ..train.nerf import NeRFTask, build_model, load_data, resolve_data
+    from ..train.nerf import NeRFTask, build_model, settle_new_run
     from .train import nerf_config_from_args
 
-    # (resolve_data validates, with the capture's scene: data-dependent defaults as in training)
     cfg = nerf_config_from_args(build_parser().parse_args([*argv, "--out", "unused"]))
     if device is not None:
-        cfg.device = device
-    resolve_data(cfg)
-    train = load_data(cfg, "train", uint8=True)
-    if cfg.appearance_dim:  # one code per training image, as train_nerf sets it
-        cfg.appearance_images = len(train)
-    if cfg.pose_refine:  # one correction per training camera
-        cfg.pose_images = len(train)
+        cfg = dataclasses.replace(cfg, device=device)
+    # (the training split read, the config resolved, checked and frozen as train_nerf does)
+    cfg, train = settle_new_run(cfg)
     task = NeRFTask(cfg, build_model(cfg), train, None, log=lambda *x: None, dist=dist)
     if cfg.device.startswith("cuda"):
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32

@@ -382,9 +382,9 @@ def cmd_train_nerf(args) -> int:
 
     want = cfg.device if not args.resume else device or saved_config(args.out).get("device")
     dist, rank_device = from_env(str(want or "cpu"))
-    if dist is not None:
+    if dist is not None:  # (each rank's own device: a new run's config built with it)
         device = rank_device if args.resume else device
-        cfg.device = rank_device if not args.resume else cfg.device
+        cfg = cfg if args.resume else dataclasses.replace(cfg, device=rank_device)
     main = dist is None or dist.main
     # (only rank 0 prints: the other ranks' lines would repeat its own)
     notes = [] if args.resume else [_CpuNote(cfg, f"warpnerf train {args.model}")]

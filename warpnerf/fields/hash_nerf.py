@@ -184,7 +184,7 @@ def with_occupancy_grid(cfg, f, box) -> RadianceModel:
 def _hash(cfg) -> RadianceModel:
     """Hash-grid encoding + small MLPs, one network for both passes; the occupancy grid when
     ``cfg.grid_res`` > 0 (then there is no fine pass)."""
-    box = cfg.resolve().aabb_box()
+    box = cfg.aabb_box()
     from ..errors import UserError
 
     app = None

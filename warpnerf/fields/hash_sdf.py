@@ -312,7 +312,7 @@ class HashSDFField(nn.Module):
 ))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:
     """A hash-grid SDF with VolSDF's density on the occupancy-grid fast path (hash_sdf.py)."""
-    box = cfg.resolve().aabb_box()
+    box = cfg.aabb_box()
     f = HashSDFField(
         box, hash_grid_of(cfg), cfg.hidden, view_dependence=cfg.view_dependence,
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,

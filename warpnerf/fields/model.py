@@ -212,9 +212,12 @@ def fields_with(**traits) -> tuple:
 
 def build_model(cfg) -> RadianceModel:
     """The model of config ``cfg`` (its ``field`` names a registered builder), initialised from
-    ``cfg.seed``, on ``cfg.device``."""
+    ``cfg.seed``, on ``cfg.device``. The builders read a resolved config: a run's (frozen), or
+    here a resolved copy of one not resolved yet."""
     if cfg.field not in FIELDS:
         raise ValueError(f"unknown field {cfg.field!r}; registered: {', '.join(FIELDS)}")
+    if not getattr(cfg, "frozen", True):  # (a config no run has resolved: a test's, a tool's)
+        cfg = cfg.resolve()
     torch.manual_seed(cfg.seed)
     model = FIELDS[cfg.field](cfg)
     if getattr(cfg, "pose_refine", False):

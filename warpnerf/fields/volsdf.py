@@ -127,7 +127,6 @@ def _check_volsdf(cfg, fail) -> None:
 )  # (3: the eikonal double backward)
 def _volsdf(cfg) -> RadianceModel:
     """A neural SDF rendered through VolSDF's Laplace density; one network for both passes."""
-    cfg.resolve()
     f = VolSDFField(
         cfg.aabb, cfg.n_layers, cfg.width, cfg.skip, cfg.pos_freqs, cfg.dir_freqs,
         n_features=cfg.width, color_width=cfg.width, view_dependence=cfg.view_dependence,

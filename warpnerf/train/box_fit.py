@@ -12,6 +12,7 @@ generator).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -19,7 +20,7 @@ from pathlib import Path
 import torch
 
 from ..data.cameras import intrinsics_from_fov, spiral_path
-from ..errors import UserError
+from ..errors import UserError, check_device
 from ..fields.sdf_volume import SDFVolume
 from ..io import (
     check_foreign,
@@ -100,9 +101,16 @@ class BoxFitConfig(BOX_LOOP):
         expected form."""
         from ..jsonio import check_fields
 
-        return cls(**check_fields(cls, d, where)).validate(where)
+        return cls(**check_fields(cls, d, where)).check_values(where)
 
-    def validate(self, where: str | None = None):
+    def validate(self):
+        """The config a fit reads: this one resolved (``lr_decay_steps`` 0: the first
+        invocation's ``iters``), checked once (:meth:`check_values`) and frozen (read-only);
+        this one is left as it is."""
+        steps = self.lr_decay_steps if self.lr_decay_steps > 0 else self.iters
+        return dataclasses.replace(self, lr_decay_steps=steps).check_values().freeze()
+
+    def check_values(self, where: str | None = None):
         """Range checks; ``where`` None: messages name the command-line flags, else the file
         ``where`` and the config field."""
         from ..jsonio import field_error
@@ -248,13 +256,13 @@ class BoxTask(Task):
 def _read_config(run: Path, strict: bool = False):
     """config.json of a run folder as a dict; None when there is none, or (unless ``strict``:
     then a UserError naming the file) when it is unreadable, malformed or not a JSON object."""
-    from ..jsonio import read_json
+    from ..jsonio import read_run_config
 
     path = run / "config.json"
     if not path.exists():  # (a FIFO or a link there: read_json names it)
         return None
     try:
-        d = read_json(path, "run config")
+        d = read_run_config(path)
     except UserError:
         if strict:
             raise
@@ -283,9 +291,7 @@ def load_box_run(run, device: str | None = None):
             f"{run / 'config.json'}: fields 'data' and 'device' must be a folder and cpu, cuda or "
             f"cuda:N; got {show(data)}, {show(saved_device)}"
         )
-    device = device or saved_device
-    if device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"{run}: device {device} is not available here; pass --device cpu")
+    device = check_device(device or saved_device, str(run))
     keys = ("step", "volume", "optimizer", "generator", "history")
     ckpt = load_checkpoint(run / CHECKPOINT, device, keys)
     return cfg, data, device, ckpt
@@ -333,16 +339,13 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
         lock_run(out, locks)
         saved, data, device, state = load_box_run(out, device)
         resume_checks(out, state["step"], cfg.iters, OUTPUTS)
-        saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
-        cfg = saved
+        cfg = dataclasses.replace(saved, iters=cfg.iters, max_seconds=cfg.max_seconds)
     else:
         device = device or "cpu"
         old = _read_config(out)
         if (out / CHECKPOINT).exists() and (old is None or old.get("model") != MODEL):
             raise UserError(f"{out}: holds another kind of run; choose another --out")
-    cfg.validate()
-    if cfg.lr_decay_steps <= 0:
-        cfg.lr_decay_steps = cfg.iters
+    cfg = cfg.validate()  # (resolved, checked and frozen: what the fit reads)
     # Data first: a bad folder stops the fit before anything is written.
     # every frame is fitted (holdout 0: no frames held out of a single transforms.json)
     ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,

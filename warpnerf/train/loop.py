@@ -49,7 +49,7 @@ from ..io import (
     save_checkpoint,
     write_json,
 )
-from ..options import check_at_least, option, section_of
+from ..options import Settings, check_at_least, option, section_of
 from ._signals import nonfinite_flags, raise_if_diverged, stop_requests
 from .provenance import finish_session, start_session
 from .run_folder import BackgroundWriter, claim_run, lock_run, resume_checks, to_host
@@ -66,7 +66,7 @@ LOOP_KEYS = ("step", "optimizer", "history")
 
 
 @dataclass
-class LoopConfig:
+class LoopConfig(Settings):
     """The loop's section of every kind of run's config, declared once: each config class
     derives from it (``with_defaults(LoopConfig, iters=..., ...)`` for its own defaults); its
     flags are shown under TITLE, and :meth:`LoopSettings.of` reads exactly these fields.

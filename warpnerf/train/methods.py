@@ -128,7 +128,7 @@ def method_of_config(saved: dict, where: str = "config.json") -> Method:
 def method_of_run(run) -> Method:
     """The method of run folder ``run`` (its config.json, read bounded); UserError when it is
     not a run folder."""
-    from ..jsonio import read_json
+    from ..jsonio import read_run_config
 
     run = Path(run)
     if not run.is_dir():
@@ -136,7 +136,7 @@ def method_of_run(run) -> Method:
     path = run / "config.json"
     if not path.exists():  # (a FIFO or a link there: read_json names it)
         raise UserError(f"{run}: not a training run (no config.json)")
-    saved = read_json(path, "run config")
+    saved = read_run_config(path)
     if not isinstance(saved, dict):
         raise UserError(f"{path}: unreadable (expected a JSON object)")
     return method_of_config(saved, str(path))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -23,7 +24,7 @@ from .ema import WeightAverage
 from .logs import TensorBoardLog
 from .loop import LoopSettings, Task, adam, claim_run, lock_run, resume_checks, run_loop
 from .nerf_config import MODEL as NERF_MODEL
-from .nerf_config import NeRFConfig, scene_settings
+from .nerf_config import NeRFConfig
 from .nerf_run import (
     CHECKPOINT,
     dataset_rays,
@@ -35,6 +36,8 @@ from .nerf_run import (
     psnr_of_mse,
     render_dataset_image,
     render_rays_of,
+    resolve_data,
+    settle_new_run,
     surface_depth,
     validate,
     with_refined_poses,
@@ -52,18 +55,6 @@ __all__ = [
 # the adaptive batch's rays per step and rank (a data-parallel run of N ranks: N times as many)
 MAX_RAYS_PER_RANK = 1 << 16
 OUTPUTS = ("config.json", CHECKPOINT, "history.json")  # what a NeRF run writes in its folder
-
-
-def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
-    """The one step that settles a new run's data-dependent settings: reads what the data
-    decides (a COLMAP/LLFF capture's poses: transform, NDC camera, near/far, box), then fills in
-    and checks the config (:meth:`NeRFConfig.validate`). A loaded run has them in its
-    config.json already."""
-    if cfg.scene is None and cfg.data != "builtin":  # DIR/transforms.json given: DIR
-        from ..data.blender import data_root
-
-        cfg.data = str(data_root(cfg.data))
-    return cfg.validate(scene_settings(cfg))
 
 
 def _optimizer(cfg, params, poses=None, capturable=False, model=None):
@@ -131,27 +122,20 @@ def _train_nerf(cfg, run: Path, resume, progress, log, device, locks, hooks, ten
         saved_cfg, model, ckpt = load_run(run, device, averaged=False)  # (trains the raw ones)
         if main:
             resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
-        saved_cfg.iters, saved_cfg.max_seconds = cfg.iters, cfg.max_seconds
-        cfg = saved_cfg
-        cfg.validate()
+        cfg = replace(saved_cfg, iters=cfg.iters, max_seconds=cfg.max_seconds).validate()
+        # Data first: a bad dataset stops the run before anything is written.
+        train = load_data(cfg, "train", cfg.images_on, uint8=True,  # (8-bit when kept on the host)
+                          alpha=wants_alpha(cfg))  # fmt: skip
     else:
-        resolve_data(cfg)
+        # the data's training split read, then the config resolved, checked and frozen, once
+        cfg, train = settle_new_run(cfg)
         if (run / CHECKPOINT).exists():
             raise UserError(
                 f"{run}: already holds a run; pass --resume to continue it or choose another --out"
             )
         model, ckpt = None, None  # (built once the data is known: appearance codes count images)
-    if cfg.lr_decay_steps <= 0:
-        cfg.lr_decay_steps = cfg.iters
-    # Data first: a bad dataset stops the run before anything is written.
-    train = load_data(cfg, "train", cfg.images_on, uint8=True,  # (8-bit when kept on the host)
-                      alpha=wants_alpha(cfg))  # fmt: skip
     val = load_data(cfg, "val", cfg.images_on) if cfg.val_images > 0 else None
     if model is None:
-        if cfg.appearance_dim:  # one code per training image
-            cfg.appearance_images = len(train)
-        if cfg.pose_refine:  # one correction per training camera
-            cfg.pose_images = len(train)
         model = build_model(cfg)
     else:
         for on, count, what in (

@@ -4,15 +4,14 @@ config.json."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import torch
-
 from ..data.dataset import is_capture
 from ..data.datasets import FORMATS
-from ..errors import UserError
+from ..errors import UserError, check_device
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..fields.model import FieldTraits, field_traits, fields_with
 from ..fields.settings import HashConfig, MLPConfig, SDFDensityConfig
@@ -67,9 +66,10 @@ class NeRFConfig(*reversed(SECTIONS)):
     dataclass declared once: the loop's is shared with the other kinds of run, the fields'
     live with the fields, fields/settings.py); the flags of `warpnerf train nerf|volsdf` and of
     the NeRF demos are built from them (warpnerf.options), shown section by section. Values left
-    None (and aabb/march_step 0) are filled in from the data and the field by :meth:`resolve`,
-    called once by :meth:`validate` at the start of training; the result is saved, flat, in the
-    run's config.json (the same keys as before the sections)."""
+    None (and aabb/march_step/lr_decay_steps 0) are filled in from the data and the field by
+    :meth:`resolve`, called once by :meth:`validate` at the start of training, which checks the
+    result and freezes it (read-only from then on); that config is saved, flat, in the run's
+    config.json (the same keys as before the sections)."""
 
     preset: str = preset_option("the built-in scene")
     batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
@@ -103,8 +103,10 @@ class NeRFConfig(*reversed(SECTIONS)):
         if isinstance(d, dict) and not any(k in d for k in RECIPE_LEGACY):
             # a run from before the recipe's options: it trained without them
             fields = {**RECIPE_LEGACY, **fields}
-        cfg = cls(**fields)
-        return cfg.check_values(where)
+        cfg = cls(**fields).check_values(where)
+        if cfg.traits.options is not None:  # (ints of float options as floats)
+            cfg.field_options = cfg._typed_field_options(where)
+        return cfg
 
     @property
     def traits(self) -> FieldTraits:
@@ -117,14 +119,24 @@ class NeRFConfig(*reversed(SECTIONS)):
         opts = self.traits.options
         return None if opts is None else opts(**self.field_options)
 
-    def resolve(self, scene: dict | None = None):
-        """Fills in the defaults that depend on the data and the field (near/far, lr, aabb, the
-        grid's step). ``scene``: what the data decides for a COLMAP/LLFF capture (see
-        :func:`scene_settings`, which reads it), kept unless one is saved already. Reads no
-        files: the one explicit step that reads the data is ``train.nerf.resolve_data``."""
+    def resolve(self, scene: dict | None = None, train_images: int | None = None):
+        """A copy with the defaults that depend on the data and the field filled in (near/far,
+        lr and its decay, aabb, the grid's step, the field's typed options); this config is
+        left as it is. ``scene``: what the data decides for a COLMAP/LLFF capture (see
+        :func:`scene_settings`, which reads it), kept unless one is saved already;
+        ``train_images``: the training split's size (the appearance codes and pose corrections
+        count them; None: as saved). Reads no files: the one step that reads the data for a
+        new run is ``train.nerf_run.settle_new_run``."""
+        self = dataclasses.replace(self)  # (the copy filled in; a frozen one's is not frozen)
+        if self.field not in FIELDS:
+            return self  # (nothing to fill in: check_values names the field)
         if self.scene is None and scene is not None:
             self.scene = scene
         traits = self.traits
+        if self.lr_decay_steps <= 0:  # the first invocation's iters (saved: a resume keeps it)
+            self.lr_decay_steps = self.iters
+        if traits.options is not None and isinstance(self.field_options, dict):
+            self.field_options = self._typed_field_options()
         if self.lr is None:
             self.lr = traits.lr
         if self.eikonal_weight is None:
@@ -169,6 +181,11 @@ class NeRFConfig(*reversed(SECTIONS)):
                 FAR = max(FAR, CONTRACT_FAR * self.aabb)
             self.near = NEAR if self.near is None else self.near
             self.far = FAR if self.far is None else self.far
+        if train_images is not None:  # one appearance code, one pose correction per image
+            if self.appearance_dim:
+                self.appearance_images = train_images
+            if self.pose_refine:
+                self.pose_images = train_images
         return self
 
     def ndc_camera(self):
@@ -244,10 +261,7 @@ class NeRFConfig(*reversed(SECTIONS)):
             if self.color_direction == "reflect" and not self.view_dependence:
                 raise fail("color_direction", "reflect needs view dependence")
         if traits.options is not None:  # typed, no unknown names (the saved config: untrusted)
-            from ..jsonio import check_fields
-
-            name = f"{where + ': ' if where else ''}field_options of --field {self.field}"
-            self.field_options = check_fields(traits.options, self.field_options, name)
+            self._typed_field_options(where)
         elif self.field_options:
             raise fail("field_options", f"must be empty: --field {self.field} has no options")
         if traits.check is not None:
@@ -272,13 +286,21 @@ class NeRFConfig(*reversed(SECTIONS)):
             raise fail("march_cone", "needs --contract on")
         return self
 
-    def validate(self, scene: dict | None = None):
-        """All checks (:meth:`check_values`, then those that need the resolved data-dependent
-        settings and the device); fills in the data-dependent defaults (:meth:`resolve`, with
-        the capture's ``scene`` settings if any)."""
+    def _typed_field_options(self, where: str | None = None) -> dict:
+        """``field_options`` checked against the field's options class (typed, no unknown
+        names: the saved config is untrusted); UserError naming ``where`` otherwise."""
+        from ..jsonio import check_fields
+
+        name = f"{where + ': ' if where else ''}field_options of --field {self.field}"
+        return check_fields(self.traits.options, self.field_options, name)
+
+    def validate(self, scene: dict | None = None, train_images: int | None = None):
+        """The config a run reads: this one resolved (:meth:`resolve`, with the capture's
+        ``scene`` settings and the training split's size if given), checked once (:meth:`
+        check_values`, then the checks that need the resolved settings and the device) and
+        frozen (read-only). This config is left as it is."""
+        self = self.resolve(scene, train_images)
         self.check_values()
-        self.resolve(scene)
-        self.check_values()  # the resolved grid, near/far and scene too
         if self.grid_res and self.contract != "on":  # (contracted: steps grow, see march_cone)
             # lattice intervals across the diagonal (the default step gives exactly 1024)
             need = math.ceil(2 * math.sqrt(3) * self.aabb / self.march_step * (1 - 1e-6))
@@ -287,15 +309,12 @@ class NeRFConfig(*reversed(SECTIONS)):
                     f"--max-samples {self.max_samples} is below the {need} steps of "
                     f"--march-step {self.march_step:g} across the box diagonal"
                 )
-        if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise UserError(
-                f"device {self.device!r}: no CUDA device available here (pass --device cpu)"
-            )
+        check_device(self.device)
         if not self.far > self.near >= 0:
             raise UserError(f"need 0 <= --near < --far, got near={self.near}, far={self.far}")
         if not (self.lr > 0 and self.lr_final > 0):
             raise UserError("--lr and --lr-final must be positive")
-        return self
+        return self.freeze()
 
     def aabb_box(self):
         """The scene box [6]: with NDC rays [-a, a]^2 x [-1, 1] (z = 1 is infinity), with

@@ -6,6 +6,7 @@ truth in :mod:`warpnerf.data.materials_truth` and the built-in camera paths in
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import time
 from pathlib import Path
@@ -129,13 +130,15 @@ def evaluate_run(
     cfg, model, ckpt = load_run(run, device, snapshot)
     _check_renderer(renderer, model, cfg)
     grid = model.grid
+    changed = {}
     for key, value in render.items():
         if value is None:
             continue
         if key != "chunk" and grid is None:
             raise UserError(f"--{key.replace('_', '-')} needs a run with an occupancy grid")
-        setattr(cfg, key, type(getattr(cfg, key))(value))
-    cfg.check_values()  # (with the run's own: --chunk x samples a ray within int32 offsets)
+        changed[key] = type(getattr(cfg, key))(value)
+    if changed:  # (checked with the run's own: --chunk x samples a ray within int32 offsets)
+        cfg = dataclasses.replace(cfg, **changed).check_values().freeze()
     if grid is not None:
         grid.dt = cfg.march_step
     ds = load_data(cfg, split, cfg.images_on)  # (large splits stay in host memory)
@@ -340,8 +343,6 @@ def frames_per_batch(w: int, h: int, frames: int, chunk: int | None) -> int:
 
 def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume",
                    windows=None, progress=False):  # fmt: skip
-    import copy
-
     from .progress import Progress
 
     rgbs, depths, geo, t0, scale = [], [], [], time.perf_counter(), None
@@ -355,8 +356,8 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
             o, d = (torch.cat(x) for x in zip(*rays))
             fc = cfg
             if windows is not None:  # this frame's near/far (a viewer's camera path)
-                fc = copy.copy(cfg)
-                fc.near, fc.far = float(windows[f0][0]), float(windows[f0][1])
+                near, far = float(windows[f0][0]), float(windows[f0][1])
+                fc = dataclasses.replace(cfg, near=near, far=far)
             if renderer == "sphere":
                 out = sphere_traced_rays_of(model, fc, o, d)
             else:

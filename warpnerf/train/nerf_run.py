@@ -12,19 +12,57 @@ from pathlib import Path
 
 import torch
 
-from ..errors import UserError
+from ..errors import UserError, check_device
 from ..fields.model import RadianceModel, build_model
 from ..io import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
-from .nerf_config import MODEL, NeRFConfig
+from .nerf_config import MODEL, NeRFConfig, scene_settings
+from .recipe import wants_alpha
 
 __all__ = [
-    "load_run", "load_data", "data_splits", "images_stay_on_host", "with_refined_poses",
-    "dataset_rays", "render_rays_of", "distortion_coordinate", "surface_depth", "depth_scale",
-    "render_dataset_image", "validate", "psnr_of_mse", "CHECKPOINT",
+    "resolve_data", "settle_new_run", "load_run", "load_data", "data_splits",
+    "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
+    "distortion_coordinate", "surface_depth", "depth_scale", "render_dataset_image", "validate",
+    "psnr_of_mse", "CHECKPOINT",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
+
+
+def _with_data(cfg: NeRFConfig) -> NeRFConfig:
+    """A new run's config with what its data decides, read (no pixels): the data folder (a
+    DIR/transforms.json given: DIR) and a COLMAP/LLFF capture's scene (transform, NDC camera,
+    near/far, box; :func:`~warpnerf.train.nerf_config.scene_settings`). A copy, not resolved."""
+    if cfg.scene is not None or cfg.data == "builtin":  # (a loaded run has them already)
+        return cfg
+    from ..data.blender import data_root
+
+    cfg = dataclasses.replace(cfg, data=str(data_root(cfg.data)))
+    return dataclasses.replace(cfg, scene=scene_settings(cfg))
+
+
+def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
+    """A new run's config resolved with what its data decides (:func:`_with_data`), checked and
+    frozen (:meth:`NeRFConfig.validate`), without the training split's size (the appearance
+    codes and pose corrections keep the counts given; a run counts them,
+    :func:`settle_new_run`)."""
+    return _with_data(cfg).validate()
+
+
+def settle_new_run(cfg: NeRFConfig) -> tuple:
+    """(config, training split) of a new run, in one pass: what the data decides
+    (:func:`_with_data`), the device checked, the training images read (8-bit where they stay
+    in host memory, with their alpha), then the config resolved with their count, checked once
+    and frozen (:meth:`NeRFConfig.validate`): what the run reads, never changed after. The
+    split keeps its alpha where the resolved run reads it (:func:`~warpnerf.train.recipe.
+    wants_alpha`)."""
+    draft = _with_data(cfg)
+    check_device(draft.device)
+    train = load_data(draft, "train", draft.images_on, uint8=True, alpha=True)
+    cfg = draft.validate(train_images=len(train))
+    if train.alpha is not None and not wants_alpha(cfg):
+        train = dataclasses.replace(train, alpha=None)
+    return cfg, train
 
 
 def load_data(cfg: NeRFConfig, split: str, images_on: str | None = None, uint8: bool = False,
@@ -301,9 +339,9 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
         if not ckpt_path.is_file() or ckpt_path.is_symlink():
             raise UserError(f"{run}: no snapshot at {snapshot:g} s ({ckpt_path.name} is missing; "
                             "train with --snapshots to keep them)")  # fmt: skip
-    from ..jsonio import read_json
+    from ..jsonio import read_run_config
 
-    saved = read_json(cfg_path, "run config")  # size- and depth-bounded, one-line errors
+    saved = read_run_config(cfg_path)  # size- and depth-bounded, one-line errors
     if not isinstance(saved, dict):
         raise UserError(f"{cfg_path}: unreadable (expected a JSON object)")
     model = saved.get("model")
@@ -323,16 +361,13 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
     if saved.get("field"):  # runs from before these options had their old fixed defaults
         saved.setdefault("appearance_dim", 0)  # (today's default is data-dependent)
         saved.setdefault("hash_max_res", 2048)
-    try:
-        cfg = NeRFConfig.from_dict(saved, where=str(cfg_path))
+    if device:  # (moved to another device)
+        saved["device"] = device
+    try:  # (a saved config is resolved and checked: read-only from here)
+        cfg = NeRFConfig.from_dict(saved, where=str(cfg_path)).freeze()
     except TypeError as e:
         raise UserError(f"{cfg_path}: unreadable ({e})") from None
-    if device:
-        cfg.device = device
-    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(
-            f"{run}: trained on {cfg.device}, which is not available here; pass --device cpu"
-        )
+    check_device(cfg.device, str(run))
     if cfg.device.startswith("cuda"):  # matrix products as in training
         torch.backends.cuda.matmul.allow_tf32 = cfg.tf32
     keys = ("step", "fields", "optimizer", "generator", "history")

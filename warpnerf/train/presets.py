@@ -17,7 +17,6 @@ train volsdf 20 s, 21.1 dB; hash_sdf 38 s, 23.2 dB; train sdf mlp 9 s, Chamfer 0
 
 from __future__ import annotations
 
-import copy
 import math
 
 __all__ = ["PRESET_NAMES", "NERF_PRESETS", "SDF_PRESETS", "preset_values", "preset_fields",
@@ -181,7 +180,7 @@ def step_seconds(cfg) -> float:
     """A rough estimate of one training step's seconds of a NeRF/VolSDF config on a 2-core CPU:
     rays x samples per ray x the work per sample (MLP flops or hash lookups). With an occupancy
     grid the early steps march the whole box (every cell occupied), half its diagonal a ray."""
-    cfg = copy.deepcopy(cfg).resolve()
+    cfg = cfg.resolve()  # (a resolved copy)
     if cfg.grid_res:
         steps = 2 * math.sqrt(3) * cfg.aabb / cfg.march_step
         samples = min(cfg.max_samples, steps / 2)

@@ -22,6 +22,7 @@ Lipman 2020), which no surface far from the points satisfies.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import zipfile
 from dataclasses import asdict, dataclass
@@ -30,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..errors import UserError
+from ..errors import UserError, check_device
 from ..fields.hash_point_sdf import HashPointSDF
 from ..fields.neural_sdf import NeuralSDF
 from ..io import (
@@ -187,8 +188,10 @@ class SDFConfig(SDF_LOOP):
         return self
 
     def resolve(self):
-        """Fills in the defaults that depend on the field or on the first invocation: lr (1e-2
-        for the hash field, 1e-3 for the MLP), lr_final (lr / 10), lr_decay_steps (iters)."""
+        """A copy with the defaults that depend on the field or on the first invocation filled
+        in: lr (1e-2 for the hash field, 1e-3 for the MLP), lr_final (lr / 10), lr_decay_steps
+        (iters); this config is left as it is."""
+        self = dataclasses.replace(self)  # (the copy filled in)
         if self.lr is None:
             self.lr = 1e-2 if self.field == "hash" else 1e-3
         if self.lr_final is None:
@@ -206,10 +209,11 @@ class SDFConfig(SDF_LOOP):
                         self.hash_max_res)  # fmt: skip
 
     def validate(self):
-        self.check_values()
-        if self.device.startswith("cuda") and not torch.cuda.is_available():
-            raise UserError(f"device {self.device!r}: no CUDA device available here")
-        return self
+        """The config a run reads: this one resolved (:meth:`resolve`), checked once
+        (:meth:`check_values` and the device) and frozen (read-only); this one is left as is."""
+        cfg = self.resolve().check_values()
+        check_device(cfg.device)
+        return cfg.freeze()
 
 
 def load_points(path) -> tuple:
@@ -306,22 +310,21 @@ def nearest_distance(x: torch.Tensor, points: torch.Tensor, chunk: int = 4096) -
 
 def load_sdf_run(run, device=None):
     """(cfg, model, checkpoint) of a neural-SDF run folder."""
-    from ..jsonio import read_json
+    from ..jsonio import read_run_config
 
     run = Path(run)
     if not (run / "config.json").exists():
         raise UserError(f"{run}: not a training run (needs a readable config.json)")
-    d = read_json(run / "config.json", "run config")
+    d = read_run_config(run / "config.json")
     if not isinstance(d, dict) or d.get("model") != MODEL:
         model = d.get("model") if isinstance(d, dict) else None
         raise UserError(f"{run}: not a neural-SDF run (config model {model!r})")
     if not (run / CHECKPOINT).exists():  # (a FIFO or a link: load_checkpoint names it)
         raise UserError(f"{run}: no {CHECKPOINT} yet (the run never reached a checkpoint)")
-    cfg = SDFConfig.from_dict(d, str(run / "config.json"))
-    if device:
-        cfg.device = device
-    if cfg.device.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"{run}: trained on {cfg.device}, not available here; pass --device cpu")
+    if device:  # (moved to another device)
+        d["device"] = device
+    cfg = SDFConfig.from_dict(d, str(run / "config.json")).freeze()
+    check_device(cfg.device, str(run))
     keys = ("step", "model", "optimizer", "generator", "history", "normalisation")
     ckpt = load_checkpoint(run / CHECKPOINT, cfg.device, keys)
     # the config's sizes bounded by the weights the checkpoint holds, before the model is built
@@ -377,14 +380,12 @@ def _train_sdf(cfg, run: Path, resume, progress, log, device, locks, tensorboard
         lock_run(run, locks)
         saved, model, ckpt = load_sdf_run(run, device)
         resume_checks(run, ckpt["step"], cfg.iters, OUTPUTS)
-        saved.iters, saved.max_seconds = cfg.iters, cfg.max_seconds
-        cfg = saved.validate()
+        cfg = dataclasses.replace(saved, iters=cfg.iters, max_seconds=cfg.max_seconds).validate()
     else:
-        cfg.validate()
+        cfg = cfg.validate()  # (resolved, checked and frozen: what the run reads)
         if (run / CHECKPOINT).exists():
             raise UserError(f"{run}: already holds a run; pass --resume or choose another --out")
         model = None
-    cfg.resolve()
     pts_np, nrm_np = load_points(cfg.points)
     center, scale = normalisation(pts_np)
     if model is None:

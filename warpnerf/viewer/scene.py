@@ -26,7 +26,7 @@ how many rays a frame can have to render in a given time.
 
 from __future__ import annotations
 
-import copy
+import dataclasses
 import math
 import threading
 import time
@@ -223,13 +223,12 @@ class RunScene:
         far = float(cfg.far)
         cams = train.c2w if train is not None else None
         shifted = window_rule(cams, cfg.near, cfg.far) if ndc is None else None
-        moved = copy.copy(cfg)
 
-        def window(cam):
+        def window(cam):  # (the run's config with this camera's near/far: a copy)
             if shifted is None:
                 return cfg
-            moved.near, moved.far = shifted(cam)
-            return moved
+            near, far = shifted(cam)
+            return dataclasses.replace(cfg, near=near, far=far)
 
         def render_rays(o, d, mode):
             o, d = o.to(dev), d.to(dev)

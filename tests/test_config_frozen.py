@@ -1,0 +1,129 @@
+"""A run's config is built, resolved and checked once, then frozen (issue 46): setting a field of
+a frozen config raises, a resumed or loaded run reads its config.json once a command, and the
+config.json a run writes is the frozen config it trained with."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from warpnerf.cli.parser import main
+from warpnerf.errors import UserError, check_device
+from warpnerf.train.box_fit import BoxFitConfig
+from warpnerf.train.nerf_config import NeRFConfig
+from warpnerf.train.sdf import SDFConfig
+
+# a tiny `train nerf` (tests/test_first_hour_resume.py's settings)
+NERF = ["--data", "builtin", "--field", "mlp", "--layers", "2", "--width", "16", "--samples", "8",
+        "--builtin-size", "16", "--batch", "64", "--val-images", "0", "--quiet"]  # fmt: skip
+
+
+@pytest.mark.parametrize("cfg", [NeRFConfig(data="builtin"), SDFConfig(), BoxFitConfig(lr=0.01)],
+                         ids=["nerf", "sdf", "box"])  # fmt: skip
+def test_a_validated_config_is_frozen_and_the_draft_untouched(cfg):
+    frozen = cfg.validate()
+    assert frozen.frozen and not cfg.frozen and frozen is not cfg
+    assert frozen.lr_decay_steps == frozen.iters and cfg.lr_decay_steps == 0  # (resolved copy)
+    with pytest.raises(dataclasses.FrozenInstanceError, match="read-only"):
+        frozen.iters = 5
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        del frozen.seed
+    changed = dataclasses.replace(frozen, iters=5)  # a changed config is a new one, not frozen
+    assert changed.iters == 5 and not changed.frozen and frozen.iters != 5
+    assert changed.validate().frozen
+
+
+def test_nerf_resolve_fills_in_a_copy():
+    cfg = NeRFConfig(data="builtin", field="hash")
+    resolved = cfg.resolve(train_images=7)
+    assert cfg.lr is None and cfg.aabb == 0 and cfg.near is None  # (left as it was)
+    assert resolved.lr > 0 and resolved.aabb > 0 and resolved.near is not None
+    codes = NeRFConfig(data="builtin", field="hash", appearance_dim=4, pose_refine=True)
+    assert (codes.resolve(train_images=7).appearance_images, codes.pose_images) == (7, 0)
+    assert codes.validate(train_images=7).pose_images == 7
+
+
+def test_the_device_is_checked_in_one_place(monkeypatch):
+    import torch
+
+    assert check_device("cpu") == "cpu"
+    with pytest.raises(UserError, match="--device must be cpu or cuda"):
+        check_device("gpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(UserError, match="--device cuda: no CUDA device"):
+        check_device("cuda")
+    with pytest.raises(UserError, match="RUN: device cuda:1: no CUDA device"):
+        check_device("cuda:1", "RUN")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(UserError, match="sees 1 CUDA device"):
+        check_device("cuda:1")
+    with pytest.raises(UserError, match="no CUDA device"):  # (the configs ask the same check)
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+        NeRFConfig(data="builtin", device="cuda").validate()
+
+
+@pytest.fixture(scope="module")
+def nerf_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("frozen") / "r"
+    assert main(["train", "nerf", *NERF, "--iters", "2", "--out", str(run)]) == 0
+    return run
+
+
+def _count_config_reads(monkeypatch) -> list:
+    """The reads of a config.json from the disk (every JSON file is read by read_input)."""
+    import warpnerf.files as files
+
+    reads, read = [], files.read_input
+
+    def counting(path, *args, **kw):
+        if str(path).endswith("config.json"):
+            reads.append(str(path))
+        return read(path, *args, **kw)
+
+    monkeypatch.setattr(files, "read_input", counting)
+    return reads
+
+
+def test_a_resume_reads_config_json_once(nerf_run, monkeypatch, capsys):
+    reads = _count_config_reads(monkeypatch)
+    assert main(["train", "nerf", *NERF, "--out", str(nerf_run), "--resume", "--iters", "3"]) == 0
+    assert reads == [str(nerf_run / "config.json")]
+
+
+def test_eval_reads_config_json_once(nerf_run, tmp_path, monkeypatch, capsys):
+    reads = _count_config_reads(monkeypatch)
+    code = main(["eval", str(nerf_run), "--split", "val", "--max-images", "1",
+                 "--out", str(tmp_path / "e")])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    assert reads == [str(nerf_run / "config.json")]
+
+
+def test_the_written_config_json_is_the_frozen_config(tmp_path):
+    from warpnerf.train.nerf import train_nerf
+
+    seen = []
+
+    class Watch:  # a loop hook: the config the task trains with
+        def on_start(self, task, step):
+            seen.append(task.cfg)
+
+        def on_step(self, *a):
+            pass
+
+        def on_validation(self, *a):
+            pass
+
+        def close(self):
+            pass
+
+    cfg = NeRFConfig(data="builtin", field="mlp", n_layers=2, width=16, n_coarse=8,
+                     builtin_size=16, batch=64, val_images=0, iters=2)  # fmt: skip
+    train_nerf(cfg, tmp_path / "r", progress=False, log=lambda *a: None, hooks=[Watch()])
+    (trained,) = seen
+    assert trained.frozen and not cfg.frozen
+    saved = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert saved == json.loads(json.dumps(trained.to_dict()))
+    assert NeRFConfig.from_dict(saved) == trained
