@@ -171,3 +171,23 @@ def test_a_broken_plugin_is_named_in_a_warning_and_the_rest_works(site):
     args = build_parser().parse_args(["train", "nerf", "--out", "x", "--field", "toy_mlp"])
     assert args.field == "toy_mlp"
     assert plugins.load_plugins("warpnerf.fields") == []  # (once: no second warning)
+
+
+def test_the_built_in_train_commands_come_from_the_method_registry():
+    """Every `train` command is made by one path from the method registry (issue 46): the
+    built-in methods' commands carry their method and the front end registered for them, as an
+    added method's would; a second front end for a command is a developer's error."""
+    from warpnerf.cli.parser import build_parser
+    from warpnerf.cli.train_commands import TrainCommand, register_train_command
+
+    parser = build_parser()
+    made = {}
+    for method in methods_mod.METHODS.values():
+        for command in method.commands:
+            args = parser.parse_args(["train", command, "--out", "x"])
+            assert args.method is method and args.model == command
+            made[command] = method.name
+    built_in = {"nerf": "nerf", "volsdf": "nerf", "sdf": "neural_sdf", "box": "box"}
+    assert {k: made[k] for k in built_in} == built_in
+    with pytest.raises(ValueError, match="has a front end already"):
+        register_train_command("nerf", "nerf", TrainCommand("", print, print))

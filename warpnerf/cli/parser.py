@@ -16,15 +16,8 @@ from ._common import add_data_format_flags, positive_arg, sigterm_exits
 from .misc import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
-from .train import (
-    add_box_flags,
-    add_nerf_flags,
-    add_sdf_flags,
-    cmd_train_box,
-    cmd_train_method,
-    cmd_train_nerf,
-    cmd_train_sdf,
-)  # fmt: skip
+from .train import cmd_train_nerf
+from .train_commands import add_train_commands
 from .view import cmd_view, view_flags, viewer_after_training
 
 # the command line, and the helpers the tools in scripts/ may use
@@ -41,37 +34,6 @@ __all__ = [
 
 # the runs eval, render and export read (the NeRF runner: any --field)
 RADIANCE_RUNS = "train nerf or train volsdf"
-
-
-# what a generated `train <command>` sets itself (flags and argparse defaults)
-_COMMAND_DESTS = {"out", "resume", "quiet", "func", "method", "subparser", "command", "model"}
-
-
-def _registered_train_commands(tsub) -> None:
-    """`train <command>` of every registered method with a config and a trainer (methods
-    added after the built-in ones): the config's flags, --out, --resume, --quiet."""
-    from ..train.methods import METHODS
-
-    taken = set(tsub.choices)
-    for method in METHODS.values():
-        if method.config is None or method.train is None:
-            continue
-        for command in method.commands:
-            if command in taken:
-                continue
-            taken.add(command)
-            clash = sorted({f.name for f in dataclasses.fields(method.config)} & _COMMAND_DESTS)
-            if clash:  # (a developer's mistake: say which, rather than argparse's conflict)
-                raise ValueError(
-                    f"the config of method {method.name!r} ({method.config.__name__}) has "
-                    f"fields named like `train {command}`'s own flags: {', '.join(clash)}"
-                )
-            tm = tsub.add_parser(command, help=method.help or f"train a {method.what}")
-            add_flags(tm, method.config)
-            tm.add_argument("--out", required=True, help="run folder")
-            tm.add_argument("--resume", action="store_true", help="continue the run in --out")
-            tm.add_argument("--quiet", action="store_true", help="no progress bar")
-            tm.set_defaults(func=cmd_train_method, method=method, subparser=tm)
 
 
 class CommandParser(argparse.ArgumentParser):
@@ -213,25 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train a run: nerf, volsdf (neural SDF from images), sdf "
                        "(neural SDF from points) or box (fit an SDF box to images)")  # fmt: skip
     tsub = t.add_subparsers(dest="model", metavar="MODEL", required=True)
-    tb = tsub.add_parser("box", help="fit the rainbow SDF box to a Blender-format folder")
-    add_box_flags(tb)
-    tb.set_defaults(func=cmd_train_box, subparser=tb)
-
-    tn = tsub.add_parser("nerf", help="train a NeRF (coarse, or coarse/fine) on a dataset")
-    add_nerf_flags(tn, "nerf")
-    tn.set_defaults(func=cmd_train_nerf, subparser=tn)
-
-    tv = tsub.add_parser(
-        "volsdf", help="train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf "
-        "--field volsdf with VolSDF's defaults"
-    )  # fmt: skip
-    add_nerf_flags(tv, "volsdf")
-    tv.set_defaults(func=cmd_train_nerf, subparser=tv)
-
-    ts = tsub.add_parser("sdf", help="fit a neural SDF to a point cloud (eikonal loss) + mesh")
-    add_sdf_flags(ts)
-    ts.set_defaults(func=cmd_train_sdf, subparser=ts)
-    _registered_train_commands(tsub)
+    add_train_commands(tsub)  # (one per command of every registered method)
 
     e = sub.add_parser("eval", help="PSNR/SSIM of a trained run on a split, side-by-side PNGs")
     e.add_argument("run", help=f"run folder of {RADIANCE_RUNS} (--geometry: an SDF field's, "

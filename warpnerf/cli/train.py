@@ -1,23 +1,22 @@
-"""`warpnerf train box|nerf|volsdf|sdf`: the commands and their flags."""
+"""`warpnerf train box|nerf|volsdf|sdf`: the built-in methods' front ends (presets, resume
+checks, data parallel), registered at the end of this module as an outside method's would be
+(:mod:`warpnerf.cli.train_commands` makes every `train` command by one path)."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import sys
+from functools import partial
 
-from ..errors import Interrupted, UserError
+from ..errors import UserError
 from ..fields.model import field_traits, fields_with
 from ..fields.settings import VOLSDF
 from ..io import json_dumps
 from ..options import CHECKS, add_flags, apply_preset, flag_of, from_flags
+from ..train.box_fit import MODEL as BOX_MODEL
 from ..train.box_fit import BoxFitConfig
-from ..train.nerf_config import (
-    FINE_SAMPLES,
-    GRID,
-    NeRFConfig,
-    VolSDFConfig,
-)
+from ..train.nerf_config import FINE_SAMPLES, GRID, NeRFConfig, VolSDFConfig
+from ..train.nerf_config import MODEL as NERF_MODEL
 from ..train.presets import (
     NERF_PRESETS,
     SDF_PRESETS,
@@ -29,46 +28,15 @@ from ..train.presets import (
     preset_values,
     resolved_preset,
 )
+from ..train.sdf import MODEL as SDF_MODEL
 from ..train.sdf import SDFConfig
-from ._common import (
-    check_existing,
-    check_out,
-    parse_device,
-    saved_config,
-)
+from ._common import check_existing, check_out, parse_device, saved_config
+from .train_commands import TrainCommand, register_train_command, resume_hint
 from .view import live_hooks, tensorboard_every, watch_flags
 
 __all__ = ["nerf_config_from_args"]  # (the helpers scripts/ may use)
 
 DEVICE = "cpu"  # a new box fit's device (the box config holds none)
-
-
-def cmd_train_method(args) -> int:
-    """`train <command>` of a registered method (train/methods.py) with a config and a
-    trainer: the config from its flags, the method's trainer, its result printed as JSON."""
-    method = args.method
-    check_out(args.out)
-    cfg = method.config(**from_flags(method.config, args))
-    with _resume_hint(args, getattr(cfg, "iters", None)):
-        res = method.train(cfg, args.out, resume=args.resume, progress=not args.quiet)
-    print(json_dumps(res))
-    return 0
-
-
-@contextlib.contextmanager
-def _resume_hint(args, iters):
-    """An :class:`Interrupted` training's message names the command that continues it: this
-    `train` subcommand with the run and the --iters it was aiming at."""
-    import shlex
-
-    try:
-        yield
-    except Interrupted as e:
-        if e.resume is None:
-            n = iters if isinstance(iters, int) and iters > 0 else "N"
-            e.resume = (f"warpnerf train {args.model} --out {shlex.quote(str(e.run))} --resume "
-                        f"--iters {n}")  # fmt: skip
-        raise
 
 
 def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
@@ -78,7 +46,7 @@ def _train_command(args, cls, new_config, train, report=lambda res: res) -> int:
     ``report(result)`` printed as JSON."""
     check_out(args.out)
     cfg, device = _resumed(args, cls) if args.resume else new_config(args)
-    with _resume_hint(args, cfg.iters):
+    with resume_hint(args, cfg.iters):
         res = train(cfg, device, resume=args.resume, progress=not args.quiet,
                     tensorboard=tensorboard_every(args), hooks=live_hooks(args))  # fmt: skip
     print(json_dumps(report(res)))
@@ -388,7 +356,7 @@ def cmd_train_nerf(args) -> int:
     main = dist is None or dist.main
     # (only rank 0 prints: the other ranks' lines would repeat its own)
     notes = [] if args.resume else [_CpuNote(cfg, f"warpnerf train {args.model}")]
-    with _resume_hint(args, cfg.iters):
+    with resume_hint(args, cfg.iters):
         hist = train_nerf(cfg, args.out, resume=args.resume, progress=not args.quiet and main,
                           device=device, hooks=(live_hooks(args) + notes) if main else [],
                           tensorboard=tensorboard_every(args), dist=dist,
@@ -510,3 +478,19 @@ def add_nerf_flags(tn, model: str) -> None:
         taken |= {f.name for f in dataclasses.fields(opts)}
         group = tn.add_argument_group(f"--field {' or '.join(fields)}")
         add_flags(group, opts, unset=[f.name for f in dataclasses.fields(opts)])
+
+
+# the built-in methods' front ends, registered as an outside method's would be (in the order
+# `train --help` lists them)
+register_train_command(BOX_MODEL, "box", TrainCommand(
+    "fit the rainbow SDF box to a Blender-format folder", add_box_flags,
+    cmd_train_box))  # fmt: skip
+register_train_command(NERF_MODEL, "nerf", TrainCommand(
+    "train a NeRF (coarse, or coarse/fine) on a dataset", partial(add_nerf_flags, model="nerf"),
+    cmd_train_nerf))  # fmt: skip
+register_train_command(NERF_MODEL, "volsdf", TrainCommand(
+    "train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf --field volsdf with "
+    "VolSDF's defaults", partial(add_nerf_flags, model="volsdf"), cmd_train_nerf))  # fmt: skip
+register_train_command(SDF_MODEL, "sdf", TrainCommand(
+    "fit a neural SDF to a point cloud (eikonal loss) + mesh", add_sdf_flags,
+    cmd_train_sdf))  # fmt: skip

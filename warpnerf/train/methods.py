@@ -13,9 +13,12 @@ Adding a kind of run: its module (config, task, loader, trainer), then one entry
                            config=MyConfig, train=train_my_method))
 
 and `warpnerf train mymethod` exists with MyConfig's flags. The built-in methods register so in
-their own modules (nerf_method.py, sdf.py, box_fit.py; their four commands keep their own,
-richer front ends in cli/train.py: presets, resume checks, data parallel); an outside package
-names its module in the ``warpnerf.methods`` entry points (:mod:`warpnerf.plugins`).
+their own modules (nerf_method.py, sdf.py, box_fit.py); an outside package names its module in
+the ``warpnerf.methods`` entry points (:mod:`warpnerf.plugins`). Every method's `train`
+commands come out of one path (:mod:`warpnerf.cli.train_commands`): the front end registered
+for a command (``register_train_command``: cli/train.py registers the built-ins' four, with
+presets, resume checks and data parallel), else the one generated from ``config`` and
+``train``.
 
 ``view`` picks how the viewer shows it: "radiance" (a :class:`~warpnerf.fields.model.
 RadianceModel` with a NeRFConfig: volume rendering), "point_sdf" (an SDF network in [-1, 1]^3,
