@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from warpnerf.demo import GT_BOX, write_spiral
+from warpnerf.box_demo import GT_BOX, write_spiral
 from warpnerf.errors import exit_status
 from warpnerf.fields import SDFVolume
 from warpnerf.train import BoxFitConfig

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
+from warpnerf.box_demo import CAMERA_RADIUS, FOV_X, GT_BOX
 from warpnerf.data import intrinsics_from_fov, orbit_views
-from warpnerf.demo import CAMERA_RADIUS, FOV_X, GT_BOX
 from warpnerf.errors import exit_status
 from warpnerf.fields import SDFVolume
-from warpnerf.io import write_image, write_json
+from warpnerf.outputs import write_image, write_json
 from warpnerf.train import BoxFitConfig, fit_box, render_box_views
 from warpnerf.train.box_fit import run_box_fit_on_folder
 

@@ -20,10 +20,10 @@ import torch
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
 from warpnerf.errors import exit_status
 from warpnerf.fields.sdf_scene import torus_scene
-from warpnerf.io import write_image, write_json, write_video
 from warpnerf.ops import generate_rays
 from warpnerf.ops.sphere_trace import sphere_trace
-from warpnerf.trace import shade
+from warpnerf.outputs import write_image, write_json, write_video
+from warpnerf.sphere_tracing import shade
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common  # noqa: E402

@@ -19,9 +19,9 @@ from pathlib import Path
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
 from warpnerf.errors import exit_status
 from warpnerf.fields.sdf_scene import many_primitives_scene
-from warpnerf.io import write_image, write_json, write_video
 from warpnerf.ops import generate_rays
 from warpnerf.ops.sphere_trace import sphere_trace
+from warpnerf.outputs import write_image, write_json, write_video
 
 _spec = importlib.util.spec_from_file_location(
     "demo06", Path(__file__).with_name("06_sphere_trace_torus.py")

@@ -21,10 +21,10 @@ from pathlib import Path
 
 from warpnerf.data.cameras import intrinsics_from_fov, spiral_path
 from warpnerf.errors import exit_status
-from warpnerf.io import write_video
 from warpnerf.ops import generate_rays
 from warpnerf.options import add_flags, from_flags
-from warpnerf.trace import shade, sphere_trace_fn
+from warpnerf.outputs import write_video
+from warpnerf.sphere_tracing import shade, sphere_trace_fn
 from warpnerf.train.sdf import SDFConfig, train_sdf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

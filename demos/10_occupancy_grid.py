@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _nerf_args  # noqa: E402
 
 from warpnerf.errors import exit_status  # noqa: E402
-from warpnerf.io import write_image, write_json  # noqa: E402
 from warpnerf.ops.occupancy import unpack_bits  # noqa: E402
+from warpnerf.outputs import write_image, write_json  # noqa: E402
 from warpnerf.train.nerf import load_run, resolve_data  # noqa: E402
 from warpnerf.train.nerf_eval import train_and_evaluate  # noqa: E402
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from warpnerf.io import owned_files, remove_own
+from warpnerf.outputs import owned_files, remove_own
 
 
 def check_args(p, args, **minimum) -> Path:

@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import imageio.v3 as iio
 
-    from warpnerf.io import write_image
+    from warpnerf.outputs import write_image
 
     tiles = []
     for f in a.frames:

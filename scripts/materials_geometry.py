@@ -35,7 +35,7 @@ def main():
                             clean=args.clean, views=args.val_images)  # fmt: skip
     print(json.dumps(res))
     if args.json:
-        from warpnerf.io import write_json
+        from warpnerf.outputs import write_json
 
         write_json(args.json, res)
 

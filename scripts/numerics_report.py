@@ -346,7 +346,7 @@ def sphere_family(dev, caps, eps_values):
     from warpnerf.fields.sdf_scene import SDFScene
     from warpnerf.ops.sphere_trace import sphere_trace
     from warpnerf.reference.sphere_trace import sphere_trace as ref_trace
-    from warpnerf.trace import CAP, HIT
+    from warpnerf.sphere_tracing import CAP, HIT
 
     center, radius = torch.tensor([0.1, -0.2, 0.05], dtype=F64), 0.8
     scene = SDFScene().sphere(radius, center=center.tolist())

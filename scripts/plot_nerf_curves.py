@@ -36,7 +36,7 @@ def main():
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    from warpnerf.io import atomic_path
+    from warpnerf.outputs import atomic_path
 
     with atomic_path(args.out) as tmp:
         fig.savefig(tmp)

@@ -13,7 +13,7 @@ import json
 import math
 
 from warpnerf.bench import label_axes
-from warpnerf.io import atomic_path, write_json
+from warpnerf.outputs import atomic_path, write_json
 
 
 def sweep(run, out, images, chunk, divisors):

@@ -40,7 +40,7 @@ def main():
     for k, v in per_step.items():
         print(f"{v:6.2f}  {k}")
     if a.json:
-        from warpnerf.io import write_json
+        from warpnerf.outputs import write_json
 
         write_json(a.json, {"argv": train_argv, "steps": a.steps, "per_step": per_step,
                             "device": torch.cuda.get_device_name()})  # fmt: skip

@@ -26,7 +26,7 @@ import tempfile
 from pathlib import Path
 
 from warpnerf.bench import label_axes
-from warpnerf.io import atomic_path, write_json
+from warpnerf.outputs import atomic_path, write_json
 
 
 def snapshots(run) -> list:

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpnerf.box_demo import GT_BOX
 from warpnerf.data import intrinsics_from_fov, orbit_views
-from warpnerf.demo import GT_BOX
 from warpnerf.fields import SDFVolume
 from warpnerf.train import BoxFitConfig, render_box_views
 

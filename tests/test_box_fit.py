@@ -2,8 +2,8 @@
 
 import pytest
 
+from warpnerf.box_demo import GT_BOX
 from warpnerf.data import intrinsics_from_fov, orbit_views
-from warpnerf.demo import GT_BOX
 from warpnerf.fields import SDFVolume
 from warpnerf.metrics import psnr
 from warpnerf.train import BoxFitConfig, fit_box, render_box_views

@@ -217,7 +217,7 @@ def test_demo_02_fit_box_data_folder(tmp_path):
     )
     res = last_json(p.stdout)
     assert set(res) == {"center", "side_lengths", "final_loss"}
-    from warpnerf.demo import GT_BOX
+    from warpnerf.box_demo import GT_BOX
 
     assert max(abs(a - b) for a, b in zip(res["center"], GT_BOX["center"])) < 0.02
     assert max(abs(a - b) for a, b in zip(res["side_lengths"], GT_BOX["side_lengths"])) < 0.02

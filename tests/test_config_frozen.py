@@ -74,7 +74,7 @@ def nerf_run(tmp_path_factory):
 
 def _count_config_reads(monkeypatch) -> list:
     """The reads of a config.json from the disk (every JSON file is read by read_input)."""
-    import warpnerf.files as files
+    import warpnerf.safe_writes as files
 
     reads, read = [], files.read_input
 

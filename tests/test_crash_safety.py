@@ -47,7 +47,7 @@ def _signal_on_call(monkeypatch, module, name, sig, call):
 def _hidden(folder):
     """Temporary files atomic_path would leave (names starting with a dot; the folder's manifest
     and lock file are not temporary)."""
-    from warpnerf.io import LOCK, MANIFEST
+    from warpnerf.outputs import LOCK, MANIFEST
 
     keep = (MANIFEST, LOCK)
     return sorted(f.name for f in folder.iterdir() if f.name.startswith(".") and f.name not in keep)
@@ -222,8 +222,8 @@ def test_mesh_video_and_image_writers_failing_midway_leave_nothing(tmp_path, mon
     untouched and no temporary file is left."""
     import warpnerf.mesh as mesh_mod
     import warpnerf.ply as ply_mod
-    from warpnerf.io import write_image, write_video
     from warpnerf.mesh import read_ply, write_ply
+    from warpnerf.outputs import write_image, write_video
 
     v = np.random.default_rng(0).random((5, 3)).astype(np.float32)
     f = np.array([[0, 1, 2], [2, 3, 4]], dtype=np.int32)

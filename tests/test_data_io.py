@@ -8,7 +8,7 @@ import pytest
 
 from warpnerf.data import load_blender
 from warpnerf.errors import UserError
-from warpnerf.io import atomic_path, write_json
+from warpnerf.outputs import atomic_path, write_json
 
 from ._scene import write_box_folder
 

@@ -402,7 +402,7 @@ def test_a_new_format_is_one_loader_and_one_registry_line(tmp_path, monkeypatch)
     from warpnerf.data import dataset as dataset_mod
 
     monkeypatch.setattr(dataset_mod, "REGISTRY", dict(dataset_mod.REGISTRY))
-    import warpnerf.data.datasets as datasets_mod
+    import warpnerf.data.loading as datasets_mod
 
     monkeypatch.setattr(datasets_mod, "REGISTRY", dataset_mod.REGISTRY)
     seen = []

@@ -252,7 +252,7 @@ def test_eval_says_where_metrics_json_went(volsdf_run, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_demo_metrics_have_the_provenance_block_of_eval(tmp_path):
-    from warpnerf.demo import run_demo
+    from warpnerf.box_demo import run_demo
 
     m = run_demo(tmp_path / "d", iters=2, size=16, frames=2, video_size=16, progress=False)
     saved = json.loads((tmp_path / "d" / "metrics.json").read_text())

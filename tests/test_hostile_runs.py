@@ -28,7 +28,7 @@ import pytest
 import torch
 
 import warpnerf.mesh
-from warpnerf import io
+from warpnerf import outputs
 from warpnerf.cli import main
 from warpnerf.errors import Diverged, UserError, describe_failure
 
@@ -148,7 +148,7 @@ def test_crafted_legacy_pickle_never_runs_code(runs, tmp_path, capsys):
 def test_own_checkpoints_load_without_pickle(runs):
     """What warpnerf writes is tensors and plain data: the restricted loader takes it as is."""
     for kind in ("nerf", "volsdf", "sdf", "box"):
-        ckpt = io.load_checkpoint(runs / kind / "checkpoint.pt", "cpu", ("step", "history"))
+        ckpt = outputs.load_checkpoint(runs / kind / "checkpoint.pt", "cpu", ("step", "history"))
         assert ckpt["step"] >= 1
 
 
@@ -156,7 +156,7 @@ def test_own_checkpoints_load_without_pickle(runs):
 
 _HOLD = """
 import sys, time
-from warpnerf.io import output_lock
+from warpnerf.outputs import output_lock
 with output_lock(sys.argv[1]):
     print("locked", flush=True)
     time.sleep(120)
@@ -184,7 +184,7 @@ def test_second_writer_is_refused_and_a_dead_holders_lock_is_stale(runs, tmp_pat
     finally:
         p.send_signal(signal.SIGKILL)  # dies holding the lock: the file stays, the lock goes
         p.wait()
-    assert (run / io.LOCK).exists()
+    assert (run / outputs.LOCK).exists()
     assert main(["train", "nerf", "--out", str(run), "--resume", "--iters", "3", "--quiet"]) == 0
     assert _strict_json(run / "history.json")["step"][-1] == 3
 
@@ -205,13 +205,13 @@ def test_two_trainings_into_one_out_at_once(runs, tmp_path):
     assert "Traceback" not in loser and str(out) in loser
     winner_seed = 1 if res[0][0] == 0 else 2
     cfg = _strict_json(out / "config.json")
-    ckpt = io.load_checkpoint(out / "checkpoint.pt", "cpu", ("config",))
+    ckpt = outputs.load_checkpoint(out / "checkpoint.pt", "cpu", ("config",))
     assert cfg["seed"] == ckpt["config"]["seed"] == winner_seed
     assert _strict_json(out / "history.json")["step"][-1] == 30
 
 
 def test_output_lock_releases_on_error(tmp_path):
-    with pytest.raises(RuntimeError), io.output_lock(tmp_path / "a"):
+    with pytest.raises(RuntimeError), outputs.output_lock(tmp_path / "a"):
         raise RuntimeError("boom")
     p = _holder(tmp_path / "a")  # another process can take it now
     p.kill()
@@ -246,7 +246,7 @@ def test_failing_encoder_leaves_no_video(tmp_path, broken_ffmpeg):
 
     frames = [np.zeros((8, 8, 3), np.uint8)] * 3
     with pytest.raises(UserError, match="No space left on device"):
-        io.write_video(tmp_path / "v" / "v.mp4", frames)
+        outputs.write_video(tmp_path / "v" / "v.mp4", frames)
     assert not [p for p in (tmp_path / "v").iterdir() if p.suffix == ".mp4"]
 
 
@@ -262,7 +262,7 @@ def test_good_encoder_writes_a_readable_mp4(tmp_path):
     import numpy as np
 
     frames = [np.full((10, 14, 3), 40 * i, np.uint8) for i in range(4)]
-    io.write_video(tmp_path / "v.mp4", frames)
+    outputs.write_video(tmp_path / "v.mp4", frames)
     assert iio.imread(tmp_path / "v.mp4", index=None).shape == (4, 10, 14, 3)
 
 
@@ -318,12 +318,12 @@ def test_manifest_cannot_widen_deletion(tmp_path):
     victim.write_text("keep")
     stamp = [victim.stat().st_size, victim.stat().st_mtime_ns]
     names = {"../victim.txt": stamp, "/etc/passwd": stamp, "..": stamp}
-    (tmp_path / "sub" / io.MANIFEST).write_text(json.dumps(names))
-    assert io.owned_files(tmp_path / "sub") == set()
-    assert io.remove_own(tmp_path / "sub", ["../victim.txt"]) == []
+    (tmp_path / "sub" / outputs.MANIFEST).write_text(json.dumps(names))
+    assert outputs.owned_files(tmp_path / "sub") == set()
+    assert outputs.remove_own(tmp_path / "sub", ["../victim.txt"]) == []
     assert victim.read_text() == "keep"
-    (tmp_path / "sub" / io.MANIFEST).write_text("[" * 100000)  # nested too deeply: empty
-    assert io.owned_files(tmp_path / "sub") == set()
+    (tmp_path / "sub" / outputs.MANIFEST).write_text("[" * 100000)  # nested too deeply: empty
+    assert outputs.owned_files(tmp_path / "sub") == set()
 
 
 # ------------------------------------------------------------ 7: divergence
@@ -340,7 +340,7 @@ def test_diverging_nerf_stops_at_the_first_nonfinite_step(runs, tmp_path, capsys
     hist = _strict_json(out / "history.json")  # valid JSON: no NaN token
     assert hist["step"][-1] == step - 1
     assert all(v is not None for v in hist["loss"])
-    ckpt = io.load_checkpoint(out / "checkpoint.pt", "cpu", ("fields",))
+    ckpt = outputs.load_checkpoint(out / "checkpoint.pt", "cpu", ("fields",))
     assert ckpt["step"] == step - 1
     for state in ckpt["fields"].values():
         for t in (state or {}).values():
@@ -372,7 +372,7 @@ def test_diverging_sdf_and_box_stop(runs, tmp_path, capsys, monkeypatch):
 
 
 def test_check_finite_names_gradients():
-    from warpnerf.train._signals import check_finite
+    from warpnerf.train.divergence import check_finite
 
     p = torch.nn.Parameter(torch.ones(3))
     p.grad = torch.tensor([0.0, float("inf"), 1.0])
@@ -383,9 +383,9 @@ def test_check_finite_names_gradients():
 
 
 def test_json_writers_are_strict(tmp_path):
-    io.write_json(tmp_path / "a.json", {"psnr": float("inf"), "x": [1.0, float("nan")]})
+    outputs.write_json(tmp_path / "a.json", {"psnr": float("inf"), "x": [1.0, float("nan")]})
     assert _strict_json(tmp_path / "a.json") == {"psnr": None, "x": [1.0, None]}
-    assert io.json_dumps({"a": float("-inf")}) == '{"a": null}'
+    assert outputs.json_dumps({"a": float("-inf")}) == '{"a": null}'
 
 
 # ------------------------------------------------------------ 8: OS faults and impossible sizes
@@ -416,7 +416,7 @@ def test_train_os_errors_are_one_line(runs, tmp_path, monkeypatch, capsys, err, 
     assert not [
         p
         for p in (tmp_path / "r").rglob(".*")
-        if p.suffix in (".pt", ".json") and p.name != io.MANIFEST
+        if p.suffix in (".pt", ".json") and p.name != outputs.MANIFEST
     ]  # fmt: skip  (no temporary files left)
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from warpnerf import files, io
+from warpnerf import outputs, safe_writes
 from warpnerf.cli import main
 from warpnerf.errors import UserError
 
@@ -37,7 +37,7 @@ def _err_lines(capsys) -> list:
 
 
 def _locks(folder: Path) -> list:
-    return sorted(str(p.relative_to(folder)) for p in folder.rglob(io.LOCK))
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob(outputs.LOCK))
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +80,8 @@ def test_refused_train_leaves_nothing(tmp_path, capsys):
 
 def test_refusal_in_a_new_folder_leaves_no_folder(tmp_path):
     """A lock that made its folder and is released with nothing written leaves no folder."""
-    with pytest.raises(UserError), files.output_lock(tmp_path / "new" / "deeper"):
-        assert (tmp_path / "new" / "deeper" / io.LOCK).is_file()
+    with pytest.raises(UserError), safe_writes.output_lock(tmp_path / "new" / "deeper"):
+        assert (tmp_path / "new" / "deeper" / outputs.LOCK).is_file()
         raise UserError("refused")
     assert list((tmp_path / "new").iterdir()) == []
 
@@ -92,31 +92,31 @@ def test_a_lock_file_removed_under_the_locker_is_not_trusted(tmp_path, monkeypat
     opens the file in the folder again and holds that one."""
     folder = tmp_path / "f"
     folder.mkdir()
-    real, calls = files._try_lock, []
+    real, calls = safe_writes._try_lock, []
 
     def racing(fd):
         if not calls:  # the holder finished: unlinked the file we opened; another made a new one
-            os.unlink(folder / io.LOCK)
-            (folder / io.LOCK).write_text("12345\n")
+            os.unlink(folder / outputs.LOCK)
+            (folder / outputs.LOCK).write_text("12345\n")
         calls.append(os.fstat(fd).st_ino)
         return real(fd)
 
-    monkeypatch.setattr(files, "_try_lock", racing)
-    with files.output_lock(folder):
+    monkeypatch.setattr(safe_writes, "_try_lock", racing)
+    with safe_writes.output_lock(folder):
         assert len(calls) == 2 and calls[0] != calls[1]
-        assert os.lstat(folder / io.LOCK).st_ino == calls[1]
-        assert (folder / io.LOCK).read_text() == f"{os.getpid()}\n"
-        assert files.lock_holder(folder) is None  # (this process's own lock: no note)
-    assert not (folder / io.LOCK).exists()
+        assert os.lstat(folder / outputs.LOCK).st_ino == calls[1]
+        assert (folder / outputs.LOCK).read_text() == f"{os.getpid()}\n"
+        assert safe_writes.lock_holder(folder) is None  # (this process's own lock: no note)
+    assert not (folder / outputs.LOCK).exists()
 
 
 def test_release_keeps_a_lock_file_it_does_not_hold(tmp_path):
     """Only the file this process holds is removed: one that replaced it meanwhile stays."""
     folder = tmp_path / "f"
-    with files.output_lock(folder):
-        os.unlink(folder / io.LOCK)
-        (folder / io.LOCK).write_text("someone else's\n")
-    assert (folder / io.LOCK).read_text() == "someone else's\n"
+    with safe_writes.output_lock(folder):
+        os.unlink(folder / outputs.LOCK)
+        (folder / outputs.LOCK).write_text("someone else's\n")
+    assert (folder / outputs.LOCK).read_text() == "someone else's\n"
 
 
 # ------------------------------------------------------------ 6: splits the data does not have
@@ -176,7 +176,7 @@ def test_held_out_images_stay_val_and_test(tmp_path):
 
 _HOLD = """
 import sys, time
-from warpnerf.io import output_lock
+from warpnerf.outputs import output_lock
 with output_lock(sys.argv[1], "run folder"):
     print("locked", flush=True)
     time.sleep(120)
@@ -203,7 +203,7 @@ def test_tools_say_the_run_is_still_training(run, tmp_path, capsys, monkeypatch)
                          text=True)  # fmt: skip
     try:
         assert p.stdout.readline().strip() == "locked"
-        assert files.lock_holder(run) == str(p.pid)
+        assert safe_writes.lock_holder(run) == str(p.pid)
         for name, argv in commands.items():
             rc = main(argv)
             lines = _err_lines(capsys)
@@ -212,10 +212,10 @@ def test_tools_say_the_run_is_still_training(run, tmp_path, capsys, monkeypatch)
             assert len(notes) == 1, (name, notes)
             assert f"{run} is still training (lock held by pid {p.pid})" in notes[0], notes
             assert "reading its checkpoint at step 2" in notes[0], notes
-        assert files.lock_holder(run) == str(p.pid)  # (the probe takes nothing away)
+        assert safe_writes.lock_holder(run) == str(p.pid)  # (the probe takes nothing away)
     finally:
         p.kill()
         p.wait()
-    assert files.lock_holder(run) is None
+    assert safe_writes.lock_holder(run) is None
     main(commands["eval"])
     assert not [x for x in _err_lines(capsys) if "still training" in x]

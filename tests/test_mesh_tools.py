@@ -118,7 +118,7 @@ def red_box_run(tmp_path):
     always is) and its colour pure red whatever the position and direction: the level set of any
     density in (0, 54.6) is the box, and its baked colour must be red."""
     from warpnerf.cli.parser import main
-    from warpnerf.io import load_checkpoint, save_checkpoint
+    from warpnerf.outputs import load_checkpoint, save_checkpoint
 
     run = tmp_path / "redbox"
     assert main(["train", "nerf", "--data", "builtin", "--builtin-size", "8", "--field", "hash",

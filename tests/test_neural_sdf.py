@@ -11,7 +11,7 @@ import torch
 
 from warpnerf.errors import UserError
 from warpnerf.fields.neural_sdf import NeuralSDF
-from warpnerf.trace import HIT, sphere_trace_fn
+from warpnerf.sphere_tracing import HIT, sphere_trace_fn
 from warpnerf.train.sdf import SDFConfig, load_points, load_sdf_run, sdf_loss, train_sdf
 
 HASH_SMALL = dict(field="hash", hash_levels=4, hash_log2_size=12, hash_max_res=32)  # for speed

@@ -82,7 +82,7 @@ from warpnerf.reference import occupancy as RO
 from warpnerf.reference.encoding import hash_encode as ref_hash_encode
 from warpnerf.reference.sampling import importance_samples as ref_importance_samples
 from warpnerf.reference.sphere_trace import sphere_trace as ref_sphere_trace
-from warpnerf.trace import CAP, HIT, INSIDE, MISS
+from warpnerf.sphere_tracing import CAP, HIT, INSIDE, MISS
 
 from ._composite_cases import OUT_NAMES, TOL64, _mk, _pack, _run, _to, _upstream
 

@@ -19,8 +19,8 @@ from warpnerf.cli import main
 from warpnerf.errors import UserError
 from warpnerf.train.methods import (
     METHODS,
+    LoadedRun,
     Method,
-    Opened,
     method_of_config,
     method_of_run,
     method_of_task,
@@ -121,7 +121,7 @@ def test_a_new_kind_of_run_is_one_registry_entry(runs, capsys):
     box = METHODS["box"]
     toy = register_method(Method("toy", ("toy",), "toy fit", "box",
                                  open_run=lambda run, device=None: box.open_run(runs / "box"),
-                                 open_task=lambda task: Opened(None, task.volume),
+                                 open_task=lambda task: LoadedRun(None, task.volume),
                                  config=ToyConfig, train=train_toy))  # fmt: skip
     try:
         # `train toy` exists with the config's flags

@@ -87,7 +87,7 @@ def env_with(site: Path) -> dict:
 
 def test_a_plugin_package_adds_a_field_and_a_format(site, tmp_path):
     from warpnerf.data import FORMATS, detect_format, load_dataset
-    from warpnerf.data.datasets import data_summary
+    from warpnerf.data.loading import data_summary
     from warpnerf.fields import FIELDS, field_traits
     from warpnerf.train.nerf_config import NeRFConfig
 

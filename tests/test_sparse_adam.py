@@ -221,7 +221,7 @@ def test_weight_decay_only_on_mlp_weight_matrices():
 def test_state_dict_round_trip_resumes_exactly():
     """N steps, the state dict saved and loaded (through the loop's checkpoint helpers) into a
     fresh optimiser, M more steps: bit-identical to N + M steps straight (CPU)."""
-    from warpnerf.io import load_weights
+    from warpnerf.outputs import load_weights
 
     def make(seed_params):
         table = torch.nn.Parameter(seed_params[0].clone())

@@ -17,7 +17,7 @@ from warpnerf.fields.sdf_scene import SDFScene, many_primitives_scene, torus_sce
 from warpnerf.ops.sphere_trace import scene_sdf, sphere_trace
 from warpnerf.reference.sphere_trace import scene_sdf as ref_scene_sdf
 from warpnerf.reference.sphere_trace import sphere_trace as ref_sphere_trace
-from warpnerf.trace import CAP, HIT, INSIDE, INVALID, MISS
+from warpnerf.sphere_tracing import CAP, HIT, INSIDE, INVALID, MISS
 
 F32, F64 = torch.float32, torch.float64
 

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from warpnerf.render import render_sphere_traced
-from warpnerf.trace import HIT, INSIDE, INVALID, MISS
+from warpnerf.sphere_tracing import HIT, INSIDE, INVALID, MISS
 
 R = 0.75  # world radius of the test sphere
 BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]

@@ -23,7 +23,7 @@ from warpnerf.data.colmap import read_model, write_model
 from warpnerf.data.nerfstudio import load_nerfstudio
 from warpnerf.errors import UserError
 from warpnerf.fields.sdf_scene import SDFScene
-from warpnerf.jsonio import read_json
+from warpnerf.json_input import read_json
 from warpnerf.mesh import read_ply_points
 from warpnerf.train.box_fit import BoxFitConfig
 from warpnerf.train.nerf_config import NeRFConfig

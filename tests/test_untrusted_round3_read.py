@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 import torch
 
-from warpnerf import io
+from warpnerf import outputs
 from warpnerf.cli import main
 from warpnerf.data import load_dataset
 from warpnerf.errors import UserError
@@ -52,7 +52,7 @@ def test_compressed_checkpoint_is_refused_before_torch_inflates_it(tmp_path):
     _deflated_copy(buf.getvalue(), path)
     assert path.stat().st_size < 1 << 20  # a 64x bomb in well under a megabyte
     with pytest.raises(UserError, match="compressed") as e:
-        io.load_checkpoint(path)
+        outputs.load_checkpoint(path)
     assert str(path) in str(e.value) and "'" in str(e.value)  # the member is named
 
 
@@ -61,7 +61,7 @@ def test_legacy_torch_format_is_refused_before_it_allocates(tmp_path):
     path = tmp_path / "checkpoint.pt"
     torch.save({"step": 1}, path, _use_new_zipfile_serialization=False)
     with pytest.raises(UserError, match="not torch's zip format"):
-        io.load_checkpoint(path)
+        outputs.load_checkpoint(path)
 
 
 def _npz_bomb(path: Path, n_bytes: int, name: str = "points.npy") -> None:
@@ -211,10 +211,10 @@ def test_animated_png_reads_its_first_frame_only(tmp_path, decoded):
 
 
 def _doctor(run: Path, edit) -> None:
-    ck = io.load_checkpoint(run / "checkpoint.pt")
+    ck = outputs.load_checkpoint(run / "checkpoint.pt")
     edit(ck)
     (run / "checkpoint.pt").unlink()  # (a file the user replaced: not warpnerf's any more)
-    io.save_checkpoint(run / "checkpoint.pt", ck)
+    outputs.save_checkpoint(run / "checkpoint.pt", ck)
 
 
 def _first_key(d: dict) -> str:

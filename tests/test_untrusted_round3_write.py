@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from warpnerf import files, io
+from warpnerf import outputs, safe_writes
 from warpnerf.cli import main
 from warpnerf.errors import UserError
 
@@ -103,15 +103,15 @@ def test_lock_file_link_is_refused(run, victim, capsys, name):
     """A lock file that links elsewhere was opened, truncated and written (the pid)."""
     argv, folder = _argv(name, run)
     with contextlib.suppress(FileNotFoundError):
-        (folder / io.LOCK).unlink()  # (a finished run keeps its stale lock file)
-    (folder / io.LOCK).symlink_to(victim)
-    _one_line(capsys, main(argv), str(folder / io.LOCK), "link")
+        (folder / outputs.LOCK).unlink()  # (a finished run keeps its stale lock file)
+    (folder / outputs.LOCK).symlink_to(victim)
+    _one_line(capsys, main(argv), str(folder / outputs.LOCK), "link")
     assert victim.read_text() == "the user's file"
 
 
 def _plant_manifest(folder: Path, kind: str, victim: Path, fifo) -> Path:
     """A manifest in ``folder`` that is a link to ``victim``, a FIFO or a link to /dev/zero."""
-    m = folder / io.MANIFEST
+    m = folder / outputs.MANIFEST
     with contextlib.suppress(FileNotFoundError):
         m.unlink()
     if kind == "link":
@@ -134,7 +134,7 @@ def test_planted_manifest_is_refused(run, victim, capsys, fifo, name, kind):
     _one_line(capsys, main(argv), str(m))
     assert victim.read_text() == "the user's file"
     after = sorted(p.name for p in folder.iterdir())
-    assert set(after) - {io.LOCK} == set(before) - {io.LOCK}, (before, after)
+    assert set(after) - {outputs.LOCK} == set(before) - {outputs.LOCK}, (before, after)
 
 
 @pytest.mark.parametrize("name", ["eval", "render", "export", "snapshots"])
@@ -182,7 +182,7 @@ def test_special_file_in_place_of_an_output_is_refused(run, capsys, fifo):
 
 @pytest.mark.parametrize("kind", ["link", "fifo", "devzero"])
 def test_camera_path_save_refuses_planted_files(tmp_path, victim, fifo, kind):
-    """The viewer's "Save path" writes through CameraPath.save (io.write_json): a planted
+    """The viewer's "Save path" writes through CameraPath.save (outputs.write_json): a planted
     manifest beside it is refused the same way."""
     import numpy as np
 
@@ -203,12 +203,12 @@ def test_read_regular_is_bounded_and_refuses_special_files(tmp_path, victim, fif
     fifo(tmp_path / "f")
     for name in ("z", "l", "f"):
         with pytest.raises(UserError, match=str(tmp_path / name)):
-            io.read_regular(tmp_path / name, 1 << 20, "file")
+            outputs.read_regular(tmp_path / name, 1 << 20, "file")
     (tmp_path / "big").write_bytes(b"x" * 101)
     with pytest.raises(UserError, match="100 bytes"):
-        io.read_regular(tmp_path / "big", 100, "file")
-    assert io.read_regular(tmp_path / "big", 101, "file") == b"x" * 101
-    assert io.read_regular(tmp_path / "absent", 100, "file") is None
+        outputs.read_regular(tmp_path / "big", 100, "file")
+    assert outputs.read_regular(tmp_path / "big", 101, "file") == b"x" * 101
+    assert outputs.read_regular(tmp_path / "absent", 100, "file") is None
 
 
 # ------------------------------------------------------------ 7: refusals before any write
@@ -259,17 +259,17 @@ def test_thirty_thousand_outputs_stay_owned(tmp_path):
         _timed(60.0)
         t0 = time.perf_counter()
         for name in names:
-            io.record(tmp_path / name)
+            outputs.record(tmp_path / name)
         t_record = time.perf_counter() - t0
         t0 = time.perf_counter()
-        io.check_foreign([tmp_path / name for name in names])  # all warpnerf's: no error
+        outputs.check_foreign([tmp_path / name for name in names])  # all warpnerf's: no error
         t_check = time.perf_counter() - t0
-        owned = io.owned_files(tmp_path)
+        owned = outputs.owned_files(tmp_path)
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0.0)
         signal.signal(signal.SIGALRM, old)
     assert names[0] in owned and names[-1] in owned and len(owned) == n
-    assert io.remove_own(tmp_path, names[:2]) == names[:2]
+    assert outputs.remove_own(tmp_path, names[:2]) == names[:2]
     print(f"30k records: {t_record:.2f} s, check of 30k: {t_check:.2f} s")
     assert t_record < 20 and t_check < 20
 
@@ -277,13 +277,13 @@ def test_thirty_thousand_outputs_stay_owned(tmp_path):
 def test_rewrites_keep_the_manifest_small(tmp_path, monkeypatch):
     """An append-only manifest is compacted as it grows: a file rewritten 1000 times (a
     checkpoint) leaves a manifest of a few records, not 1000 (40 kB)."""
-    monkeypatch.setattr(files, "_COMPACT_MIN_BYTES", 4096)
+    monkeypatch.setattr(safe_writes, "_COMPACT_MIN_BYTES", 4096)
     p = tmp_path / "checkpoint.pt"
     for i in range(1000):
         p.write_bytes(b"x" * (i % 7))
-        io.record(p)
-    assert (tmp_path / io.MANIFEST).stat().st_size < 3 * 4096
-    assert io.owned_files(tmp_path) == {"checkpoint.pt"}
+        outputs.record(p)
+    assert (tmp_path / outputs.MANIFEST).stat().st_size < 3 * 4096
+    assert outputs.owned_files(tmp_path) == {"checkpoint.pt"}
 
 
 def test_old_manifests_still_read(tmp_path):
@@ -293,17 +293,17 @@ def test_old_manifests_still_read(tmp_path):
     a.write_bytes(b"a")
     b.write_bytes(b"b")
     st = a.stat()
-    (tmp_path / io.MANIFEST).write_text(json.dumps({"a.png": [st.st_size, st.st_mtime_ns]}))
-    assert io.owned_files(tmp_path) == {"a.png"}
-    io.record(b)
-    assert io.owned_files(tmp_path) == {"a.png", "b.png"}
+    (tmp_path / outputs.MANIFEST).write_text(json.dumps({"a.png": [st.st_size, st.st_mtime_ns]}))
+    assert outputs.owned_files(tmp_path) == {"a.png"}
+    outputs.record(b)
+    assert outputs.owned_files(tmp_path) == {"a.png", "b.png"}
 
 
 def test_oversized_manifest_is_a_clear_error(tmp_path, monkeypatch):
-    monkeypatch.setattr(files, "_MANIFEST_MAX_BYTES", 1000)
-    (tmp_path / io.MANIFEST).write_bytes(b"\n" * 1001)
+    monkeypatch.setattr(safe_writes, "_MANIFEST_MAX_BYTES", 1000)
+    (tmp_path / outputs.MANIFEST).write_bytes(b"\n" * 1001)
     with pytest.raises(UserError, match="larger than"):
-        io.owned_files(tmp_path)
+        outputs.owned_files(tmp_path)
 
 
 def test_manifest_lines_are_untrusted(tmp_path):
@@ -314,9 +314,9 @@ def test_manifest_lines_are_untrusted(tmp_path):
     st = victim.stat()
     lines = [json.dumps(["../victim.txt", st.st_size, st.st_mtime_ns]), "[" * 100000, "not json",
              json.dumps(["x", "1", 2]), json.dumps({"..": [1, 2]})]  # fmt: skip
-    (tmp_path / "sub" / io.MANIFEST).write_text("\n".join(lines) + "\n")
-    assert io.owned_files(tmp_path / "sub") == set()
-    assert io.remove_own(tmp_path / "sub", ["../victim.txt"]) == []
+    (tmp_path / "sub" / outputs.MANIFEST).write_text("\n".join(lines) + "\n")
+    assert outputs.owned_files(tmp_path / "sub") == set()
+    assert outputs.remove_own(tmp_path / "sub", ["../victim.txt"]) == []
     assert victim.read_text() == "keep"
 
 

@@ -22,7 +22,7 @@ import pytest
 import torch
 
 import warpnerf.mesh
-from warpnerf import io
+from warpnerf import outputs
 from warpnerf.cli import main
 from warpnerf.errors import UserError
 
@@ -221,14 +221,14 @@ def test_the_input_reader_is_bounded_and_refuses_special_files(tmp_path, fifo):
     (tmp_path / "z").symlink_to("/dev/zero")
     (tmp_path / "l").symlink_to(tmp_path / "ok")
     fifo(tmp_path / "f")
-    assert io.read_input(tmp_path / "ok", "file", 100) == b"x" * 100
-    assert io.read_input(tmp_path / "l", "file", 100, follow=True) == b"x" * 100
+    assert outputs.read_input(tmp_path / "ok", "file", 100) == b"x" * 100
+    assert outputs.read_input(tmp_path / "l", "file", 100, follow=True) == b"x" * 100
     with pytest.raises(UserError, match="larger than 99 bytes"):
-        io.read_input(tmp_path / "ok", "file", 99)
+        outputs.read_input(tmp_path / "ok", "file", 99)
     for name, why, follow in (("z", "character device", True), ("l", "symbolic link", False),
                               ("f", "FIFO", True), ("absent", "no such file", True)):  # fmt: skip
         with pytest.raises(UserError, match=why) as e:
-            io.read_input(tmp_path / name, "run config", 1 << 20, follow=follow)
+            outputs.read_input(tmp_path / name, "run config", 1 << 20, follow=follow)
         assert str(tmp_path / name) in str(e.value) and "\n" not in str(e.value)
 
 
@@ -273,11 +273,11 @@ def test_histories_of_every_kind_are_checked(runs, tmp_path, capsys, kind):
 
 def test_old_and_own_histories_still_load(runs):
     for kind in ("nerf", "sdf", "box"):
-        ckpt = io.load_checkpoint(runs / kind / "checkpoint.pt", "cpu", ("step", "history"))
+        ckpt = outputs.load_checkpoint(runs / kind / "checkpoint.pt", "cpu", ("step", "history"))
         assert ckpt["history"]["step"][-1] >= 1
     old = Path(__file__).parent / "data" / "runs_986359d"
     for kind in ("nerf_mlp", "nerf_hash", "sdf_mlp", "box"):
-        io.load_checkpoint(old / kind / "checkpoint.pt", "cpu", ("step", "history"))
+        outputs.load_checkpoint(old / kind / "checkpoint.pt", "cpu", ("step", "history"))
 
 
 # ------------------------------------------------------------ 9: JSON size per kind and depth
@@ -333,8 +333,8 @@ def test_deep_json_inputs_are_refused_naming_the_file(runs, tmp_path, capsys, mo
 @pytest.mark.parametrize("kind", ["path", "scene", "config"])
 def test_json_inputs_are_bounded_by_what_their_kind_holds(runs, tmp_path, capsys, kind):
     """A 60 MiB camera path cost 1.8 GB to parse; each kind now has its own byte limit
-    (jsonio.JSON_LIMITS), far above what a valid file of that kind holds."""
-    from warpnerf.jsonio import JSON_LIMITS
+    (json_input.JSON_LIMITS), far above what a valid file of that kind holds."""
+    from warpnerf.json_input import JSON_LIMITS
 
     run = _copy(runs, "nerf", tmp_path)
     if kind == "path":
@@ -356,7 +356,7 @@ def test_json_inputs_are_bounded_by_what_their_kind_holds(runs, tmp_path, capsys
 def test_limits_leave_room_for_the_largest_valid_files(tmp_path):
     """The largest camera path the viewer can save (1000 keyframes) reads back."""
     from warpnerf.data.camera_path import MAX_KEYFRAMES, CameraPath, load_camera_path
-    from warpnerf.jsonio import JSON_LIMITS
+    from warpnerf.json_input import JSON_LIMITS
 
     rng = np.random.default_rng(0)
     keys = np.repeat(np.eye(4)[None], MAX_KEYFRAMES, 0)

@@ -62,7 +62,7 @@ def test_camera_conventions_round_trip():
 
 def test_viewer_renders_what_eval_renders(nerf_run):
     """A training camera rendered by the viewer's scene equals the eval renderer's image."""
-    from warpnerf.io import to_uint8
+    from warpnerf.outputs import to_uint8
     from warpnerf.train.nerf import load_data, load_run, render_dataset_image
     from warpnerf.viewer import load_scene
 
@@ -114,7 +114,7 @@ def test_box_fits_render_and_unknown_runs_are_clean_errors(tmp_path):
     """A box fit (the main job's task) is shown too: its frame of a training camera equals the
     fit's own renderer's image; missing or unknown runs are one-line errors."""
     from warpnerf.data.blender import load_blender
-    from warpnerf.io import to_uint8
+    from warpnerf.outputs import to_uint8
     from warpnerf.train.box_fit import load_box_run, render_box_views
     from warpnerf.viewer import load_scene
 
@@ -129,7 +129,7 @@ def test_box_fits_render_and_unknown_runs_are_clean_errors(tmp_path):
     cfg, data, dev, _ = load_box_run(run)
     ds = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0)
     from warpnerf.fields.sdf_volume import SDFVolume
-    from warpnerf.io import load_checkpoint
+    from warpnerf.outputs import load_checkpoint
 
     vol = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta)
     vol.load_state_dict(load_checkpoint(run / "checkpoint.pt")["volume"])
@@ -689,7 +689,7 @@ def _ball_run(nerf_run, tmp_path):
 
     import torch
 
-    from warpnerf.io import load_checkpoint, save_checkpoint
+    from warpnerf.outputs import load_checkpoint, save_checkpoint
 
     run = tmp_path / "ball"
     shutil.copytree(nerf_run, run)
@@ -799,7 +799,7 @@ def test_a_live_frame_stops_at_a_signal_and_the_training_still_gets_it():
     import threading
     import time
 
-    from warpnerf.train._signals import stop_requests
+    from warpnerf.train.loop import stop_requests
     from warpnerf.viewer import Viewer
 
     v = Viewer(_slow_scene(2e-3), port=_free_port(), live=True, log=lambda *a: None,

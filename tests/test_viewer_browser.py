@@ -43,7 +43,7 @@ def _red_run(tmp_path) -> Path:
     """A one-step NeRF run whose field is opaque and pure red everywhere: whatever the camera,
     a rendered frame is red, and a blank page is not."""
     from warpnerf.cli.parser import main
-    from warpnerf.io import load_checkpoint, save_checkpoint
+    from warpnerf.outputs import load_checkpoint, save_checkpoint
 
     run = tmp_path / "red"
     assert main(["train", "nerf", "--data", "builtin", "--iters", "1", "--batch", "32",

@@ -247,7 +247,7 @@ def test_a_raising_panel_callback_leaves_the_server_alive():
 
 
 def test_a_host_other_than_loopback_is_warned_about():
-    from warpnerf.viewer.gate import exposure
+    from warpnerf.viewer.access import exposure
 
     with _viewer() as (_, logs):
         assert not any("warning" in line for line in logs)

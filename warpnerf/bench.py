@@ -319,7 +319,7 @@ def _sizes(dev, quick: bool):
 
 def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, quick=False):
     """Runs the benchmark, prints a Markdown table and returns (and optionally writes) the JSON."""
-    from .io import write_json
+    from .outputs import write_json
 
     dev = torch.device(device)
     if dev.type == "cuda":

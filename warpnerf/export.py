@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from .errors import UserError
-from .io import check_foreign, json_safe, make_folder, write_image, write_json
+from .outputs import check_foreign, json_safe, make_folder, write_image, write_json
 
 __all__ = ["export_pointcloud", "export_cameras"]
 
@@ -126,7 +126,7 @@ def _image_size(path) -> tuple | None:
     """(width, height) from an image file's header (nothing decoded); None if unreadable."""
     from PIL import Image
 
-    from .files import open_input
+    from .safe_writes import open_input
 
     try:
         with open_input(path, "image", follow=True) as fh, Image.open(fh) as im:

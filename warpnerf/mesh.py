@@ -20,7 +20,6 @@ import warnings
 import numpy as np
 import torch
 
-from .io import atomic_path
 from .mesh_clean import (
     DEFAULT_CLEAN,
     clean_mesh,
@@ -33,6 +32,7 @@ from .mesh_clean import (
     seen_faces,
     surface_mesh,
 )
+from .outputs import atomic_path
 from .ply import MAX_PLY_BYTES, read_ply, read_ply_points, write_ply
 
 __all__ = [

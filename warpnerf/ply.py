@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import atomic_path
+from .outputs import atomic_path
 from .safe_open import open_input, read_input
 
 __all__ = ["write_ply", "read_ply", "read_ply_points", "MAX_PLY_BYTES"]

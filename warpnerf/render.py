@@ -14,7 +14,7 @@ import torch
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 from .ops.bridge import check_int
 from .render_marched import SAMPLE_BUDGET, render_marched, render_marched_fixed
-from .trace import CAP, HIT, INSIDE, INVALID, sphere_trace_steps
+from .sphere_tracing import CAP, HIT, INSIDE, INVALID, sphere_trace_steps
 
 __all__ = [
     "render_rays",
@@ -230,7 +230,7 @@ def render_sphere_traced(
     normals: bool = True,
     chunk: int | None = SPHERE_CHUNK,
 ):
-    """Renders an SDF field's zero level set by sphere tracing (:func:`warpnerf.trace.
+    """Renders an SDF field's zero level set by sphere tracing (:func:`warpnerf.sphere_tracing.
     sphere_trace_fn`, one batched ``field.sdf`` call per step) and its colour head at the hit.
 
     ``field`` has ``sdf(x [m, 3]) -> [m]`` (world units), ``forward(x, d) -> (sigmas, rgbs)``
@@ -247,12 +247,12 @@ def render_sphere_traced(
     solid (sdf < 0 at its first point) hits there; one that reached ``max_iters`` (grazing) hits
     where |sdf| < ``cap_eps`` (default 10 * eps) after refinement, else misses. Rays with
     non-finite or zero origins/directions, or non-finite near/far, are status INVALID: depth NaN
-    (as trace.py's t), background colour, opacity 0.
+    (as sphere_tracing.py's t), background colour, opacity 0.
 
     Returns a dict of rgb [n_rays, 3] (the field's colour at the hit seen along the ray,
     background elsewhere), depth [n_rays] (t of the hit, 0 on a miss), opacity [n_rays] (1 on a
     hit, 0 otherwise), normals [n_rays, 3] (unit at hits, zero elsewhere; zero everywhere when
-    ``normals`` is False), status [n_rays] (trace.py's MISS/HIT/CAP/INSIDE/INVALID), iters
+    ``normals`` is False), status [n_rays] (sphere_tracing.py's MISS/HIT/CAP/INSIDE/INVALID), iters
     [n_rays] (marching steps) and the counters ``n_sdf`` (points the SDF saw while marching and
     refining) and ``n_hit``.
     """

@@ -4,7 +4,7 @@ returns a regular file only, refusing anything else with a :class:`~warpnerf.err
 naming the path. The readers built on it: :func:`open_input` / :func:`read_input`, the one way a
 command opens a file it is given or a run holds (bounded by the bytes actually read, never by
 ``st_size``), and :func:`read_regular` for a file warpnerf wrote earlier. The writers of
-:mod:`warpnerf.files` open through :func:`open_regular` too."""
+:mod:`warpnerf.safe_writes` open through :func:`open_regular` too."""
 
 from __future__ import annotations
 

@@ -88,7 +88,7 @@ def main():
         ("step ms", "{step_ms:.1f}"),
     ]))  # fmt: skip
     if a.json:
-        from warpnerf.io import write_json
+        from warpnerf.outputs import write_json
 
         write_json(a.json, {"rows": rows, "steps": a.steps, "device": torch.cuda.get_device_name()})
 

@@ -27,7 +27,7 @@ def main():
 
     import torch
 
-    from warpnerf.io import save_checkpoint
+    from warpnerf.outputs import save_checkpoint
     from warpnerf.train.loop import BackgroundWriter, to_host
 
     sync = torch.cuda.synchronize if a.device.startswith("cuda") else (lambda: None)

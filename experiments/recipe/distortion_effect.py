@@ -78,7 +78,7 @@ def main():
         ("wall s", "{train_wall_s:.0f}"),
     ]))  # fmt: skip
     if a.json:
-        from warpnerf.io import write_json
+        from warpnerf.outputs import write_json
 
         write_json(a.json, {"argv": argv, "rows": rows})
 

@@ -285,7 +285,7 @@ class GroundTruth:
 
 
 def write_result(path: Path, obj: dict) -> None:
-    from warpnerf.io import write_json
+    from warpnerf.outputs import write_json
 
     path.parent.mkdir(parents=True, exist_ok=True)
     write_json(path, obj)

@@ -51,7 +51,7 @@ def check_existing(path, what: str = "run folder") -> None:
 
 def saved_config(run) -> dict:
     """RUN/config.json as a dict; {} when absent or unreadable (the run loaders say why)."""
-    from ..jsonio import read_run_config
+    from ..json_input import read_run_config
 
     try:
         saved = read_run_config(Path(run) / "config.json")
@@ -62,7 +62,7 @@ def saved_config(run) -> dict:
 
 def add_data_format_flags(p) -> None:
     """--format and --holdout (`data`, `train nerf`, `train volsdf`)."""
-    from ..data.datasets import FORMATS
+    from ..data.loading import FORMATS
 
     p.add_argument("--format", default="auto", choices=FORMATS, help="data format (auto: detect)")
     p.add_argument(

@@ -13,7 +13,7 @@ from ..errors import UserError, exit_status
 from ..fields.model import fields_with
 from ..options import add_flags
 from ._common import add_data_format_flags, positive_arg, sigterm_exits
-from .misc import cmd_bench, cmd_data, cmd_demo
+from .no_run_tools import cmd_bench, cmd_data, cmd_demo
 from .run_tools import cmd_eval, cmd_export, cmd_mesh, cmd_render
 from .tool_configs import EvalConfig, ExportConfig, MeshConfig, RenderConfig
 from .train import cmd_train_nerf
@@ -262,7 +262,7 @@ def main(argv=None) -> int:
         if args.func is not cmd_train_nerf and int(os.environ.get("WORLD_SIZE", "1") or 1) > 1:
             raise UserError(f"warpnerf {args.command} runs in one process; data-parallel "
                             "launches (torchrun) are for train nerf and train volsdf")  # fmt: skip
-        from ..jsonio import one_read_per_command
+        from ..json_input import one_read_per_command
 
         # (each run folder's config.json is read from the disk once in the command)
         with sigterm_exits(), recorded, one_read_per_command(), viewer_after_training(args):

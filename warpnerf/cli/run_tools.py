@@ -1,6 +1,6 @@
 """`warpnerf eval`, `render`, `mesh` and `export`: the commands whose input is a trained run
 folder (mesh also takes an analytic SDF scene instead). Commands that take no run folder go in
-misc.py, `train` commands in train.py, `view` in view.py."""
+no_run_tools.py, `train` commands in train.py, `view` in view.py."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import UserError
-from ..io import check_foreign, json_dumps, remove_own
+from ..outputs import check_foreign, json_dumps, remove_own
 from ._common import check_existing, check_out, parse_device
 
 
@@ -40,7 +40,7 @@ def _training_note(run, command: str):
     command reads the run's checkpoint: the run is still training, by whom, and the step read.
     The lock stops a second writer only; reading a run that trains is allowed (its checkpoints
     are replaced whole), but what is read is the step saved last, not the end of the run."""
-    from ..io import lock_holder, watch_checkpoint_reads
+    from ..outputs import lock_holder, watch_checkpoint_reads
 
     pid = lock_holder(run) if run is not None and Path(run).is_dir() else None
     if pid is None:

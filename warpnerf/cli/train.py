@@ -11,8 +11,8 @@ from functools import partial
 from ..errors import UserError
 from ..fields.model import field_traits, fields_with
 from ..fields.settings import VOLSDF
-from ..io import json_dumps
 from ..options import CHECKS, add_flags, apply_preset, flag_of, from_flags
+from ..outputs import json_dumps
 from ..train.box_fit import MODEL as BOX_MODEL
 from ..train.box_fit import BoxFitConfig
 from ..train.nerf_config import FINE_SAMPLES, GRID, NeRFConfig, VolSDFConfig

@@ -11,8 +11,8 @@ import dataclasses
 from collections.abc import Callable
 
 from ..errors import Interrupted
-from ..io import json_dumps
 from ..options import add_flags, from_flags
+from ..outputs import json_dumps
 from ._common import check_out
 
 __all__ = ["TrainCommand", "register_train_command", "generated_command", "add_train_commands",

@@ -11,7 +11,7 @@ from . import capture  # noqa: F401  (colmap, llff)
 from .blender import load_blender
 from .cameras import intrinsics_from_fov, look_at, orbit_views, spiral_path
 from .dataset import Dataset, LoadRequest, holdout_indices, register_format
-from .datasets import FORMATS, detect_format, load_dataset
+from .loading import FORMATS, detect_format, load_dataset
 from .nerfstudio import load_nerfstudio
 
 __all__ = [

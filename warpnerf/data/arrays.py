@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..io import check_overlap, open_input, zip_directory
+from ..outputs import check_overlap, open_input, zip_directory
 
 __all__ = ["load_npz", "load_npy", "inflate_limit", "INFLATE_ENV"]
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..jsonio import read_json
+from ..json_input import read_json
 from ._paths import OPT_IN, outside_reason
 from .cameras import check_intrinsics, check_poses
 from .dataset import Dataset, LoadRequest, register_format

@@ -77,9 +77,9 @@ def _nbytes(spec: Spec) -> int:
 def _read_bounded(path: Path, limit: int) -> bytes | None:
     """The bytes of ``path`` when it is a regular file (not a symlink, FIFO, device, folder) of at
     most ``limit`` bytes; None otherwise or when it cannot be read
-    (:func:`~warpnerf.files.read_input`)."""
+    (:func:`~warpnerf.safe_writes.read_input`)."""
     from ..errors import UserError
-    from ..files import read_input
+    from ..safe_writes import read_input
 
     try:
         return read_input(path, "cache entry", limit)

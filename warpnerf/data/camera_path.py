@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..jsonio import read_json
+from ..json_input import read_json
 from .cameras import MAX_DEPTH, camera_target, check_poses, look_at
 
 __all__ = [
@@ -84,10 +84,10 @@ class CameraPath:
         keyframe with a NaN, a frame count out of range: :class:`UserError`, nothing written).
         An existing file is replaced only when it is a camera path warpnerf wrote (never a run's
         config, history or another file); a link, FIFO or device at ``path`` is refused without
-        being opened (:func:`~warpnerf.files.check_foreign`), so it cannot hang the save."""
-        from ..files import check_foreign, read_regular
-        from ..io import write_json
-        from ..jsonio import JSON_LIMITS
+        being opened (:func:`~warpnerf.safe_writes.check_foreign`), so it cannot hang the save."""
+        from ..json_input import JSON_LIMITS
+        from ..outputs import write_json
+        from ..safe_writes import check_foreign, read_regular
 
         p = Path(path)
         if len(self.keyframes) == 0:

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from ..errors import UserError
-from ..files import open_input
+from ..safe_writes import open_input
 from ._paths import OPT_IN, outside_reason
 from .arrays import load_npy
 from .blender import area_downscale, composite_rgba, data_root

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
-from ..io import atomic_path, read_input
+from ..outputs import atomic_path, read_input
 from .cameras import MAX_IMAGE_SIDE
 
 __all__ = ["Camera", "Image", "read_model", "find_model", "qvec_to_rotmat", "rotmat_to_qvec"]

@@ -6,7 +6,7 @@ hold-out rule.
 - :class:`LoadRequest`: the loader options (split, background, downscale, max_images, holdout),
   validated once; every format's loader takes one and nothing else.
 - :func:`register_format` / :data:`REGISTRY`: format name -> (detect, load). ``load_dataset``
-  (:mod:`warpnerf.data.datasets`) asks each registered format, in registration order, whether a
+  (:mod:`warpnerf.data.loading`) asks each registered format, in registration order, whether a
   folder is its kind, then calls its loader. A new format is one module with a ``detect`` and a
   ``load`` plus one ``register_format`` line (docs/ARCHITECTURE.md), as the built-in ones are;
   an outside package's comes through the ``warpnerf.formats`` entry points.

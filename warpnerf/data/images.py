@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..errors import UserError
-from ..files import open_input
+from ..safe_writes import open_input
 
 __all__ = ["read_all", "read_image", "to_uint8", "MAX_PIXELS", "FORMATS"]
 

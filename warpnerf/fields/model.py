@@ -86,7 +86,7 @@ class RadianceModel(nn.Module):
         checkpoint ``path`` and the part or key otherwise (nothing is left freshly initialised).
         """
         from ..errors import UserError
-        from ..io import load_weights
+        from ..outputs import load_weights
 
         parts = self.parts()
         if not isinstance(saved, dict):

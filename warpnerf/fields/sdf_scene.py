@@ -154,7 +154,7 @@ class SDFScene:
         """The scene of a JSON file ({"primitives": [...]}, as :meth:`to_dict`); UserError naming
         the file for a missing, unreadable, oversized, malformed or too deeply nested file and
         for any field of the wrong type or range."""
-        from ..jsonio import read_json
+        from ..json_input import read_json
 
         path = Path(path)
         if not path.exists():

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from ..trace import Trace
+from ..sphere_tracing import Trace
 from . import bridge
 
 __all__ = ["scene_sdf", "sphere_trace"]

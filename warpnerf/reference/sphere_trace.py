@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from ..trace import sphere_trace_fn
+from ..sphere_tracing import sphere_trace_fn
 
 __all__ = ["scene_sdf", "sphere_trace"]
 

@@ -22,7 +22,9 @@ import torch
 from ..data.cameras import intrinsics_from_fov, spiral_path
 from ..errors import UserError, check_device
 from ..fields.sdf_volume import SDFVolume
-from ..io import (
+from ..ops import generate_rays, random_pixels
+from ..options import check_at_least, option, with_defaults
+from ..outputs import (
     check_foreign,
     depth_to_uint8,
     load_checkpoint,
@@ -34,12 +36,10 @@ from ..io import (
     write_json,
     write_video,
 )
-from ..ops import generate_rays, random_pixels
-from ..options import check_at_least, option, with_defaults
 from ..render import render_rays, render_views
 from .logs import TensorBoardLog
 from .loop import LoopConfig, LoopSettings, Task, lock_run, resume_checks, run_loop
-from .methods import Method, Opened, register_method
+from .methods import LoadedRun, Method, register_method
 
 __all__ = [
     "BoxFitConfig",
@@ -99,7 +99,7 @@ class BoxFitConfig(BOX_LOOP):
         unknown field names, values of the wrong type (``true`` is not a number), non-finite
         numbers and out-of-range values are a UserError naming ``where``, the field and the
         expected form."""
-        from ..jsonio import check_fields
+        from ..json_input import check_fields
 
         return cls(**check_fields(cls, d, where)).check_values(where)
 
@@ -113,7 +113,7 @@ class BoxFitConfig(BOX_LOOP):
     def check_values(self, where: str | None = None):
         """Range checks; ``where`` None: messages name the command-line flags, else the file
         ``where`` and the config field."""
-        from ..jsonio import field_error
+        from ..json_input import field_error
 
         def fail(name: str, rule: str):
             return field_error(where, name, rule)
@@ -256,7 +256,7 @@ class BoxTask(Task):
 def _read_config(run: Path, strict: bool = False):
     """config.json of a run folder as a dict; None when there is none, or (unless ``strict``:
     then a UserError naming the file) when it is unreadable, malformed or not a JSON object."""
-    from ..jsonio import read_run_config
+    from ..json_input import read_run_config
 
     path = run / "config.json"
     if not path.exists():  # (a FIFO or a link there: read_json names it)
@@ -274,7 +274,7 @@ def _read_config(run: Path, strict: bool = False):
 
 def load_box_run(run, device: str | None = None):
     """(cfg, data, device, checkpoint) of a box run folder; ``device`` overrides the saved one."""
-    from ..jsonio import is_device, show
+    from ..json_input import is_device, show
 
     run = Path(run)
     d = _read_config(run, strict=(run / CHECKPOINT).exists())
@@ -411,12 +411,12 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
 # ------------------------------------------------- the method, registered as an added one is
 
 
-def _open_box(run, device=None) -> Opened:
+def _open_box(run, device=None) -> LoadedRun:
     import contextlib
 
     from ..data.blender import load_blender
     from ..fields.sdf_volume import SDFVolume
-    from ..io import load_weights
+    from ..outputs import load_weights
 
     cfg, data, dev, ckpt = load_box_run(run, device)
     volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
@@ -425,16 +425,16 @@ def _open_box(run, device=None) -> Opened:
     with contextlib.suppress(UserError):  # the cameras are an overlay
         train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
                              allow_outside=cfg.allow_outside_paths)  # fmt: skip
-    return Opened(cfg, volume, train, f"{Path(run).name}: box fit")
+    return LoadedRun(cfg, volume, train, f"{Path(run).name}: box fit")
 
 
-def _box_task(task) -> Opened:
+def _box_task(task) -> LoadedRun:
     from types import SimpleNamespace
 
     n, h, w = task.images.shape[:3]
     cams = SimpleNamespace(c2w=task.c2w, intrinsics=task.intrinsics, width=w, height=h,
                            images=task.images)  # fmt: skip
-    return Opened(task.cfg, task.volume, cams)
+    return LoadedRun(task.cfg, task.volume, cams)
 
 
 register_method(Method(MODEL, ("box",), "box fit", "box", _open_box, _box_task))

@@ -43,7 +43,7 @@ import torch
 from torch import nn
 
 from ..errors import UserError
-from ..io import load_tensors
+from ..outputs import load_tensors
 
 __all__ = ["WeightAverage", "averaged_parameters", "apply_average", "saved_average", "KEY"]
 

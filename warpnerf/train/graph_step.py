@@ -33,7 +33,7 @@ from collections import OrderedDict
 import torch
 
 from ..render import render_marched_fixed
-from ._signals import nonfinite_flags
+from .divergence import nonfinite_flags
 from .step_loss import step_loss, unsupported_terms
 
 __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]

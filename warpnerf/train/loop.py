@@ -35,6 +35,8 @@ checkpoint holds besides the loop's keys, and optionally a validation and progre
 from __future__ import annotations
 
 import contextlib
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,27 +44,49 @@ from pathlib import Path
 import torch
 
 from ..errors import Interrupted
-from ..io import (
+from ..options import Settings, check_at_least, option, section_of
+from ..outputs import (
     check_foreign,
     load_weights,
     make_folder,
     save_checkpoint,
     write_json,
 )
-from ..options import Settings, check_at_least, option, section_of
-from ._signals import nonfinite_flags, raise_if_diverged, stop_requests
+from .divergence import nonfinite_flags, raise_if_diverged
 from .provenance import finish_session, start_session
 from .run_folder import BackgroundWriter, claim_run, lock_run, resume_checks, to_host
 
 __all__ = [
     "Task", "LoopConfig", "LoopSettings", "run_loop", "lr_at", "lock_run", "resume_checks",
     "claim_run", "parse_snapshots", "snapshot_name", "SNAPSHOTS", "LoopHook", "set_lr",
-    "bare_step", "one_step",
+    "bare_step", "one_step", "stop_requests",
     "read_terms", "nonfinite_flags", "to_host", "BackgroundWriter", "adam", "sync_sites",
 ]  # fmt: skip
 
 # checkpoint keys the loop writes and reads (a task's state adds its own)
 LOOP_KEYS = ("step", "optimizer", "history")
+
+
+@contextlib.contextmanager
+def stop_requests():
+    """Yields a dict whose "signum" becomes the number of the first SIGINT/SIGTERM received;
+    the previous handlers come back on exit. Outside the main thread nothing is installed
+    (Python only delivers signals there)."""
+    state = {"signum": None}
+    if threading.current_thread() is not threading.main_thread():
+        yield state
+        return
+
+    def handler(signum, frame):
+        if state["signum"] is None:
+            state["signum"] = signum
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield state
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 @dataclass

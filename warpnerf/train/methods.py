@@ -22,8 +22,8 @@ presets, resume checks and data parallel), else the one generated from ``config`
 
 ``view`` picks how the viewer shows it: "radiance" (a :class:`~warpnerf.fields.model.
 RadianceModel` with a NeRFConfig: volume rendering), "point_sdf" (an SDF network in [-1, 1]^3,
-sphere-traced) or "box" (an analytic SDF volume). ``open_run(run, device) -> Opened`` and
-``open_task(task) -> Opened`` give the viewer (and ``mesh``) what that view needs.
+sphere-traced) or "box" (an analytic SDF volume). ``open_run(run, device) -> LoadedRun`` and
+``open_task(task) -> LoadedRun`` give the viewer (and ``mesh``) what that view needs.
 """
 
 from __future__ import annotations
@@ -35,14 +35,14 @@ from pathlib import Path
 from ..errors import UserError
 from ..plugins import Registry, add_entry
 
-__all__ = ["Method", "Opened", "METHODS", "register_method", "method_of_config", "method_of_run",
-           "method_of_task", "VIEWS"]  # fmt: skip
+__all__ = ["Method", "LoadedRun", "Opened", "METHODS", "register_method", "method_of_config",
+           "method_of_run", "method_of_task", "VIEWS"]  # fmt: skip
 
 VIEWS = ("radiance", "point_sdf", "box")  # the viewer's ways of showing a run
 
 
 @dataclass
-class Opened:
+class LoadedRun:
     """A run (or a training task) opened for the viewer and the mesh tool: its config, the
     model the view renders (a RadianceModel, an SDF network, an SDFVolume), the training
     cameras for the overlay (or None), a title, and ``reload() -> step`` (None: nothing to
@@ -63,11 +63,14 @@ class Opened:
         return self.cameras
 
 
+Opened = LoadedRun  # its name before issue 46, kept for one release
+
+
 @dataclass(frozen=True)
 class Method:
     """A kind of run. ``name``: config.json's ``model``; ``commands``: the `train` subcommands
     that make it; ``what``: its name in messages; ``view``: one of :data:`VIEWS`;
-    ``open_run(run, device) -> Opened``; ``open_task(task) -> Opened`` (the live viewer);
+    ``open_run(run, device) -> LoadedRun``; ``open_task(task) -> LoadedRun`` (the live viewer);
     ``renders``: eval, render and export take it (cameras and images: the NeRF pipeline);
     ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
@@ -121,7 +124,7 @@ def method_of_config(saved: dict, where: str = "config.json") -> Method:
     name = saved.get("model", LEGACY) if isinstance(saved, dict) else None
     if not isinstance(name, str) or name not in METHODS:
         kinds = ", ".join(f"{m.name} ({m.what})" for m in METHODS.values())
-        from ..jsonio import show
+        from ..json_input import show
 
         raise UserError(f"{where}: model {show(name)} is not a kind of run warpnerf knows "
                         f"({kinds})")  # fmt: skip
@@ -131,7 +134,7 @@ def method_of_config(saved: dict, where: str = "config.json") -> Method:
 def method_of_run(run) -> Method:
     """The method of run folder ``run`` (its config.json, read bounded); UserError when it is
     not a run folder."""
-    from ..jsonio import read_run_config
+    from ..json_input import read_run_config
 
     run = Path(run)
     if not run.is_dir():

@@ -17,8 +17,8 @@ from ..data.cameras import frustum_bounds
 from ..errors import UserError
 from ..fields.mlp import mlp_precision
 from ..fields.model import RadianceModel, build_model
-from ..io import write_json
 from ..ops import random_pixels
+from ..outputs import write_json
 from .ema import KEY as EMA_KEY
 from .ema import WeightAverage
 from .logs import TensorBoardLog

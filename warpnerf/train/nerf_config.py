@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from ..data.dataset import is_capture
-from ..data.datasets import FORMATS
+from ..data.loading import FORMATS
 from ..errors import UserError, check_device
 from ..fields.model import FIELDS as FIELD_REGISTRY
 from ..fields.model import FieldTraits, field_traits, fields_with
@@ -97,7 +97,7 @@ class NeRFConfig(*reversed(SECTIONS)):
         out-of-range values (the checks of :meth:`validate` that need no data or device, see
         :meth:`check_values`) are a UserError naming ``where`` (the file), the field and the
         expected form."""
-        from ..jsonio import check_fields
+        from ..json_input import check_fields
 
         fields = check_fields(cls, d, where)
         if isinstance(d, dict) and not any(k in d for k in RECIPE_LEGACY):
@@ -200,7 +200,7 @@ class NeRFConfig(*reversed(SECTIONS)):
 
         from dataclasses import fields
 
-        from ..jsonio import field_error, is_device
+        from ..json_input import field_error, is_device
         from ..options import flag_of
 
         flags = {f.name: flag_of(f) for f in fields(self)}  # (--samples is n_coarse's)
@@ -289,7 +289,7 @@ class NeRFConfig(*reversed(SECTIONS)):
     def _typed_field_options(self, where: str | None = None) -> dict:
         """``field_options`` checked against the field's options class (typed, no unknown
         names: the saved config is untrusted); UserError naming ``where`` otherwise."""
-        from ..jsonio import check_fields
+        from ..json_input import check_fields
 
         name = f"{where + ': ' if where else ''}field_options of --field {self.field}"
         return check_fields(self.traits.options, self.field_options, name)
@@ -345,7 +345,7 @@ def scene_settings(cfg: NeRFConfig) -> dict | None:
     if cfg.scene is not None or cfg.data == "builtin" or not Path(cfg.data).is_dir():
         return None
     from ..data.capture import capture_info
-    from ..data.datasets import detect_format
+    from ..data.loading import detect_format
 
     if cfg.data_format not in FORMATS or cfg.ndc not in ("auto", "on", "off"):
         raise UserError(

@@ -17,7 +17,9 @@ from ..data.camera_path import MAX_FRAMES, PATHS, camera_path
 from ..data.cameras import MAX_DEPTH, camera_rays
 from ..data.materials_truth import materials_depth, materials_reference, sphere_depth
 from ..errors import UserError, check_fits
-from ..io import (
+from ..metrics import psnr, ssim
+from ..ops.bridge import INT32_MAX
+from ..outputs import (
     check_foreign,
     depth_to_uint8,
     make_folder,
@@ -28,8 +30,6 @@ from ..io import (
     write_json,
     write_video,
 )
-from ..metrics import psnr, ssim
-from ..ops.bridge import INT32_MAX
 from .geometry_eval import depth_error, evaluate_geometry, sdf_field_names
 from .loop import snapshot_name
 from .nerf import (
@@ -405,7 +405,7 @@ def _geometry_image(field, cfg, o, d):
     """Shaded normals of the SDF's zero level set (grey albedo, white background) [n, 3]."""
     from ..ops import ray_aabb_intersect
     from ..render import render_chunks
-    from ..trace import shade, sphere_trace_fn
+    from ..sphere_tracing import shade, sphere_trace_fn
 
     t0, t1, hit = ray_aabb_intersect(o, d, cfg.aabb_box())
     t1 = torch.where(hit, t1, t0)

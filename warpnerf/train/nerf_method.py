@@ -7,13 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import UserError
-from .methods import Method, Opened, register_method
+from .methods import LoadedRun, Method, register_method
 from .nerf_config import MODEL
 
 __all__: list = []
 
 
-def _open_nerf(run, device=None) -> Opened:
+def _open_nerf(run, device=None) -> LoadedRun:
     import contextlib
 
     from .nerf_run import load_data, load_run, with_refined_poses
@@ -36,10 +36,10 @@ def _open_nerf(run, device=None) -> Opened:
                     part.load_state_dict(fresh.parts()[k].state_dict())
         return int(ck["step"])
 
-    return Opened(cfg, model, None, f"{run.name}: {cfg.field}", reload, load_cameras=cameras)
+    return LoadedRun(cfg, model, None, f"{run.name}: {cfg.field}", reload, load_cameras=cameras)
 
 
-def _nerf_mesh(o: Opened, bounds, level) -> dict:
+def _nerf_mesh(o: LoadedRun, bounds, level) -> dict:
     """A NeRF/VolSDF run's surface: an SDF field's zero level set, else the density's level set
     marched as -density at -level (inside negative, like an SDF); with no level given, level
     and shown_level are None: the command chooses the density from the grid
@@ -77,8 +77,8 @@ def _nerf_mesh(o: Opened, bounds, level) -> dict:
                 density=True)  # fmt: skip
 
 
-def _nerf_task(task) -> Opened:
-    return Opened(task.cfg, task.model, getattr(task, "train", None))
+def _nerf_task(task) -> LoadedRun:
+    return LoadedRun(task.cfg, task.model, getattr(task, "train", None))
 
 
 register_method(Method(MODEL, ("nerf", "volsdf"), "NeRF/VolSDF", "radiance", _open_nerf,

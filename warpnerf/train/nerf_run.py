@@ -14,7 +14,7 @@ import torch
 
 from ..errors import UserError, check_device
 from ..fields.model import RadianceModel, build_model
-from ..io import build_for_weights, load_checkpoint
+from ..outputs import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
 from .nerf_config import MODEL, NeRFConfig, scene_settings
 from .recipe import wants_alpha
@@ -122,7 +122,7 @@ def data_splits(cfg: NeRFConfig) -> tuple | None:
             have = tuple(s for s in SPLITS if (root / f"transforms_{s}.json").is_file())
             return None if (root / "transforms.json").is_file() else have or None
         if fmt == "nerfstudio":
-            from ..jsonio import read_json
+            from ..json_input import read_json
 
             frames = read_json(root / "transforms.json", "transforms file").get("frames")
             named = [fr.get("split") if isinstance(fr, dict) else None for fr in frames]
@@ -339,7 +339,7 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
         if not ckpt_path.is_file() or ckpt_path.is_symlink():
             raise UserError(f"{run}: no snapshot at {snapshot:g} s ({ckpt_path.name} is missing; "
                             "train with --snapshots to keep them)")  # fmt: skip
-    from ..jsonio import read_run_config
+    from ..json_input import read_run_config
 
     saved = read_run_config(cfg_path)  # size- and depth-bounded, one-line errors
     if not isinstance(saved, dict):

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from ..data.cameras import MAX_CENTRE, MAX_DEPTH, MIN_EXTENT, scene_bounds_problem
 from ..data.dataset import capture_formats, carries_scene
-from ..data.datasets import FORMATS
+from ..data.loading import FORMATS
 from ..options import check_at_least, option
 
 __all__ = [

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from ..io import write_json
+from ..outputs import write_json
 
 __all__ = [
     "RUN_INFO",
@@ -218,7 +218,7 @@ def _earlier_sessions(path: Path) -> list:
     import warnings
 
     from ..errors import UserError
-    from ..jsonio import read_json
+    from ..json_input import read_json
 
     if not path.is_file() or path.is_symlink():
         return []

@@ -10,8 +10,7 @@ from pathlib import Path
 import torch
 
 from ..errors import UserError
-from ..io import adopt, check_foreign, output_lock
-from ._signals import check_resume_iters
+from ..outputs import adopt, check_foreign, output_lock
 from .provenance import RUN_INFO
 
 __all__ = ["to_host", "BackgroundWriter", "lock_run", "resume_checks", "claim_run"]
@@ -73,6 +72,15 @@ def lock_run(run: Path, locks: contextlib.ExitStack) -> None:
     missing folder is left to the run's loader to report)."""
     if run.is_dir():
         locks.enter_context(output_lock(run, "run folder"))
+
+
+def check_resume_iters(run, step: int, iters: int) -> None:
+    """UserError unless ``iters`` (the total to reach) is beyond the checkpoint's ``step``."""
+    if iters <= step:
+        raise UserError(
+            f"{run}: the checkpoint is at step {step}; --iters must be larger to continue, "
+            f"got {iters}"
+        )
 
 
 def resume_checks(run: Path, step: int, iters: int, outputs) -> None:

@@ -34,13 +34,13 @@ import torch
 from ..errors import UserError, check_device
 from ..fields.hash_point_sdf import HashPointSDF
 from ..fields.neural_sdf import NeuralSDF
-from ..io import (
+from ..options import check_at_least, option, with_defaults
+from ..outputs import (
     build_for_weights,
     load_checkpoint,
     load_weights,
     write_json,
 )
-from ..options import check_at_least, option, with_defaults
 from .logs import TensorBoardLog
 from .loop import (
     LoopConfig,
@@ -52,7 +52,7 @@ from .loop import (
     resume_checks,
     run_loop,
 )
-from .methods import Method, Opened, register_method
+from .methods import LoadedRun, Method, register_method
 from .presets import PRESET_NAMES, preset_option
 
 __all__ = ["SDFConfig", "train_sdf", "load_points", "load_sdf_run", "chamfer", "MODEL"]
@@ -125,14 +125,14 @@ class SDFConfig(SDF_LOOP):
         the wrong type (``true`` is not a number), non-finite numbers, integers beyond +-2^31 and
         out-of-range values (:meth:`check_values`) are a UserError naming ``where`` (the file),
         the field and the expected form."""
-        from ..jsonio import check_fields
+        from ..json_input import check_fields
 
         return cls(**check_fields(cls, d, where)).check_values(where)
 
     def check_values(self, where: str | None = None):
         """The checks of :meth:`validate` that do not need the device; ``where`` None: messages
         name the command-line flags, else the file ``where`` and the config field."""
-        from ..jsonio import field_error, is_device
+        from ..json_input import field_error, is_device
 
         def fail(name: str, rule: str):
             return field_error(where, name, rule)
@@ -228,7 +228,7 @@ def load_points(path) -> tuple:
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such point-cloud file")
-    from ..files import open_input
+    from ..safe_writes import open_input
 
     with contextlib.suppress(OSError), open_input(path, "point cloud", follow=True):
         pass  # a FIFO or device is refused here, never waited on (the PLY reader opens by name)
@@ -310,7 +310,7 @@ def nearest_distance(x: torch.Tensor, points: torch.Tensor, chunk: int = 4096) -
 
 def load_sdf_run(run, device=None):
     """(cfg, model, checkpoint) of a neural-SDF run folder."""
-    from ..jsonio import read_run_config
+    from ..json_input import read_run_config
 
     run = Path(run)
     if not (run / "config.json").exists():
@@ -539,14 +539,14 @@ def finish_sdf_run(run, model, cfg, pts_np, center, scale, log=print):
 # ------------------------------------------------- the method, registered as an added one is
 
 
-def _open_point_sdf(run, device=None) -> Opened:
+def _open_point_sdf(run, device=None) -> LoadedRun:
     cfg, model, ck = load_sdf_run(run, device)
     model.eval()
     title = f"{Path(run).name}: neural SDF ({cfg.field})"
-    return Opened(cfg, model, None, title, extra={"normalisation": ck["normalisation"]})
+    return LoadedRun(cfg, model, None, title, extra={"normalisation": ck["normalisation"]})
 
 
-def _point_sdf_mesh(o: Opened, bounds, level) -> dict:
+def _point_sdf_mesh(o: LoadedRun, bounds, level) -> dict:
     """A neural SDF's zero level set in its normalised box, vertices mapped back to the point
     cloud's units."""
     import numpy as np
@@ -560,8 +560,8 @@ def _point_sdf_mesh(o: Opened, bounds, level) -> dict:
                 device=cfg.device, field=None, density=False, cameras=None)  # fmt: skip
 
 
-def _point_sdf_task(task) -> Opened:
-    return Opened(task.cfg, task.model)
+def _point_sdf_task(task) -> LoadedRun:
+    return LoadedRun(task.cfg, task.model)
 
 
 register_method(Method(MODEL, ("sdf",), "neural-SDF", "point_sdf", _open_point_sdf,

@@ -20,7 +20,7 @@ from ..data.camera_path import (
     quat_to_matrix,
 )
 from ..errors import UserError
-from .gate import bounded
+from .access import bounded
 
 __all__ = ["PathEditor", "opencv_to_gl", "gl_to_opencv"]
 

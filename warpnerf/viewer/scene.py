@@ -37,7 +37,7 @@ import torch
 
 from ..data.camera_path import window_rule
 from ..errors import UserError
-from ..io import to_uint8
+from ..outputs import to_uint8
 
 __all__ = ["RunScene", "load_scene", "scene_of", "RADIANCE_MODES", "SDF_MODES", "POINT_SDF_MODES"]
 
@@ -286,7 +286,7 @@ class RunScene:
     def of_point_sdf(cls, model, cfg, title: str = "") -> RunScene:
         """A neural SDF fitted to points: sphere-traced in its normalised box [-1, 1]^3."""
         from ..ops import ray_aabb_intersect
-        from ..trace import shade, sphere_trace_fn
+        from ..sphere_tracing import shade, sphere_trace_fn
 
         dev = cfg.device
         box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]

@@ -49,7 +49,7 @@ import numpy as np
 
 from ..data.camera_path import MAX_FRAMES
 from ..errors import UserError
-from .gate import Gate, check_address, client_pose, exposure
+from .access import Gate, check_address, client_pose, exposure
 from .path_editor import PathEditor, gl_to_opencv, opencv_to_gl
 from .scene import Aborted, RunScene
 

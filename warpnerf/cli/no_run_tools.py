@@ -7,12 +7,12 @@ run_tools.py (eval, render, mesh, export; view in view.py, beside the live viewe
 from __future__ import annotations
 
 from ..errors import UserError
-from ..io import json_dumps
+from ..outputs import json_dumps
 from ._common import check_out, parse_device
 
 
 def cmd_demo(args) -> int:
-    from ..demo import run_demo
+    from ..box_demo import run_demo
 
     check_out(args.out)
     m = run_demo(
@@ -53,7 +53,7 @@ def cmd_bench(args) -> int:
 
 
 def cmd_data(args) -> int:
-    from ..data.datasets import data_summary
+    from ..data.loading import data_summary
 
     if args.holdout == 1:
         raise UserError("--holdout must be 0 (none) or >= 2")
