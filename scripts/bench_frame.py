@@ -16,6 +16,7 @@ machine's speed touches them alike.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import time
@@ -70,10 +71,9 @@ def main():
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:
         raise SystemExit("a run with an occupancy grid is needed")
-    if a.data:
-        cfg.data = a.data
-    if a.chunk:
-        cfg.chunk = a.chunk
+    changed = {k: v for k, v in (("data", a.data), ("chunk", a.chunk)) if v}
+    if changed:  # (the run's config with the flags given: a checked, frozen copy)
+        cfg = dataclasses.replace(cfg, **changed).check_values().freeze()
     ds = with_refined_poses(model, load_data(cfg, a.split), a.split)
     n = ds.images.shape[0] if not a.images else min(a.images, ds.images.shape[0])
     sync = torch.cuda.synchronize if cfg.device.startswith("cuda") else (lambda: None)
