@@ -20,18 +20,8 @@ import warnings
 import numpy as np
 import torch
 
-from .mesh_clean import (
-    DEFAULT_CLEAN,
-    clean_mesh,
-    cull_unseen,
-    cull_unweighted,
-    decimate_mesh,
-    face_areas,
-    face_components,
-    merge_vertices,
-    seen_faces,
-    surface_mesh,
-)
+from . import mesh_clean
+from .mesh_clean import *  # noqa: F403  (re-exported: mesh_clean.__all__)
 from .outputs import atomic_path
 from .ply import MAX_PLY_BYTES, read_ply, read_ply_points, write_ply
 
@@ -46,16 +36,7 @@ __all__ = [
     "vertex_colors",
     "screenshot",
     "sample_surface",
-    "clean_mesh",
-    "merge_vertices",
-    "face_components",
-    "face_areas",
-    "seen_faces",
-    "cull_unseen",
-    "cull_unweighted",
-    "surface_mesh",
-    "DEFAULT_CLEAN",
-    "decimate_mesh",
+    *mesh_clean.__all__,
 ]
 
 
