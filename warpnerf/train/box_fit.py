@@ -19,23 +19,12 @@ from pathlib import Path
 
 import torch
 
+from .. import outputs
 from ..data.cameras import intrinsics_from_fov, spiral_path
 from ..errors import UserError, check_device
 from ..fields.sdf_volume import SDFVolume
 from ..ops import generate_rays, random_pixels
 from ..options import check_at_least, option, with_defaults
-from ..outputs import (
-    check_foreign,
-    depth_to_uint8,
-    load_checkpoint,
-    load_weights,
-    output_lock,
-    remove_own,
-    to_uint8,
-    write_image,
-    write_json,
-    write_video,
-)
 from ..render import render_rays, render_views
 from .logs import TensorBoardLog
 from .loop import LoopConfig, LoopSettings, Task, lock_run, resume_checks, run_loop
@@ -187,7 +176,7 @@ def fit_box(
     task = BoxTask(images, c2w, intrinsics, cfg, volume, log_every)
     if state is not None:
         where = Path(run) / CHECKPOINT if run is not None else "the checkpoint"
-        load_weights(volume, state["volume"], where, "box parameters")
+        outputs.load_weights(volume, state["volume"], where, "box parameters")
         task.gen.set_state(state["generator"].cpu())  # map_location may have moved it
     settings = LoopSettings.of(cfg, "fit box", lr_final=cfg.lr * cfg.lr_final_ratio)
     history = run_loop(
@@ -293,7 +282,7 @@ def load_box_run(run, device: str | None = None):
         )
     device = check_device(device or saved_device, str(run))
     keys = ("step", "volume", "optimizer", "generator", "history")
-    ckpt = load_checkpoint(run / CHECKPOINT, device, keys)
+    ckpt = outputs.load_checkpoint(run / CHECKPOINT, device, keys)
     return cfg, data, device, ckpt
 
 
@@ -353,15 +342,15 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     dev = torch.device(device)
     tb = [TensorBoardLog(out, tensorboard)] if tensorboard else []  # (checks; writes nothing)
     if not resume:
-        locks.enter_context(output_lock(out, "run folder"))
+        locks.enter_context(outputs.output_lock(out, "run folder"))
         old = _read_config(out)  # again, under the lock
         if (out / CHECKPOINT).exists() and (old is None or old.get("model") != MODEL):
             raise UserError(f"{out}: holds another kind of run; choose another --out")
-        check_foreign([out / n for n in OUTPUTS])
+        outputs.check_foreign([out / n for n in OUTPUTS])
         # an earlier fit's files would not match this one's (only files warpnerf wrote go)
-        remove_own(out, (CHECKPOINT, "history.json", "result.json"))
-    write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device,
-                                                     "model": MODEL})  # fmt: skip
+        outputs.remove_own(out, (CHECKPOINT, "history.json", "result.json"))
+    outputs.write_json(out / "config.json", cfg.to_dict() | {"data": str(data), "device": device,
+                                                             "model": MODEL})  # fmt: skip
     fit = fit_box(
         ds.images.to(dev),
         ds.c2w.to(dev),
@@ -376,7 +365,7 @@ def _run_box_fit(data, out: Path, cfg, device, frames, progress, resume, log, lo
     volume = fit.pop("volume")
     result = {k: fit[k] for k in ("center", "side_lengths", "final_loss")}
     extra = {"step": fit["step"], "seconds": fit["seconds"], "losses": fit["losses"]}
-    write_json(out / "result.json", result | extra)
+    outputs.write_json(out / "result.json", result | extra)
     if frames > 0:
         write_spiral(volume, out, frames, min(ds.width, 256), cfg)
     return result
@@ -401,10 +390,12 @@ def write_spiral(volume, out: Path, frames: int, size: int, cfg: BoxFitConfig, p
         torch.zeros_like(depth),
     )
     dmax = float(surf.max()) or 1.0
-    write_video(out / f"{prefix}_rgb.mp4", [to_uint8(f) for f in rgb])
-    write_video(out / f"{prefix}_rgb.gif", [to_uint8(f) for f in rgb])
-    write_video(out / f"{prefix}_depth.gif", [depth_to_uint8(f, dmax) for f in surf])
-    write_image(out / f"{prefix}_depth_000.png", depth_to_uint8(surf[0]))
+    outputs.write_video(out / f"{prefix}_rgb.mp4", [outputs.to_uint8(f) for f in rgb])
+    outputs.write_video(out / f"{prefix}_rgb.gif", [outputs.to_uint8(f) for f in rgb])
+    outputs.write_video(
+        out / f"{prefix}_depth.gif", [outputs.depth_to_uint8(f, dmax) for f in surf]
+    )
+    outputs.write_image(out / f"{prefix}_depth_000.png", outputs.depth_to_uint8(surf[0]))
     return rgb, surf
 
 
@@ -416,11 +407,10 @@ def _open_box(run, device=None) -> LoadedRun:
 
     from ..data.blender import load_blender
     from ..fields.sdf_volume import SDFVolume
-    from ..outputs import load_weights
 
     cfg, data, dev, ckpt = load_box_run(run, device)
     volume = SDFVolume("box", alpha=cfg.alpha, beta=cfg.beta).to(dev)
-    load_weights(volume, ckpt["volume"], Path(run) / "checkpoint.pt", "box parameters")
+    outputs.load_weights(volume, ckpt["volume"], Path(run) / "checkpoint.pt", "box parameters")
     train = None
     with contextlib.suppress(UserError):  # the cameras are an overlay
         train = load_blender(data, "train", background=(cfg.background,) * 3, holdout=0,
