@@ -225,8 +225,6 @@ def march_rays(
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
     lo, size = _cell_geometry(box, res)
     a = bridge.arr
-    counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
-    k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
     head = [
         a(origins, wp.vec3),
         a(directions, wp.vec3),
@@ -241,26 +239,11 @@ def march_rays(
         float(dt),
         int(max_samples),
     ]
-    no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
-    bridge.launch(K.march, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
-    if capacity is not None:
-        return _fill_fixed(K.march, head, counts, k_next, bad, capacity, dev)
-    csum = torch.cumsum(counts, 0, dtype=torch.int64)
-    total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
-    # the one host sync: the sample total and whether any ray was refused
-    total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
-    if refused:
+
+    def refuse():
         raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
-    offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
-    if total:
-        bridge.launch(
-            K.march,
-            n_rays,
-            head + [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)],
-            dev,
-        )
-    packed_info = torch.stack([offsets, counts], -1)
-    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+    return _march_passes(K.march, head, n_rays, bad, capacity, dev, refuse)
 
 
 def lattice_bounds(origins, directions, near, far, aabb, dt: float) -> tuple:
@@ -283,6 +266,32 @@ def lattice_bounds(origins, directions, near, far, aabb, dt: float) -> tuple:
     x = origins.sum(-1) + directions.sum(-1) + near + directions.abs().amax(-1).reciprocal()
     bad = ~(torch.isfinite(x) & ((t_hi - t_lo) < MAX_STEPS * float(dt)))
     return t_lo, t_hi, bad, near, far
+
+
+def _march_passes(kernel, head: list, n_rays: int, bad, capacity, dev, refuse) -> tuple:
+    """A marcher's launches of ``kernel`` on its inputs ``head``: the count pass, then with
+    ``capacity`` the fill into static slots (:func:`_fill_fixed`), else the one host sync (the
+    sample total and whether any ray was refused: then ``refuse()`` raises) and the packed fill.
+    Returns ``march_rays``'s result."""
+    a = bridge.arr
+    counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
+    no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
+    bridge.launch(kernel, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
+    if capacity is not None:
+        return _fill_fixed(kernel, head, counts, k_next, bad, capacity, dev)
+    csum = torch.cumsum(counts, 0, dtype=torch.int64)
+    total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
+    # the one host sync: the sample total and whether any ray was refused
+    total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
+    if refused:
+        refuse()
+    offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
+    if total:
+        fill = [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)]
+        bridge.launch(kernel, n_rays, head + fill, dev)
+    packed_info = torch.stack([offsets, counts], -1)
+    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 
 
 def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> tuple:
@@ -414,30 +423,15 @@ def march_rays_contracted(
     t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
     s_lo = torch.where(bad, torch.zeros_like(s_lo), s_lo).contiguous()
     a_ = bridge.arr
-    counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
-    k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
     head = [
         a_(origins, wp.vec3), a_(directions, wp.vec3), a_(s_lo), a_(t_hi), a_(jit), a_(kb),
         a_(bits), res, float(a), float(dt), float(cone), int(max_samples),
     ]  # fmt: skip
-    no_f, no_i = a_(_empty_f(dev)), a_(_empty_i(dev))
-    bridge.launch(
-        K.march_contracted, n_rays, head + [0, no_i, a_(counts), a_(k_next), no_f, no_f, no_i],
-        dev,
-    )  # fmt: skip
-    if capacity is not None:
-        return _fill_fixed(K.march_contracted, head, counts, k_next, bad, capacity, dev)
-    csum = torch.cumsum(counts, 0, dtype=torch.int64)
-    total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
-    total, refused = torch.cat([total, bad.any().reshape(1).to(torch.int64)]).tolist()
-    if refused:
+
+    def refuse():
         raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin, contracted=True)
-    offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
-    if total:
-        fill = [1, a_(offsets), a_(counts), a_(k_next), a_(t_starts), a_(t_ends), a_(ray_indices)]
-        bridge.launch(K.march_contracted, n_rays, head + fill, dev)
-    packed_info = torch.stack([offsets, counts], -1)
-    return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
+
+    return _march_passes(K.march_contracted, head, n_rays, bad, capacity, dev, refuse)
 
 
 def lattice_bounds_contracted(origins, directions, near, far, dt: float, cone: float) -> tuple:
