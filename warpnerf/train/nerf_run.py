@@ -51,13 +51,15 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
 
 def settle_new_run(cfg: NeRFConfig) -> tuple:
     """(config, training split) of a new run, in one pass: what the data decides
-    (:func:`_with_data`), the device checked, the training images read (8-bit where they stay
+    (:func:`_with_data`), the device and the values' bounds checked, the training images read (8-bit where they stay
     in host memory, with their alpha), then the config resolved with their count, checked once
     and frozen (:meth:`NeRFConfig.validate`): what the run reads, never changed after. The
     split keeps its alpha where the resolved run reads it (:func:`~warpnerf.train.recipe.
     wants_alpha`)."""
     draft = _with_data(cfg)
     check_device(draft.device)
+    draft.check_values()  # the bounds before any file or scene is built from them (untrusted
+    # sizes such as --builtin-size past the kernels' limits: one line, no run folder)
     train = load_data(draft, "train", draft.images_on, uint8=True, alpha=True)
     cfg = draft.validate(train_images=len(train))
     if train.alpha is not None and not wants_alpha(cfg):
