@@ -177,8 +177,8 @@ def trace_composite(
                 c0 += w * rgbs[slot, 0]
                 c1 += w * rgbs[slot, 1]
                 c2 += w * rgbs[slot, 2]
-            elif w >= color_eps:
-                weights[slot] = w
+            elif w >= color_eps or not wp.isfinite(w):  # (a NaN weight is coloured: it
+                weights[slot] = w  # reaches the ray's colour on every device, as compositing's)
                 color_slots[wp.atomic_add(counters, 1, 1)] = slot
             else:
                 weights[slot] = 0.0
@@ -214,7 +214,7 @@ def trace_shade(
     c2 = float(0.0)
     for j in range(int(counts[i])):
         w = weights[base + j]
-        if w > 0.0:
+        if w > 0.0 or not wp.isfinite(w):
             c0 += w * rgbs[base + j, 0]
             c1 += w * rgbs[base + j, 1]
             c2 += w * rgbs[base + j, 2]
