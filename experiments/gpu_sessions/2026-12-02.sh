@@ -1,0 +1,82 @@
+#!/usr/bin/env bash
+# The GPU driver of the 2026-12-02 session (issues 44, 47, 48, 49; one H200), kept as the record
+# of how the design notes' figures of that day were measured. Run from the tree root on the device
+# with Warp unpacked in /tmp/site and the data carried in .gpu/data: bash THIS PHASE
+set -u
+R=$(pwd)
+ln -sfn "$R/kernels" "$R/warpnerf/kernels"
+export PYTHONPATH=/tmp/site:$R PYTHONUNBUFFERED=1
+FINAL=${OUT:-/tmp/out}; OUT=/root/res/$1; rm -rf "$OUT"; mkdir -p "$OUT" "$FINAL"
+trap 'tar czf $FINAL/$1.tgz -C /root/res $1 2>/dev/null' EXIT
+S=/root/stage; Q=/root/q; mkdir -p $S $Q
+DEADLINE=$(( $(date +%s) + ${LIMIT:-560} ))
+left() { echo $(( DEADLINE - $(date +%s) - ${1:-0} )); }
+pin() { OMP_NUM_THREADS=8 MKL_NUM_THREADS=8 taskset -c 0-15 "$@"; }
+step() {  # name seconds-wanted command...: runs it under the deadline, logs to $OUT/name.log
+  local name=$1 want=$2; shift 2
+  local l; l=$(left 5)
+  if [ "$l" -lt "$want" ]; then echo "$name skipped (left $l s < $want s)" >> $OUT/fail.txt; return; fi
+  local t0; t0=$(date +%s)
+  pin timeout "$l" "$@" > "$OUT/$name.log" 2>&1 || echo "$name failed rc=$?" >> $OUT/fail.txt
+  echo "$name wall $(( $(date +%s) - t0 )) s" >> $OUT/walls.txt
+}
+ttq() {  # name want ttq-args...: scripts/time_to_quality.py run into $Q/name, its JSON kept
+  local name=$1 want=$2; shift 2
+  rm -rf "${Q:?}/$name"; mkdir -p "$Q/$name"
+  step "$name" "$want" python3 scripts/time_to_quality.py run "$Q/$name" "$@"
+  cp "$Q/$name/ttq.json" "$OUT/$name.ttq.json" 2>/dev/null
+}
+evalkeep() {  # name: eval every val image at the frame's chunk; keep metrics.json
+  step "eval_$1" 60 python3 -m warpnerf.cli eval "$Q/$1/run" --chunk 400000 --quiet \
+    --out "$Q/$1/eval_val"
+  cp "$Q/$1/eval_val/metrics.json" "$OUT/$1.metrics.json" 2>/dev/null
+}
+F="--quiet --no-tensorboard --val-images 0"
+case $1 in
+setup)
+  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
+  cat "$R/.commit" 2>/dev/null; nproc; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv ;;
+stage)  # the carried data to the stage (the carried copy is replaced by the next call's tree)
+  cp -r .gpu/data/* $S/ && ls $S ;;
+r1a)  # 47 (profiles: hash_sdf step, NeRF step fp32/bf16; composite bench), 44 (before)
+  cp -r .gpu/data/* $S/ 2>/dev/null; ls $S
+  nvidia-smi --query-gpu=name,driver_version --format=csv,noheader > $OUT/gpu.txt
+  SDF="train volsdf --data $S/lego --field hash_sdf --device cuda --tf32 --batch 4096 --target-samples 262144"
+  step prof_sdf 60 python3 scripts/profile_train_step.py --warm 600 --steps 30 --cprofile 0 \
+    --json $OUT/prof_sdf.json -- $SDF
+  step prof_fp32 60 python3 scripts/profile_train_step.py --warm 1500 --steps 50 --cprofile 0 \
+    --json $OUT/prof_fp32.json -- train nerf --data $S/lego --device cuda
+  step prof_bf16 60 python3 scripts/profile_train_step.py --warm 1500 --steps 50 --cprofile 0 \
+    --json $OUT/prof_bf16.json -- train nerf --data $S/lego --device cuda --mlp-precision bf16
+  step bench_composite 30 python3 -m warpnerf.cli bench composite --device cuda --json $OUT/bench_composite.json
+  # issue 44: before (no weight average, the 20,000-step schedule) and after (the plain command),
+  # then bf16 (issue 47 item 2) warm, after the fp32 run: the A/B the last session lacked
+  ttq lego_before 90 --budgets 60 --label "before: --ema 0 --iters 20000" -- train nerf --data $S/lego --device cuda --ema 0 --iters 20000 $F
+  evalkeep lego_before
+  cat $OUT/walls.txt; cat $OUT/fail.txt 2>/dev/null; true ;;
+r1b)  # 44 (after, crops), 47 (bf16 A/B, frames, CUDA tests)
+  ttq lego_plain 90 --budgets 60 --label "the plain command" -- train nerf --data $S/lego --device cuda $F
+  evalkeep lego_plain
+  ttq lego_bf16 90 --budgets 60 --label "the plain command, --mlp-precision bf16" -- train nerf --data $S/lego --device cuda --mlp-precision bf16 $F
+  step frame_plain 40 python3 scripts/bench_frame.py $Q/lego_plain/run --device cuda --data $S/lego --chunk 400000 --repeat 2 --json $OUT/frame_plain.json
+  # the worst views' PNGs (gt | prediction | depth) of both, by the plain run's PSNR
+  python3 - "$Q" "$OUT" <<'EOF' || true
+import json, shutil, sys
+q, out = sys.argv[1:]
+rows = json.load(open(f"{q}/lego_plain/eval_val/metrics.json"))["per_image"]
+worst = sorted(rows, key=lambda r: r["psnr"])[:3]
+print("worst", [(r["image"], r["psnr"]) for r in worst])
+for r in worst:
+    for run in ("lego_before", "lego_plain"):
+        i = r["image"]
+        try:
+            shutil.copy(f"{q}/{run}/eval_val/val_{i:03d}.png", f"{out}/{run}_val_{i:03d}.png")
+        except OSError as e:
+            print(e)
+EOF
+  l=$(left 5); [ "$l" -gt 30 ] && timeout "$l" python3 -m pytest -q -k cuda -p no:cacheprovider \
+    tests/test_tracer.py tests/test_step_ops.py tests/test_proposal.py tests/test_proposal_sampling.py \
+    tests/test_composite.py tests/test_graph_step.py > $OUT/cuda_tests.log 2>&1
+  tail -3 $OUT/cuda_tests.log
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+esac
