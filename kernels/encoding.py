@@ -35,6 +35,25 @@ PRIME_Y = wp.constant(wp.uint32(2654435761))
 PRIME_Z = wp.constant(wp.uint32(805459861))
 
 
+@wp.struct
+class Levels:
+    """The grid's L levels, each array [L] int32: cells per side, first row of the level in the
+    table, its rows, and 1 where it is indexed densely ((res + 1)^3 <= rows: decided on the host,
+    where (res + 1)^3 cannot overflow int32)."""
+
+    res: wp.array(dtype=wp.int32)
+    offsets: wp.array(dtype=wp.int32)
+    sizes: wp.array(dtype=wp.int32)
+    dense: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def level(levels: Levels, lvl: int):
+    """(cells per side, first row, rows, dense) of level lvl."""
+    return (int(levels.res[lvl]), int(levels.offsets[lvl]), int(levels.sizes[lvl]),
+            int(levels.dense[lvl]))  # fmt: skip
+
+
 @wp.func
 def vertex_row(ix: int, iy: int, iz: int, res: int, size: int, dense: int):
     if dense != 0:
@@ -58,6 +77,15 @@ def cell_coord(x: Any, res: int):
 
 
 @wp.func
+def cell(x: wp.array2d(dtype=Any), i: int, res: int):
+    """(cx, cy, cz, fx, fy, fz): corner and fractions of point i's cell on a grid of res cells."""
+    cx, fx = cell_coord(x[i, 0], res)
+    cy, fy = cell_coord(x[i, 1], res)
+    cz, fz = cell_coord(x[i, 2], res)
+    return cx, cy, cz, fx, fy, fz
+
+
+@wp.func
 def corner(
     v: int, cx: int, cy: int, cz: int, fx: Any, fy: Any, fz: Any, r: int, size: int, dense: int
 ):
@@ -76,29 +104,20 @@ def corner(
 def hash_encode_fwd(
     x: wp.array2d(dtype=Any),  # [n, 3] in [0, 1]
     table: wp.array2d(dtype=Any),  # [total_rows, F]
-    res: wp.array(dtype=wp.int32),  # [L] cells per side
-    offsets: wp.array(dtype=wp.int32),  # [L] first row of each level
-    sizes: wp.array(dtype=wp.int32),  # [L] rows of each level
-    dense_levels: wp.array(dtype=wp.int32),  # [L] 1: (res + 1)^3 <= rows, indexed densely
-    n_levels: int,
+    levels: Levels,
     out: wp.array2d(dtype=Any),  # [n, L * F]
 ):
     tid = wp.tid()
-    i = tid // n_levels
-    lvl = tid - i * n_levels
-    r = int(res[lvl])
-    size = int(sizes[lvl])
-    off = int(offsets[lvl])
-    dense = int(dense_levels[lvl])  # decided on the host: (res + 1)^3 overflows int32
+    i = tid // levels.res.shape[0]
+    lvl = tid - i * levels.res.shape[0]
+    r, off, size, dense = level(levels, lvl)
     n_feat = table.shape[1]
     if not finite3(x, i):
         # NaN/Inf positions give NaN features (never a plausible value, never an index)
         for q in range(n_feat):
             out[i, lvl * n_feat + q] = x.dtype(wp.nan)
         return
-    cx, fx = cell_coord(x[i, 0], r)
-    cy, fy = cell_coord(x[i, 1], r)
-    cz, fz = cell_coord(x[i, 2], r)
+    cx, cy, cz, fx, fy, fz = cell(x, i, r)
     for q in range(n_feat):  # accumulate in a register, write each feature once
         acc = x.dtype(0.0)
         for v in range(8):
@@ -107,33 +126,81 @@ def hash_encode_fwd(
         out[i, lvl * n_feat + q] = acc
 
 
+# sm_90 adds two float32 values to adjacent, 8-byte aligned addresses in one atomic (CUDA's
+# float2 atomicAdd): half the atomics of the table's backward, whose throughput bounds it. Other
+# devices and the CPU add the two values one by one (the same sums).
+_ADD2 = """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+    atomicAdd(reinterpret_cast<float2*>(&wp::index(v_table, row, q)), make_float2(a, b));
+#else
+    wp::atomic_add(&wp::index(v_table, row, q), a);
+    wp::atomic_add(&wp::index(v_table, row, q + 1), b);
+#endif
+"""
+
+
+@wp.func_native(_ADD2)
+def atomic_add_pair(
+    v_table: wp.array2d(dtype=wp.float32), row: int, q: int, a: float, b: float
+): ...
+
+
+@wp.func
+def atomic_add_pair(  # noqa: F811  (Warp overloads a function by its argument types)
+    v_table: wp.array2d(dtype=wp.float64), row: int, q: int, a: wp.float64, b: wp.float64
+):
+    """float64 tables: the two values one by one."""
+    wp.atomic_add(v_table, row, q, a)
+    wp.atomic_add(v_table, row, q + 1, b)
+
+
+@wp.func
+def add_corner(
+    v_table: wp.array2d(dtype=Any),
+    row: int,
+    v_out: wp.array2d(dtype=Any),
+    i: int,
+    col: int,
+    w: Any,
+    pairs: int,
+):
+    """One corner's share of the table gradient, ``v_table[row, q] += w * v_out[i, col + q]``
+    for every feature q (zero gradients skipped): one atomic per feature, or with ``pairs`` (an
+    even number of features: rows of 8-byte aligned pairs) one per pair of features."""
+    zero = w.dtype(0.0)
+    if pairs != 0:
+        for p in range(v_table.shape[1] // 2):
+            q = 2 * p
+            g0 = v_out[i, col + q]
+            g1 = v_out[i, col + q + 1]
+            if g0 != zero or g1 != zero:
+                atomic_add_pair(v_table, row, q, w * g0, w * g1)
+    else:
+        for q in range(v_table.shape[1]):
+            g = v_out[i, col + q]
+            if g != zero:
+                wp.atomic_add(v_table, row, q, w * g)
+
+
 @wp.kernel(enable_backward=False)
 def hash_encode_bwd(
     x: wp.array2d(dtype=Any),  # [n, 3]
     v_out: wp.array2d(dtype=Any),  # [n, L * F]
-    res: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    sizes: wp.array(dtype=wp.int32),
-    dense_levels: wp.array(dtype=wp.int32),
-    n_levels: int,
+    levels: Levels,
+    pairs: int,  # float32 tables of an even F: two features per atomic (add_corner)
     v_table: wp.array2d(dtype=Any),  # [total_rows, F] accumulated (zeroed by the caller)
 ):
     tid = wp.tid()
-    i = tid // n_levels
-    lvl = tid - i * n_levels
-    r = int(res[lvl])
+    i = tid // levels.res.shape[0]
+    lvl = tid - i * levels.res.shape[0]
     if not finite3(x, i):
         return
-    cx, fx = cell_coord(x[i, 0], r)
-    cy, fy = cell_coord(x[i, 1], r)
-    cz, fz = cell_coord(x[i, 2], r)
-    n_feat = v_table.shape[1]
+    r, off, size, dense = level(levels, lvl)
+    cx, cy, cz, fx, fy, fz = cell(x, i, r)
+    col = lvl * v_table.shape[1]
     for v in range(8):
-        row, w = corner(v, cx, cy, cz, fx, fy, fz, r, int(sizes[lvl]), int(dense_levels[lvl]))
-        for q in range(n_feat):
-            g = v_out[i, lvl * n_feat + q]
-            if g != x.dtype(0.0):
-                wp.atomic_add(v_table, int(offsets[lvl]) + row, q, w * g)
+        row, w = corner(v, cx, cy, cz, fx, fy, fz, r, size, dense)
+        add_corner(v_table, off + row, v_out, i, col, w, pairs)
 
 
 @wp.func
@@ -154,11 +221,7 @@ def hash_encode_bwd_x(
     x: wp.array2d(dtype=Any),  # [n, 3]
     table: wp.array2d(dtype=Any),  # [total_rows, F]
     v_out: wp.array2d(dtype=Any),  # [n, L * F]
-    res: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    sizes: wp.array(dtype=wp.int32),
-    dense_levels: wp.array(dtype=wp.int32),
-    n_levels: int,
+    levels: Levels,
     v_x: wp.array2d(dtype=Any),  # [n, 3] written
 ):
     i = wp.tid()
@@ -172,14 +235,9 @@ def hash_encode_bwd_x(
     gx = zero
     gy = zero
     gz = zero
-    for lvl in range(n_levels):
-        r = int(res[lvl])
-        size = int(sizes[lvl])
-        off = int(offsets[lvl])
-        dense = int(dense_levels[lvl])
-        cx, fx = cell_coord(x[i, 0], r)
-        cy, fy = cell_coord(x[i, 1], r)
-        cz, fz = cell_coord(x[i, 2], r)
+    for lvl in range(levels.res.shape[0]):
+        r, off, size, dense = level(levels, lvl)
+        cx, cy, cz, fx, fy, fz = cell(x, i, r)
         lx = zero
         ly = zero
         lz = zero
@@ -206,65 +264,11 @@ def hash_encode_bwd_x(
     v_x[i, 2] = gz * inside01(x[i, 2])
 
 
-# sm_90 adds two float32 values to adjacent, 8-byte aligned addresses in one atomic (CUDA's
-# float2 atomicAdd): half the atomics of the table's backward, whose throughput bounds it. Other
-# devices and the CPU add the two values one by one (the same sums).
-_ADD2 = """
-#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
-    atomicAdd(reinterpret_cast<float2*>(&wp::index(v_table, row, q)), make_float2(a, b));
-#else
-    wp::atomic_add(&wp::index(v_table, row, q), a);
-    wp::atomic_add(&wp::index(v_table, row, q + 1), b);
-#endif
-"""
-
-
-@wp.func_native(_ADD2)
-def atomic_add_pair(
-    v_table: wp.array2d(dtype=wp.float32), row: int, q: int, a: float, b: float
-): ...
-
-
-@wp.kernel(enable_backward=False)
-def hash_encode_bwd_pairs(
-    x: wp.array2d(dtype=wp.float32),  # [n, 3]
-    v_out: wp.array2d(dtype=wp.float32),  # [n, L * F], F even
-    res: wp.array(dtype=wp.int32),
-    offsets: wp.array(dtype=wp.int32),
-    sizes: wp.array(dtype=wp.int32),
-    dense_levels: wp.array(dtype=wp.int32),
-    n_levels: int,
-    v_table: wp.array2d(dtype=wp.float32),  # [total_rows, F] accumulated (zeroed by the caller)
-):
-    """``hash_encode_bwd`` for float32 tables with an even number of features (rows of 8-byte
-    aligned pairs): each pair of features goes into the table in one atomic on sm_90."""
-    tid = wp.tid()
-    i = tid // n_levels
-    lvl = tid - i * n_levels
-    r = int(res[lvl])
-    if not finite3(x, i):
-        return
-    cx, fx = cell_coord(x[i, 0], r)
-    cy, fy = cell_coord(x[i, 1], r)
-    cz, fz = cell_coord(x[i, 2], r)
-    n_feat = v_table.shape[1]
-    off = int(offsets[lvl])
-    for v in range(8):
-        row, w = corner(v, cx, cy, cz, fx, fy, fz, r, int(sizes[lvl]), int(dense_levels[lvl]))
-        for p in range(n_feat // 2):
-            q = 2 * p
-            g0 = v_out[i, lvl * n_feat + q]
-            g1 = v_out[i, lvl * n_feat + q + 1]
-            if g0 != 0.0 or g1 != 0.0:
-                atomic_add_pair(v_table, off + row, q, w * g0, w * g1)
-
-
 def _overloads(dtype):
     a2 = wp.array2d(dtype=dtype)
-    ai = wp.array(dtype=wp.int32)
-    wp.overload(hash_encode_fwd, [a2, a2, ai, ai, ai, ai, int, a2])
-    wp.overload(hash_encode_bwd, [a2, a2, ai, ai, ai, ai, int, a2])
-    wp.overload(hash_encode_bwd_x, [a2, a2, a2, ai, ai, ai, ai, int, a2])
+    wp.overload(hash_encode_fwd, [a2, a2, Levels, a2])
+    wp.overload(hash_encode_bwd, [a2, a2, Levels, int, a2])
+    wp.overload(hash_encode_bwd_x, [a2, a2, a2, Levels, a2])
 
 
 for _dt in (wp.float32, wp.float64):

@@ -23,7 +23,10 @@ are exactly the dense lattice intervals whose midpoint cell is occupied (tests c
 brute force). One kernel serves both passes: ``fill == 0`` counts a ray's samples (capped at
 ``max_samples``), ``fill == 1`` writes the first ``counts[r]`` of them at the ray's offset (the
 exclusive prefix sum of the counts; fewer than counted where a fixed-capacity buffer is full).
-``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done).
+``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done). The
+same kernel marches the contracted grid of unbounded scenes (below): a ``MarchGrid`` says which
+lattice a launch walks, and ``next_occupied`` is the one rule per step that the marcher and the
+rendering tracer (kernels/tracer.py) share.
 """
 
 import warp as wp
@@ -173,90 +176,6 @@ def march_next(
     return found, s, e
 
 
-@wp.kernel(enable_backward=False)
-def march(
-    origins: wp.array(dtype=wp.vec3),  # [n_rays]
-    directions: wp.array(dtype=wp.vec3),  # [n_rays]
-    t_lo: wp.array(dtype=float),  # [n_rays] lattice anchor (box entry clipped to near)
-    t_hi: wp.array(dtype=float),  # [n_rays] end (box exit clipped to far); <= t_lo: no samples
-    jitter: wp.array(dtype=float),  # [n_rays] lattice shift in [0, 1), or [0] for none
-    k_begin: wp.array(dtype=wp.int32),  # [n_rays] first lattice index, or [0] for 0
-    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8]
-    res: int,
-    lo: wp.vec3,
-    cell_size: wp.vec3,
-    dt: float,
-    max_samples: int,
-    fill: int,
-    offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
-    counts: wp.array(dtype=wp.int32),  # [n_rays] out (count pass); in (fill pass): samples to write
-    k_next: wp.array(dtype=wp.int32),  # [n_rays] out (count pass): next index, -1 = done
-    t_starts: wp.array(dtype=float),  # [n] out (fill pass)
-    t_ends: wp.array(dtype=float),  # [n] out (fill pass)
-    ray_indices: wp.array(dtype=wp.int32),  # [n] out (fill pass)
-):
-    r = wp.tid()
-    o = origins[r]
-    d = directions[r]
-    t0 = t_lo[r]
-    t1 = t_hi[r]
-    j = float(0.0)
-    if jitter.shape[0] > 0:
-        j = jitter[r]
-    k = int(0)
-    if k_begin.shape[0] > 0:
-        k = int(k_begin[r])
-    inv = wp.vec3(1.0 / cell_size[0], 1.0 / cell_size[1], 1.0 / cell_size[2])
-    n = int(0)
-    base = int(0)
-    limit = max_samples
-    if fill != 0:
-        base = int(offsets[r])
-        limit = int(counts[r])  # the count pass's own, or fewer (a fixed-capacity buffer)
-    if k < 0 or not (t1 > t0):
-        k = -1
-    while k >= 0 and n < limit:
-        found, s, e = march_next(o, d, t0, t1, j, k, bits, res, lo, cell_size, inv, dt)
-        if found < 0:
-            k = -1
-            break
-        if fill != 0:
-            t_starts[base + n] = s
-            t_ends[base + n] = e
-            ray_indices[base + n] = r
-        n += 1
-        k = found + 1
-    if fill == 0:
-        counts[r] = n
-        k_next[r] = k
-
-
-@wp.kernel(enable_backward=False)
-def live_counts(
-    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2]
-    t_starts: wp.array(dtype=float),  # [n]
-    t_ends: wp.array(dtype=float),  # [n]
-    sigmas: wp.array(dtype=float),  # [n]
-    t_threshold: float,
-    n_live: wp.array(dtype=wp.int32),  # [n_rays] out
-):
-    """The compositing kernels' early-termination rule on densities alone: a ray's live samples
-    are those before the first one whose transmittance T_i = exp(-sum_{j<i} sigma_j delta_j) is
-    below t_threshold."""
-    r = wp.tid()
-    start = int(packed_info[r, 0])
-    count = int(packed_info[r, 1])
-    log_t = float(0.0)
-    m = count
-    for k in range(count):
-        i = start + k
-        if wp.exp(log_t) < t_threshold:
-            m = k
-            break
-        log_t -= sigmas[i] * (t_ends[i] - t_starts[i])
-    n_live[r] = m
-
-
 # --- Unbounded scenes: the contracted grid ---------------------------------------------------
 #
 # Contraction (mip-NeRF 360's map, with the max norm as nerfstudio uses it for grids): with
@@ -329,19 +248,47 @@ def march_next_contracted(
     return found, s, e
 
 
+# --- One marcher for both grids ---------------------------------------------------------------
+
+
+@wp.struct
+class MarchGrid:
+    """What a marcher reads of a grid: its bitfield and its lattice, bounded (the box ``lo ..
+    lo + res * cell_size``, DDA skipping) or contracted (the cube [-2a, 2a]^3, steps growing by
+    ``cone``: "the contracted grid" below)."""
+
+    bits: wp.array(dtype=wp.uint8)  # [res^3 / 8]
+    res: int
+    lo: wp.vec3  # bounded: the box's lower corner
+    cell_size: wp.vec3  # bounded
+    dt: float
+    contracted: int
+    a: float  # contracted: the inner cube's half-size
+    cone: float  # contracted: the step's growth
+
+
+@wp.func
+def next_occupied(grid: MarchGrid, o: wp.vec3, d: wp.vec3, t0: float, t1: float, j: float, k: int):
+    """:func:`march_next` or :func:`march_next_contracted`, as the grid is: (index or -1, start,
+    end) of the ray's first occupied lattice interval at index >= k (t0: the bounded lattice's
+    anchor, or the contracted lattice's coordinate of near)."""
+    if grid.contracted != 0:
+        return march_next_contracted(o, d, t0, t1, j, k, grid.bits, grid.res, grid.a, grid.dt,
+                                     grid.cone)  # fmt: skip
+    size = grid.cell_size
+    inv = wp.vec3(1.0 / size[0], 1.0 / size[1], 1.0 / size[2])
+    return march_next(o, d, t0, t1, j, k, grid.bits, grid.res, grid.lo, size, inv, grid.dt)
+
+
 @wp.kernel(enable_backward=False)
-def march_contracted(
+def march(
     origins: wp.array(dtype=wp.vec3),  # [n_rays]
     directions: wp.array(dtype=wp.vec3),  # [n_rays]
-    s_lo: wp.array(dtype=float),  # [n_rays] lattice coordinate of the start, s(near)
-    t_hi: wp.array(dtype=float),  # [n_rays] end (far); <= t(s_lo): no samples
+    t_lo: wp.array(dtype=float),  # [n_rays] lattice anchor (box entry clipped to near) or s(near)
+    t_hi: wp.array(dtype=float),  # [n_rays] end (box exit or far); bounded, <= t_lo: no samples
     jitter: wp.array(dtype=float),  # [n_rays] lattice shift in [0, 1), or [0] for none
     k_begin: wp.array(dtype=wp.int32),  # [n_rays] first lattice index, or [0] for 0
-    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8] cells of the contracted cube [-2a, 2a]^3
-    res: int,
-    a: float,  # inner cube half-size
-    dt: float,
-    cone: float,
+    grid: MarchGrid,
     max_samples: int,
     fill: int,
     offsets: wp.array(dtype=wp.int32),  # [n_rays] first output slot (fill pass)
@@ -354,7 +301,7 @@ def march_contracted(
     r = wp.tid()
     o = origins[r]
     d = directions[r]
-    s0 = s_lo[r]
+    t0 = t_lo[r]
     t1 = t_hi[r]
     j = float(0.0)
     if jitter.shape[0] > 0:
@@ -368,10 +315,10 @@ def march_contracted(
     if fill != 0:
         base = int(offsets[r])
         limit = int(counts[r])  # the count pass's own, or fewer (a fixed-capacity buffer)
-    if k < 0:
+    if k < 0 or (grid.contracted == 0 and not (t1 > t0)):
         k = -1
     while k >= 0 and n < limit:
-        found, s, e = march_next_contracted(o, d, s0, t1, j, k, bits, res, a, dt, cone)
+        found, s, e = next_occupied(grid, o, d, t0, t1, j, k)
         if found < 0:
             k = -1
             break
@@ -384,6 +331,32 @@ def march_contracted(
     if fill == 0:
         counts[r] = n
         k_next[r] = k
+
+
+@wp.kernel(enable_backward=False)
+def live_counts(
+    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2]
+    t_starts: wp.array(dtype=float),  # [n]
+    t_ends: wp.array(dtype=float),  # [n]
+    sigmas: wp.array(dtype=float),  # [n]
+    t_threshold: float,
+    n_live: wp.array(dtype=wp.int32),  # [n_rays] out
+):
+    """The compositing kernels' early-termination rule on densities alone: a ray's live samples
+    are those before the first one whose transmittance T_i = exp(-sum_{j<i} sigma_j delta_j) is
+    below t_threshold."""
+    r = wp.tid()
+    start = int(packed_info[r, 0])
+    count = int(packed_info[r, 1])
+    log_t = float(0.0)
+    m = count
+    for k in range(count):
+        i = start + k
+        if wp.exp(log_t) < t_threshold:
+            m = k
+            break
+        log_t -= sigmas[i] * (t_ends[i] - t_starts[i])
+    n_live[r] = m
 
 
 # --- The static-shape step's per-sample gathers (warpnerf.render_marched_fixed) -------------

@@ -98,52 +98,48 @@ def decides(op: int, acc: float, d: float):
     return d < acc
 
 
+@wp.struct
+class Scene:
+    """A scene's m primitives, in folding order."""
+
+    kinds: wp.array(dtype=wp.int32)  # [m] SPHERE .. PLANE
+    params: wp.array(dtype=wp.vec4)  # [m] meaning per kind (see above)
+    rots: wp.array(dtype=wp.mat33)  # [m] world-to-local
+    centers: wp.array(dtype=wp.vec3)  # [m]
+    ops: wp.array(dtype=wp.int32)  # [m] UNION .. SUBTRACTION (the first one's is not read)
+    ks: wp.array(dtype=float)  # [m] smooth-union widths
+
+
 @wp.func
-def scene_eval(
-    p: wp.vec3,
-    kinds: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=wp.vec4),
-    rots: wp.array(dtype=wp.mat33),
-    centers: wp.array(dtype=wp.vec3),
-    ops: wp.array(dtype=wp.int32),
-    ks: wp.array(dtype=float),
-):
+def scene_eval(p: wp.vec3, scene: Scene):
     """(distance, deciding primitive) of the folded scene at p."""
     acc = float(0.0)
     pid = int(-1)
-    for i in range(kinds.shape[0]):
-        d = primitive_sdf(int(kinds[i]), params[i], rots[i] * (p - centers[i]))
+    for i in range(scene.kinds.shape[0]):
+        q = scene.rots[i] * (p - scene.centers[i])
+        d = primitive_sdf(int(scene.kinds[i]), scene.params[i], q)
         if i == 0:
             acc = d
             pid = 0
         else:
-            op = int(ops[i])
+            op = int(scene.ops[i])
             if decides(op, acc, d):
                 pid = i
-            acc = combine(op, acc, d, ks[i])
+            acc = combine(op, acc, d, scene.ks[i])
     return acc, pid
 
 
 @wp.func
-def scene_normal(
-    p: wp.vec3,
-    h: float,
-    kinds: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=wp.vec4),
-    rots: wp.array(dtype=wp.mat33),
-    centers: wp.array(dtype=wp.vec3),
-    ops: wp.array(dtype=wp.int32),
-    ks: wp.array(dtype=float),
-):
+def scene_normal(p: wp.vec3, h: float, scene: Scene):
     """Unit gradient by the tetrahedral central difference (4 evaluations, error O(h^2))."""
     k0 = wp.vec3(1.0, -1.0, -1.0)
     k1 = wp.vec3(-1.0, -1.0, 1.0)
     k2 = wp.vec3(-1.0, 1.0, -1.0)
     k3 = wp.vec3(1.0, 1.0, 1.0)
-    d0, i0 = scene_eval(p + h * k0, kinds, params, rots, centers, ops, ks)
-    d1, i1 = scene_eval(p + h * k1, kinds, params, rots, centers, ops, ks)
-    d2, i2 = scene_eval(p + h * k2, kinds, params, rots, centers, ops, ks)
-    d3, i3 = scene_eval(p + h * k3, kinds, params, rots, centers, ops, ks)
+    d0, i0 = scene_eval(p + h * k0, scene)
+    d1, i1 = scene_eval(p + h * k1, scene)
+    d2, i2 = scene_eval(p + h * k2, scene)
+    d3, i3 = scene_eval(p + h * k3, scene)
     g = d0 * k0 + d1 * k1 + d2 * k2 + d3 * k3
     return wp.normalize(g)
 
@@ -151,17 +147,12 @@ def scene_normal(
 @wp.kernel(enable_backward=False)
 def scene_sdf_fwd(
     points: wp.array(dtype=wp.vec3),  # [n]
-    kinds: wp.array(dtype=wp.int32),  # [m]
-    params: wp.array(dtype=wp.vec4),  # [m]
-    rots: wp.array(dtype=wp.mat33),  # [m] world-to-local
-    centers: wp.array(dtype=wp.vec3),  # [m]
-    ops: wp.array(dtype=wp.int32),  # [m]
-    ks: wp.array(dtype=float),  # [m]
+    scene: Scene,
     sdf: wp.array(dtype=float),  # [n] out
     ids: wp.array(dtype=wp.int32),  # [n] out
 ):
     tid = wp.tid()
-    d, pid = scene_eval(points[tid], kinds, params, rots, centers, ops, ks)
+    d, pid = scene_eval(points[tid], scene)
     sdf[tid] = d
     ids[tid] = pid
 
@@ -177,12 +168,7 @@ def sphere_trace_fwd(
     directions: wp.array(dtype=wp.vec3),  # [n] unit length
     near: wp.array(dtype=float),  # [n]
     far: wp.array(dtype=float),  # [n]
-    kinds: wp.array(dtype=wp.int32),
-    params: wp.array(dtype=wp.vec4),
-    rots: wp.array(dtype=wp.mat33),
-    centers: wp.array(dtype=wp.vec3),
-    ops: wp.array(dtype=wp.int32),
-    ks: wp.array(dtype=float),
+    scene: Scene,
     eps: float,
     omega0: float,
     max_iters: int,
@@ -225,7 +211,7 @@ def sphere_trace_fwd(
             st = MISS
             t = t_far
             break
-        dist, pid = scene_eval(o + t * d, kinds, params, rots, centers, ops, ks)
+        dist, pid = scene_eval(o + t * d, scene)
         n_eval += 1
         if n_eval == 1 and dist < 0.0:
             st = INSIDE
@@ -252,5 +238,5 @@ def sphere_trace_fwd(
     p = o + t * d
     points[tid] = p
     if st == HIT:
-        normals[tid] = scene_normal(p, normal_eps, kinds, params, rots, centers, ops, ks)
+        normals[tid] = scene_normal(p, normal_eps, scene)
         ids[tid] = pid

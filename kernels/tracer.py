@@ -4,13 +4,14 @@ gradients).
 
 State per ray (allocated once per call): ``k`` the next lattice index (the occupancy marchers'
 lattice, -1: the ray has no sample left), ``log_t`` the log transmittance, the accumulated
-``rgb`` and ``depth``. A live list holds the ray ids still marching; its count lives in a device
-counter, so kernels launched over an upper bound read it there.
+``rgb`` and ``depth``. A live list (``LiveList``) holds the ray ids still marching; its count
+lives in a device counter, so kernels launched over an upper bound read it there. Two lists take
+turns: a round reads the current one and appends the rays that go on to the next.
 
 One round, live ray at list position i marching ``n_steps`` samples:
 
     trace_march      slots [i * n_steps, i * n_steps + n_i): the ray's next n_i <= n_steps
-                     occupied lattice intervals (``march_next``: the marchers' own rule), their
+                     occupied lattice intervals (``next_occupied``: the marcher's own rule), their
                      midpoint positions, directions, t_starts, t_ends; unused slots hold the ray's
                      origin and a zero interval. Then k is advanced to the ray's next occupied
                      interval (-1 when there is none), so a ray that is done leaves the list now.
@@ -32,75 +33,55 @@ and the rays that have one form the first live list.
 import warp as wp
 
 from .composite import optical_depth
-from .occupancy import march_next, march_next_contracted
+from .occupancy import MarchGrid, next_occupied
+
+
+@wp.struct
+class LiveList:
+    """Ray ids and the device counters of the round that fills them."""
+
+    ids: wp.array(dtype=wp.int32)  # [n_rays] the list: ids[0 .. counters[0])
+    counters: wp.array(dtype=wp.int32)  # [3] 0: the list's length, 1: slots to colour, 2: samples
 
 
 @wp.func
-def next_interval(
-    o: wp.vec3,
-    d: wp.vec3,
-    t0: float,
-    t1: float,
-    k: int,
-    contracted: int,
-    bits: wp.array(dtype=wp.uint8),
-    res: int,
-    lo: wp.vec3,
-    cell_size: wp.vec3,
-    dt: float,
-    a: float,
-    cone: float,
-):
-    """The ray's first occupied lattice interval at index >= k on a bounded grid (t0: the
-    lattice anchor) or a contracted one (t0: the lattice coordinate of near)."""
-    if contracted != 0:
-        return march_next_contracted(o, d, t0, t1, 0.0, k, bits, res, a, dt, cone)
-    inv = wp.vec3(1.0 / cell_size[0], 1.0 / cell_size[1], 1.0 / cell_size[2])
-    return march_next(o, d, t0, t1, 0.0, k, bits, res, lo, cell_size, inv, dt)
+def join(lst: LiveList, r: int):
+    """Appends ray r to the list (an atomic add on its length: the order is not fixed)."""
+    lst.ids[wp.atomic_add(lst.counters, 0, 1)] = r
 
 
 @wp.kernel(enable_backward=False)
 def trace_march(
-    live: wp.array(dtype=wp.int32),  # [>= n_live] ray ids of the live rays
-    n_live: wp.array(dtype=wp.int32),  # [>= 1] the live count (element 0)
+    cur: LiveList,  # the live rays
     n_steps: int,  # slots per live ray; 0: prime (see the module's docstring)
     origins: wp.array(dtype=wp.vec3),  # [n_rays]
     directions: wp.array(dtype=wp.vec3),  # [n_rays]
     t_lo: wp.array(dtype=float),  # [n_rays] lattice anchor (contracted: s(near))
     t_hi: wp.array(dtype=float),  # [n_rays] end (bounded: <= t_lo: no samples)
-    contracted: int,
-    bits: wp.array(dtype=wp.uint8),  # [res^3 / 8]
-    res: int,
-    lo: wp.vec3,
-    cell_size: wp.vec3,
-    dt: float,
-    a: float,  # contracted: the inner cube's half-size
-    cone: float,  # contracted: the step's growth
+    grid: MarchGrid,
     k_state: wp.array(dtype=wp.int32),  # [n_rays] in/out: next lattice index, -1 = done
     positions: wp.array(dtype=wp.vec3),  # [n_live * n_steps] out: the samples' midpoints
     dirs: wp.array(dtype=wp.vec3),  # [n_live * n_steps] out: their rays' directions
     t_starts: wp.array(dtype=float),  # [n_live * n_steps] out
     t_ends: wp.array(dtype=float),  # [n_live * n_steps] out
     counts: wp.array(dtype=wp.int32),  # [n_live] out: samples in each live ray's slots
-    counters: wp.array(dtype=wp.int32),  # [3] out: (prime: live rays), 2: samples marched
-    next_live: wp.array(dtype=wp.int32),  # [n_rays] out (prime): the first live list
+    nxt: LiveList,  # out: samples marched (counter 2); prime: the first live list
 ):
     i = wp.tid()
-    if i >= n_live[0]:
+    if i >= cur.counters[0]:
         return
-    r = live[i]
+    r = cur.ids[i]
     o = origins[r]
     d = directions[r]
     t0 = t_lo[r]
     t1 = t_hi[r]
     k = int(k_state[r])
-    if contracted == 0 and not (t1 > t0):
+    if grid.contracted == 0 and not (t1 > t0):
         k = -1
     base = i * n_steps
     n = int(0)
     while k >= 0 and n < n_steps:
-        found, s, e = next_interval(o, d, t0, t1, k, contracted, bits, res, lo, cell_size, dt,
-                                    a, cone)  # fmt: skip
+        found, s, e = next_occupied(grid, o, d, t0, t1, 0.0, k)
         if found < 0:
             k = -1
         else:
@@ -111,17 +92,16 @@ def trace_march(
             n += 1
             k = found + 1
     if k >= 0:  # the next sample's index, or -1: a ray with none left leaves the list now
-        found, s, e = next_interval(o, d, t0, t1, k, contracted, bits, res, lo, cell_size, dt,
-                                    a, cone)  # fmt: skip
+        found, s, e = next_occupied(grid, o, d, t0, t1, 0.0, k)
         k = found
     k_state[r] = k
     if n_steps == 0:
         if k >= 0:
-            next_live[wp.atomic_add(counters, 0, 1)] = r
+            join(nxt, r)
         return
     counts[i] = n
     if n > 0:
-        wp.atomic_add(counters, 2, n)
+        wp.atomic_add(nxt.counters, 2, n)
     for jj in range(n, n_steps):  # unused slots: finite inputs no ray composites
         positions[base + jj] = o
         dirs[base + jj] = d
@@ -131,8 +111,7 @@ def trace_march(
 
 @wp.kernel(enable_backward=False)
 def trace_composite(
-    live: wp.array(dtype=wp.int32),  # [>= n_live]
-    n_live: wp.array(dtype=wp.int32),  # [>= 1] the live count (element 0)
+    cur: LiveList,
     n_steps: int,
     counts: wp.array(dtype=wp.int32),  # [n_live]
     t_starts: wp.array(dtype=float),  # [n_live * n_steps]
@@ -147,13 +126,12 @@ def trace_composite(
     depth: wp.array(dtype=float),  # [n_rays] in/out
     weights: wp.array(dtype=float),  # [n_live * n_steps] out (no rgbs): w_i, 0 below color_eps
     color_slots: wp.array(dtype=wp.int32),  # [n_live * n_steps] out (no rgbs): slots to colour
-    counters: wp.array(dtype=wp.int32),  # [>= 2] out: 0 next live rays, 1 slots to colour
-    next_live: wp.array(dtype=wp.int32),  # [n_rays] out: the next live list
+    nxt: LiveList,  # out: the next live list, the slots to colour (counter 1)
 ):
     i = wp.tid()
-    if i >= n_live[0]:
+    if i >= cur.counters[0]:
         return
-    r = live[i]
+    r = cur.ids[i]
     base = i * n_steps
     m = int(counts[i])
     colored = rgbs.shape[0] > 0
@@ -179,7 +157,7 @@ def trace_composite(
                 c2 += w * rgbs[slot, 2]
             elif w >= color_eps or not wp.isfinite(w):  # (a NaN weight is coloured: it
                 weights[slot] = w  # reaches the ray's colour on every device, as compositing's)
-                color_slots[wp.atomic_add(counters, 1, 1)] = slot
+                color_slots[wp.atomic_add(nxt.counters, 1, 1)] = slot
             else:
                 weights[slot] = 0.0
             dep += w * 0.5 * (t_starts[slot] + t_ends[slot])
@@ -191,13 +169,12 @@ def trace_composite(
         rgb[r, 1] = rgb[r, 1] + c1
         rgb[r, 2] = rgb[r, 2] + c2
     if k_state[r] >= 0 and wp.exp(lt) >= t_threshold:
-        next_live[wp.atomic_add(counters, 0, 1)] = r
+        join(nxt, r)
 
 
 @wp.kernel(enable_backward=False)
 def trace_shade(
-    live: wp.array(dtype=wp.int32),  # [>= n_live]
-    n_live: wp.array(dtype=wp.int32),  # [>= 1] the live count (element 0)
+    cur: LiveList,
     n_steps: int,
     counts: wp.array(dtype=wp.int32),  # [n_live]
     weights: wp.array(dtype=float),  # [n_live * n_steps] from trace_composite
@@ -205,9 +182,9 @@ def trace_shade(
     rgb: wp.array2d(dtype=float),  # [n_rays, 3] in/out
 ):
     i = wp.tid()
-    if i >= n_live[0]:
+    if i >= cur.counters[0]:
         return
-    r = live[i]
+    r = cur.ids[i]
     base = i * n_steps
     c0 = float(0.0)
     c1 = float(0.0)

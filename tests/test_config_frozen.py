@@ -35,6 +35,77 @@ def test_a_validated_config_is_frozen_and_the_draft_untouched(cfg):
     assert changed.validate().frozen
 
 
+# what a COLMAP capture decides for a run (train.nerf_config.scene_settings), saved as ``scene``
+SCENE = {"format": "colmap", "transform": [[1.0, 0, 0, 0.5], [0, 1.0, 0, 0], [0, 0, 1.0, 0],
+                                           [0, 0, 0, 1]],
+         "ndc": None, "near": 0.1, "far": 5.0, "aabb": 1.2, "inner": 0.8}  # fmt: skip
+
+
+def test_a_frozen_configs_dicts_and_lists_are_read_only_too():
+    frozen = NeRFConfig(data="builtin", field="hash").validate(scene=SCENE)
+    assert frozen.scene == SCENE and frozen.field_options == {}
+    for change in (
+        lambda: frozen.scene.__setitem__("near", 1.0),
+        lambda: frozen.scene.update(far=9.0),
+        lambda: frozen.scene.pop("inner"),
+        lambda: frozen.scene.setdefault("extra", 1),
+        lambda: frozen.scene.__delitem__("aabb"),
+        lambda: frozen.scene.clear(),
+        lambda: frozen.scene["transform"][0].__setitem__(3, 7.0),
+        lambda: frozen.scene["transform"].append([0, 0, 0, 1]),
+        lambda: frozen.field_options.__setitem__("x", 1),
+        lambda: frozen.field_options.update(x=1),
+    ):
+        with pytest.raises(TypeError, match="read-only"):
+            change()
+    with pytest.raises(TypeError, match="read-only"):
+        frozen.scene |= {"near": 1.0}
+    assert frozen.scene == SCENE and frozen.field_options == {}
+    # a changed config is a new one, with writable copies: the frozen one stays as it was
+    changed = dataclasses.replace(frozen, scene=dict(frozen.scene, near=0.2))
+    changed.scene["transform"][0][3] = 7.0
+    assert changed.scene["near"] == 0.2 and frozen.scene == SCENE
+    # the values a caller handed in are copied, not shared
+    mine = json.loads(json.dumps(SCENE))
+    cfg = NeRFConfig(data="builtin", field="hash").validate(scene=mine)
+    mine["near"] = 3.0
+    assert cfg.scene["near"] == 0.1
+
+
+def test_a_frozen_config_saves_loads_and_copies_as_before():
+    import copy
+    import pickle
+
+    frozen = NeRFConfig(data="builtin", field="hash").validate(scene=SCENE)
+    d = frozen.to_dict()  # plain dicts and lists, the same JSON as the values
+    assert type(d["scene"]) is dict and type(d["scene"]["transform"][0]) is list
+    assert json.dumps(d) == json.dumps(dataclasses.asdict(frozen))
+    assert json.loads(json.dumps(d))["scene"] == SCENE
+    loaded = NeRFConfig.from_dict(json.loads(json.dumps(d))).freeze()
+    assert loaded == frozen and loaded.frozen
+    for twin in (copy.deepcopy(frozen), pickle.loads(pickle.dumps(frozen))):
+        assert twin == frozen and twin.frozen
+        with pytest.raises(TypeError, match="read-only"):
+            twin.scene["near"] = 1.0
+
+
+def test_old_runs_load_frozen_with_the_same_config_json():
+    from pathlib import Path
+
+    from warpnerf.train.box_fit import BoxFitConfig as Box
+
+    fixtures = Path(__file__).parent / "data" / "runs_986359d"
+    for name, cls in (("nerf_mlp", NeRFConfig), ("nerf_hash", NeRFConfig),
+                      ("sdf_mlp", SDFConfig), ("box", Box)):  # fmt: skip
+        saved = json.loads((fixtures / name / "config.json").read_text())
+        if cls is Box:  # (the box run saves its data and device beside its config)
+            saved = {k: v for k, v in saved.items() if k in cls.__dataclass_fields__}
+        cfg = cls.from_dict(saved).freeze()
+        assert cfg.frozen
+        # the keys and values it saves are the file's (older files lack the newer keys)
+        assert {k: v for k, v in cfg.to_dict().items() if k in saved} == saved
+
+
 def test_nerf_resolve_fills_in_a_copy():
     cfg = NeRFConfig(data="builtin", field="hash")
     resolved = cfg.resolve(train_images=7)

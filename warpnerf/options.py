@@ -27,6 +27,7 @@ import math
 __all__ = [
     "option", "add_flags", "from_flags", "apply_preset", "flag_of", "number_type", "CHECKS",
     "with_defaults", "section_of", "section_declaring", "check_at_least", "Settings",
+    "ReadOnlyDict", "ReadOnlyList", "read_only", "writable",
 ]  # fmt: skip
 
 _AUTO = "auto"
@@ -108,15 +109,66 @@ def option(
     return dataclasses.field(default=default, metadata=meta)
 
 
+class ReadOnlyDict(dict):
+    """A frozen config's dict value (``scene``, ``field_options``): a dict to every reader
+    (``isinstance``, ``==``, ``json.dumps``), but changing it in place raises TypeError. A changed
+    value makes a changed config: ``dataclasses.replace(cfg, scene=dict(cfg.scene, near=1.0))``."""
+
+    def _refuse(self, *args, **kwargs):
+        raise TypeError(
+            "a frozen config's values are read-only: make a changed copy (dict(value, ...)) and "
+            "a changed config with dataclasses.replace"
+        )
+
+    __setitem__ = __delitem__ = __ior__ = clear = pop = popitem = setdefault = update = _refuse
+
+    def __reduce__(self):  # (copies and pickles rebuild it whole, not item by item)
+        return type(self), (dict(self),)
+
+
+class ReadOnlyList(list):
+    """A list inside a frozen config's value (a capture's ``transform`` rows, its NDC camera):
+    a list to every reader, read-only as :class:`ReadOnlyDict`."""
+
+    _refuse = ReadOnlyDict._refuse
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = _refuse
+    append = extend = insert = pop = remove = clear = sort = reverse = _refuse
+
+    def __reduce__(self):
+        return type(self), (list(self),)
+
+
+def read_only(value):
+    """``value`` with its dicts and lists (at any depth) as read-only copies."""
+    if isinstance(value, dict):
+        return ReadOnlyDict({k: read_only(v) for k, v in value.items()})
+    if isinstance(value, list):
+        return ReadOnlyList(read_only(v) for v in value)
+    return value
+
+
+def writable(value):
+    """``value`` with its dicts and lists (at any depth) as plain, writable copies."""
+    if isinstance(value, dict):
+        return {k: writable(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [writable(v) for v in value]
+    return value
+
+
 class Settings:
     """The base of a run's config: built (from flags, a preset or a saved config.json),
     resolved and checked once, then :meth:`freeze` makes it read-only: setting a field of a
-    frozen config raises ``dataclasses.FrozenInstanceError``. A changed config is a new one,
-    ``dataclasses.replace(cfg, ...)`` (not frozen, to be checked and frozen in its turn);
-    values that change while a run trains live on its task, not on its config."""
+    frozen config raises ``dataclasses.FrozenInstanceError``, changing one of its dict or list
+    values in place (``cfg.scene["near"] = 1``) a TypeError. A changed config is a new one,
+    ``dataclasses.replace(cfg, ...)`` (not frozen, its dicts and lists writable copies, to be
+    checked and frozen in its turn); values that change while a run trains live on its task, not
+    on its config."""
 
     def freeze(self):
-        """Makes this config read-only (and returns it)."""
+        """Makes this config read-only, its dict and list values too (and returns it)."""
+        for f in dataclasses.fields(self):
+            object.__setattr__(self, f.name, read_only(getattr(self, f.name)))
         object.__setattr__(self, "_frozen", True)
         return self
 
@@ -124,13 +176,18 @@ class Settings:
     def frozen(self) -> bool:
         return self.__dict__.get("_frozen", False)
 
+    def to_dict(self) -> dict:
+        """The config as its config.json holds it (plain dicts and lists)."""
+        return writable(dataclasses.asdict(self))
+
     def __setattr__(self, name, value):
         if self.__dict__.get("_frozen", False):
             raise dataclasses.FrozenInstanceError(
                 f"cannot set {name!r}: a {type(self).__name__} is read-only once resolved and "
                 "checked (make a changed copy with dataclasses.replace)"
             )
-        object.__setattr__(self, name, value)
+        # (a copy of a frozen config, or a value taken from one, gets writable dicts and lists)
+        object.__setattr__(self, name, writable(value))
 
     def __delattr__(self, name):
         if self.__dict__.get("_frozen", False):

@@ -82,19 +82,28 @@ class HashGrid:
     def out_dim(self) -> int:
         return self.n_levels * self.n_features
 
-    def level_tensors(self, device) -> tuple:
-        """(res, offsets, sizes, dense) as int32 tensors on device (cached per device)."""
-        key = str(device)
-        cache = self.__dict__.setdefault("_tensors", {})
-        if key not in cache:
-            cols = list(zip(*self.levels))
-            cols.append([int((r + 1) ** 3 <= rows) for r, _, rows in self.levels])
-            cache[key] = tuple(torch.tensor(c, dtype=torch.int32, device=device) for c in cols)
-        return cache[key]
+
+_LEVELS: dict = {}  # (grid, device) -> the kernels' Levels (equal grids share one)
+
+
+def _levels(grid: HashGrid, device: torch.device):
+    """The kernels' ``Levels`` struct of ``grid`` on ``device``: per level its cells per side,
+    first row, rows and whether it is indexed densely, int32 arrays [L] made once."""
+    key = (grid, str(device))
+    lv = _LEVELS.get(key)
+    if lv is None:
+        from warpnerf.kernels import encoding as K
+
+        wp = bridge.load_warp()
+        cols = [*zip(*grid.levels), [int((r + 1) ** 3 <= rows) for r, _, rows in grid.levels]]
+        arrays = [wp.from_torch(torch.tensor(c, dtype=torch.int32, device=device)) for c in cols]
+        lv = _LEVELS[key] = K.Levels()
+        lv.res, lv.offsets, lv.sizes, lv.dense = arrays
+    return lv
 
 
 # The table's backward for float32 tables of an even number of features: "pairs" adds two
-# features per atomic on sm_90 (kernels/encoding.py, hash_encode_bwd_pairs; the same sums one by
+# features per atomic on sm_90 (kernels/encoding.py, add_corner; the same sums one by
 # one elsewhere), False: one atomic per feature. Switched only through encoding_kernels().
 _IMPL = {"pairs": True}
 
@@ -117,13 +126,12 @@ class _HashEncode(torch.autograd.Function):
     def forward(ctx, x, table, grid):
         from warpnerf.kernels import encoding as K
 
-        lv = [bridge.arr(t) for t in grid.level_tensors(x.device)]
         out = torch.empty(x.shape[0], grid.out_dim, device=x.device, dtype=x.dtype)
         a = bridge.arr
         bridge.launch(
             K.hash_encode_fwd,
             x.shape[0] * grid.n_levels,
-            [a(x), a(table), *lv, grid.n_levels, a(out)],
+            [a(x), a(table), _levels(grid, x.device), a(out)],
             x.device,
         )
         ctx.save_for_backward(x, table if ctx.needs_input_grad[0] else None)
@@ -137,7 +145,7 @@ class _HashEncode(torch.autograd.Function):
 
         x, table = ctx.saved_tensors
         grid = ctx.grid
-        lv = [bridge.arr(t) for t in grid.level_tensors(x.device)]
+        lv = _levels(grid, x.device)
         a = bridge.arr
         v_out = v_out.contiguous()
         v_table = v_x = None
@@ -145,9 +153,9 @@ class _HashEncode(torch.autograd.Function):
             v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
             pairs = _IMPL["pairs"] and x.dtype == torch.float32 and grid.n_features % 2 == 0
             bridge.launch(
-                K.hash_encode_bwd_pairs if pairs else K.hash_encode_bwd,
+                K.hash_encode_bwd,
                 x.shape[0] * grid.n_levels,
-                [a(x), a(v_out), *lv, grid.n_levels, a(v_table)],
+                [a(x), a(v_out), lv, int(pairs), a(v_table)],
                 x.device,
             )
         if ctx.needs_input_grad[0]:
@@ -155,7 +163,7 @@ class _HashEncode(torch.autograd.Function):
             bridge.launch(
                 K.hash_encode_bwd_x,
                 x.shape[0],
-                [a(x), a(table), a(v_out), *lv, grid.n_levels, a(v_x)],
+                [a(x), a(table), a(v_out), lv, a(v_x)],
                 x.device,
             )
         return v_x, v_table, None

@@ -57,6 +57,22 @@ def _cell_geometry(aabb, res: int):
     return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
 
 
+def march_grid(bits: torch.Tensor, res: int, box, dt: float, contract=0.0, cone=0.0):
+    """The marching kernels' ``MarchGrid`` of a grid's ``bits`` [res^3 / 8] uint8: the bounded
+    box ``box`` [6] float32, or with ``contract`` > 0 the contracted cube of that inner
+    half-size (``box`` then unread, the steps growing by ``cone``)."""
+    from warpnerf.kernels import occupancy as K
+
+    wp = bridge.load_warp()
+    g = K.MarchGrid()
+    g.bits = wp.from_torch(bits)
+    g.res, g.dt, g.contracted = int(res), float(dt), int(bool(contract))
+    g.a, g.cone = float(contract), float(cone)
+    if not contract:
+        g.lo, g.cell_size = _cell_geometry(box, res)
+    return g
+
+
 def _check_rays_and_bits(origins, directions, res, bits) -> tuple:
     """(n_rays, device) of a march's rays (float32 [n, 3] on one device) after checking them and
     the grid's packed ``bits`` (uint8 [res^3 / 8] on the same device); ValueError otherwise."""
@@ -223,22 +239,9 @@ def march_rays(
     jit, kb, bad = _lattice_inputs(jitter, k_begin, n_rays, dev, bad)
     jitter = None if jitter is None else jit  # (a refusal's message checks what the kernel saw)
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
-    lo, size = _cell_geometry(box, res)
     a = bridge.arr
-    head = [
-        a(origins, wp.vec3),
-        a(directions, wp.vec3),
-        a(t_lo),
-        a(t_hi),
-        a(jit),
-        a(kb),
-        a(bits),
-        res,
-        lo,
-        size,
-        float(dt),
-        int(max_samples),
-    ]
+    head = [a(origins, wp.vec3), a(directions, wp.vec3), a(t_lo), a(t_hi), a(jit), a(kb),
+            march_grid(bits, res, box, dt), int(max_samples)]  # fmt: skip
 
     def refuse():
         raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
@@ -423,15 +426,13 @@ def march_rays_contracted(
     t_hi = torch.where(bad, torch.zeros_like(far), far).contiguous()  # refused: no samples
     s_lo = torch.where(bad, torch.zeros_like(s_lo), s_lo).contiguous()
     a_ = bridge.arr
-    head = [
-        a_(origins, wp.vec3), a_(directions, wp.vec3), a_(s_lo), a_(t_hi), a_(jit), a_(kb),
-        a_(bits), res, float(a), float(dt), float(cone), int(max_samples),
-    ]  # fmt: skip
+    head = [a_(origins, wp.vec3), a_(directions, wp.vec3), a_(s_lo), a_(t_hi), a_(jit), a_(kb),
+            march_grid(bits, res, None, dt, contract=a, cone=cone), int(max_samples)]  # fmt: skip
 
     def refuse():
         raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin, contracted=True)
 
-    return _march_passes(K.march_contracted, head, n_rays, bad, capacity, dev, refuse)
+    return _march_passes(K.march, head, n_rays, bad, capacity, dev, refuse)
 
 
 def lattice_bounds_contracted(origins, directions, near, far, dt: float, cone: float) -> tuple:

@@ -66,18 +66,9 @@ def stratified_samples(
         )
     if n_rays and not bool(torch.isfinite(near).all() & torch.isfinite(far).all()):
         raise ValueError("near and far must be finite (a NaN/Inf bound would hide a bad ray)")
-    if packed:
-        counts = torch.where(far > near, n_samples, 0).to(torch.int64)
-        starts = torch.cumsum(counts, 0) - counts
-        packed_info = torch.stack([starts, counts], -1).to(torch.int32)
-        n = int(counts.sum())
-        ray_indices = torch.empty(n, device=dev, dtype=torch.int64)
-    else:
-        n = n_rays * n_samples
-        packed_info = torch.empty(0, 2, device=dev, dtype=torch.int32)
-        ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
-    t_starts = torch.empty(n, device=dev, dtype=dt)
-    t_ends = torch.empty(n, device=dev, dtype=dt)
+    counts = torch.where(far > near, n_samples, 0).to(torch.int64) if packed else None
+    n = int(counts.sum()) if packed else n_rays * n_samples
+    packed_info, t_starts, t_ends, ray_indices = _outputs(n, counts, near)
     a = bridge.arr
     bridge.launch(
         K.stratified_fwd,
@@ -90,15 +81,11 @@ def stratified_samples(
             int(perturb),
             int(seed) & 0x7FFFFFFF,
             ray_offset,
-            a(t_starts),
-            a(t_ends),
-            a(ray_indices),
+            *map(a, (t_starts, t_ends, ray_indices)),
         ],
         dev,
     )
-    if packed:
-        return Samples(t_starts, t_ends, ray_indices, packed_info)
-    return Samples(t_starts.reshape(n_rays, n_samples), t_ends.reshape(n_rays, n_samples))
+    return _samples(packed_info, t_starts, t_ends, ray_indices, None if packed else n_samples)
 
 
 def importance_samples(
@@ -200,16 +187,12 @@ def importance_samples(
     if not contiguous:
         raise ValueError("samples must partition each ray: t_ends[k] == t_starts[k + 1] within it")
 
-    if packed:
-        out_info = torch.stack([torch.cumsum(out_counts, 0) - out_counts, out_counts], -1)
-        out_info = out_info.to(torch.int32)
-        out_ray_indices = torch.empty(n_out, device=dev, dtype=torch.int64)
-        in_info = packed_info.contiguous()
-    else:
-        out_info = in_info = torch.empty(0, 2, device=dev, dtype=torch.int32)
-        out_ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
-    out_starts = torch.empty(n_out, device=dev, dtype=dt)
-    out_ends = torch.empty(n_out, device=dev, dtype=dt)
+    in_info = (
+        packed_info.contiguous() if packed else torch.empty(0, 2, device=dev, dtype=torch.int32)
+    )
+    out_info, out_starts, out_ends, out_ray_indices = _outputs(
+        n_out, out_counts if packed else None, ts
+    )
     a = bridge.arr
     bridge.launch(
         K.importance_fwd,
@@ -225,17 +208,35 @@ def importance_samples(
             int(perturb),
             (int(seed) ^ _IMPORTANCE_SALT) & 0x7FFFFFFF,
             ray_offset,
-            a(out_info),
-            a(out_starts),
-            a(out_ends),
-            a(out_ray_indices),
+            *map(a, (out_info, out_starts, out_ends, out_ray_indices)),
         ],
         dev,
     )
-    if packed:
-        return Samples(out_starts, out_ends, out_ray_indices, out_info)
-    shape = (n_rays, n_c + n_fine)
-    return Samples(out_starts.reshape(shape), out_ends.reshape(shape))
+    return _samples(
+        out_info, out_starts, out_ends, out_ray_indices, None if packed else n_c + n_fine
+    )
+
+
+def _outputs(n: int, counts: torch.Tensor | None, like: torch.Tensor) -> tuple:
+    """A sampler's outputs for ``n`` samples: (packed_info [n_rays, 2] int32 of the rays' sample
+    ``counts`` [n_rays] int64, or [0, 2] in the dense layout (``counts`` None); t_starts and
+    t_ends [n] of ``like``'s dtype and device; ray_indices [n] int64, or [0] dense)."""
+    dev = like.device
+    if counts is None:
+        info = torch.empty(0, 2, device=dev, dtype=torch.int32)
+        ray_indices = torch.empty(0, device=dev, dtype=torch.int64)
+    else:
+        info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
+        ray_indices = torch.empty(n, device=dev, dtype=torch.int64)
+    t_starts = torch.empty(n, device=dev, dtype=like.dtype)
+    return info, t_starts, torch.empty_like(t_starts), ray_indices
+
+
+def _samples(packed_info, t_starts, t_ends, ray_indices, per_ray: int | None) -> Samples:
+    """The Samples of a sampler's outputs: packed, or dense with ``per_ray`` samples per ray."""
+    if per_ray is None:
+        return Samples(t_starts, t_ends, ray_indices, packed_info)
+    return Samples(t_starts.reshape(-1, per_ray), t_ends.reshape(-1, per_ray))
 
 
 def _check_packed(samples: Samples, n: int, dev: torch.device) -> int:

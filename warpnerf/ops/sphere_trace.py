@@ -12,19 +12,22 @@ __all__ = ["scene_sdf", "sphere_trace"]
 
 
 def _scene(scene, device):
-    # an SDFScene (warpnerf.fields), by its interface: ops import no fields
+    """The kernels' ``Scene`` struct of an SDFScene (warpnerf.fields), taken by its interface:
+    ops import no fields."""
+    from warpnerf.kernels import sphere_trace as K
+
     if not callable(getattr(scene, "arrays", None)):
         raise TypeError(f"scene must be an SDFScene, got {type(scene).__name__}")
     a = scene.arrays(device)
     wp = bridge.load_warp()
-    return [
-        bridge.arr(a["kinds"]),
-        bridge.arr(a["params"], wp.vec4),
-        bridge.arr(a["rots"], wp.mat33),
-        bridge.arr(a["centers"], wp.vec3),
-        bridge.arr(a["ops"]),
-        bridge.arr(a["ks"]),
-    ]
+    s = K.Scene()
+    s.kinds = wp.from_torch(a["kinds"])
+    s.params = wp.from_torch(a["params"], wp.vec4)
+    s.rots = wp.from_torch(a["rots"], wp.mat33)
+    s.centers = wp.from_torch(a["centers"], wp.vec3)
+    s.ops = wp.from_torch(a["ops"])
+    s.ks = wp.from_torch(a["ks"])
+    return s
 
 
 def scene_sdf(points: torch.Tensor, scene):  # points [n, 3] float32
@@ -39,7 +42,7 @@ def scene_sdf(points: torch.Tensor, scene):  # points [n, 3] float32
     bridge.launch(
         K.scene_sdf_fwd,
         n,
-        [bridge.arr(points, wp.vec3), *_scene(scene, dev), bridge.arr(sdf), bridge.arr(ids)],
+        [bridge.arr(points, wp.vec3), _scene(scene, dev), bridge.arr(sdf), bridge.arr(ids)],
         dev,
     )
     return sdf, ids
@@ -97,7 +100,7 @@ def sphere_trace(
             a(directions, v3),
             a(near),
             a(far),
-            *_scene(scene, dev),
+            _scene(scene, dev),
             float(eps),
             float(omega),
             int(max_iters),

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from . import bridge
-from .occupancy import lattice_bounds, lattice_bounds_contracted, raise_bad_rays
+from .occupancy import lattice_bounds, lattice_bounds_contracted, march_grid, raise_bad_rays
 
 __all__ = ["trace_rays", "steps_per_round", "COLOR_WEIGHT_EPS", "MIN_STEPS", "MAX_STEPS"]
 
@@ -25,6 +25,16 @@ def steps_per_round(n_rays: int, n_alive: int, min_steps: int, max_steps: int) -
     """Slots per live ray in a round (instant-ngp's rule): ``clamp(n_rays // n_alive, min,
     max)``, so a round holds about ``n_rays`` samples however many rays are left."""
     return max(min_steps, min(max_steps, n_rays // max(n_alive, 1)))
+
+
+def _live_list(ids: torch.Tensor, counters: torch.Tensor):
+    """The kernels' ``LiveList`` of ray ids [n_rays] int32 and their counters [3] int32."""
+    from warpnerf.kernels import tracer as K
+
+    wp = bridge.load_warp()
+    lst = K.LiveList()
+    lst.ids, lst.counters = wp.from_torch(ids), wp.from_torch(counters)
+    return lst
 
 
 def trace_rays(
@@ -85,7 +95,6 @@ def trace_rays(
     if isinstance(dt, torch.Tensor) or not (0 < dt < float("inf")):
         raise ValueError(f"need dt > 0 (a finite float), got {dt}")
     box = torch.as_tensor(aabb, dtype=torch.float32).reshape(-1).cpu()
-    size = (box[3:] - box[:3]) / res
     if contract:
         t_lo, t_hi, bad, near = lattice_bounds_contracted(origins, directions, near, far, dt,
                                                           cone)  # fmt: skip
@@ -102,20 +111,19 @@ def trace_rays(
     log_t = torch.zeros(n_rays, **f32)
     rgb = torch.zeros(n_rays, 3, **f32)
     depth = torch.zeros(n_rays, **f32)
-    lists = [torch.arange(n_rays, **i32), torch.empty(n_rays, **i32)]
     counters = torch.zeros(2, 3, **i32)  # per list: (live rays, slots to colour, samples marched)
     counters[0, 0] = n_rays
+    ids = (torch.arange(n_rays, **i32), torch.empty(n_rays, **i32))
+    lists = [_live_list(i, c) for i, c in zip(ids, counters)]  # the rounds read one, fill the other
     a = bridge.arr
     grid_args = [a(origins, wp.vec3), a(directions, wp.vec3), a(t_lo.contiguous()),
-                 a(t_hi.contiguous()), int(bool(contract)), a(bits), int(res),
-                 wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist()), float(dt),
-                 float(contract), float(cone), a(k_state)]  # fmt: skip
+                 a(t_hi.contiguous()), march_grid(bits, res, box, dt, contract, cone),
+                 a(k_state)]  # fmt: skip
     no_f, no_i = torch.empty(0, **f32), torch.empty(0, **i32)
     no_v = a(torch.empty(0, 3, **f32), wp.vec3)
     # priming: every ray moves to its first occupied interval; the first live list
-    bridge.launch(K.trace_march, n_rays, [a(lists[0]), a(counters[0]), 0, *grid_args, no_v, no_v,
-                                          a(no_f), a(no_f), a(no_i), a(counters[1]),
-                                          a(lists[1])], dev)  # fmt: skip
+    bridge.launch(K.trace_march, n_rays, [lists[0], 0, *grid_args, no_v, no_v, a(no_f), a(no_f),
+                                          a(no_i), lists[1]], dev)  # fmt: skip
     # sync: the live count and whether a ray was refused
     n_alive, refused = torch.cat([counters[1, :1].long(), bad.any().reshape(1).long()]).tolist()
     if refused:
@@ -125,16 +133,16 @@ def trace_rays(
     while n_alive:
         n_steps = steps_per_round(n_rays, n_alive, min_steps, max_steps)
         m = n_alive * n_steps
-        live, cnt, nxt_live, nxt = lists[cur], counters[cur], lists[1 - cur], counters[1 - cur]
+        nxt = counters[1 - cur]
         nxt.zero_()
         positions = torch.empty(m, 3, **f32)
         dirs = torch.empty(m, 3, **f32)
         t_starts, t_ends = torch.empty(m, **f32), torch.empty(m, **f32)
         counts = torch.empty(n_alive, **i32)
-        head = [a(live), a(cnt), n_steps]
+        head = [lists[cur], n_steps]
         bridge.launch(K.trace_march, n_alive, [*head, *grid_args, a(positions, wp.vec3),
                                                a(dirs, wp.vec3), a(t_starts), a(t_ends),
-                                               a(counts), a(nxt), a(no_i)], dev)  # fmt: skip
+                                               a(counts), lists[1 - cur]], dev)  # fmt: skip
         sigmas, ctx = density_fn(positions, dirs)
         sigmas = sigmas.detach().to(torch.float32).contiguous()
         if color_all:
@@ -145,7 +153,7 @@ def trace_rays(
             weights, slots = torch.empty(m, **f32), torch.empty(m, **i32)
         comp = [*head, a(counts), a(t_starts), a(t_ends), a(sigmas), a(rgbs), float(t_threshold),
                 float(color_eps), a(k_state), a(log_t), a(rgb), a(depth), a(weights), a(slots),
-                a(nxt), a(nxt_live)]  # fmt: skip
+                lists[1 - cur]]  # fmt: skip
         bridge.launch(K.trace_composite, n_alive, comp, dev)
         # sync: the next live count, the slots to colour, the samples marched this round
         n_next, n_color, n_round = nxt.tolist()

@@ -14,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -78,9 +78,6 @@ class BoxFitConfig(BOX_LOOP):
         False, "let the dataset's files name images outside its folder (absolute paths, '..', "
         "symlinks out of it); refused by default",
     )  # fmt: skip
-
-    def to_dict(self):
-        return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "config"):

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..data.dataset import is_capture
@@ -86,9 +86,6 @@ class NeRFConfig(*reversed(SECTIONS)):
     model: str = option(MODEL, flag=None)  # the kind of run (train/methods.py); older runs lack it
     # the field's own settings (its traits' ``options``), saved by name; {} for the built-in fields
     field_options: dict = option({}, flag=None)
-
-    def to_dict(self):
-        return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "config"):

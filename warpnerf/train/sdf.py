@@ -25,7 +25,7 @@ import contextlib
 import dataclasses
 import math
 import zipfile
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -115,9 +115,6 @@ class SDFConfig(SDF_LOOP):
     resolution: int = option(128, "marching-cubes grid at the end", check="positive")
     device: str = option("cpu", "cpu or cuda (on --resume, default the run's own)")
     model: str = option(MODEL, flag=None)
-
-    def to_dict(self):
-        return asdict(self)
 
     @classmethod
     def from_dict(cls, d, where: str = "config"):
