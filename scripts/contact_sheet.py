@@ -22,26 +22,15 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import imageio.v3 as iio
 
-    from warpnerf.outputs import write_image
+    from warpnerf.outputs import contact_sheet, write_image
 
-    tiles = []
-    for f in a.frames:
-        img = np.asarray(iio.imread(f))
-        img = img[..., None].repeat(3, -1) if img.ndim == 2 else img[..., :3]
-        img = img[:: a.every, :: a.every]
-        if tiles and img.shape != tiles[0].shape:
-            print(f"skipped {f}: size {img.shape} differs from {tiles[0].shape}", file=sys.stderr)
-            continue
-        tiles.append(img.astype(np.uint8))
-    cols = max(1, min(a.cols, len(tiles)))
-    rows = -(-len(tiles) // cols)
-    h, w = tiles[0].shape[:2]
-    sheet = np.full((rows * h, cols * w, 3), 255, np.uint8)
-    for i, t in enumerate(tiles):
-        r, c = divmod(i, cols)
-        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = t
+    skipped = []
+    frames = [np.asarray(iio.imread(f)) for f in a.frames]
+    sheet = contact_sheet(frames, a.cols, a.every, skipped)
+    for i in skipped:
+        print(f"skipped {a.frames[i]}: size differs from {a.frames[0]}'s", file=sys.stderr)
     write_image(a.out, sheet)
-    print(f"{a.out}: {len(tiles)} frames, {cols}x{rows}")
+    print(f"{a.out}: {len(frames) - len(skipped)} frames")
     return 0
 
 

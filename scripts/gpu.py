@@ -463,6 +463,40 @@ for row in "${rows[@]}"; do
 done
 """,
     ),
+    "fog": (
+        "none: issue 48",
+        "fog on a capture (issue 48): one run per row of ROWS ('name|flags;...') with the "
+        "capture defaults for SECS, every val image scored, scripts/fog_report.py on the spiral "
+        "(FRAMES frames: its sheet and fog.json in $OUT/fog_TAG_NAME), a row each in $OUT/fog.md "
+        "(about 3.5 minutes a row at SECS=120: two rows a call)",
+        """
+DATA=${DATA:-/root/stage/beer}
+SECS=${SECS:-120}
+TAG=${TAG:-$(basename "$DATA")}
+IFS=';' read -ra rows <<< "${ROWS:-base|;near|--near-loss 0.1}"
+[ -f "$OUT/fog.md" ] || {
+  echo "| data | row | flags | seconds | steps | val PSNR | val SSIM | near_median share | rays > 10 % | near_centre share | rays > 10 % |"
+  echo "|---|---|---|---|---|---|---|---|---|---|---|"
+} > "$OUT/fog.md"
+for row in "${rows[@]}"; do
+  name=${row%%|*}
+  flags=${row#*|}
+  run=/tmp/fog_${TAG}_$name
+  rm -rf "$run" "${run}_eval"
+  # shellcheck disable=SC2086
+  python3 -m warpnerf.cli train nerf --data "$DATA" --device cuda --max-seconds "$SECS" \\
+    --val-images 0 --quiet --no-tensorboard $flags --out "$run" > "$run.log" 2>&1 \\
+    || echo "train $TAG/$name failed" | tee -a "$OUT/log.txt"
+  python3 -m warpnerf.cli eval "$run" --split val --quiet --out "${run}_eval" >> "$run.log" 2>&1 \\
+    || echo "eval $TAG/$name failed" | tee -a "$OUT/log.txt"
+  python3 scripts/fog_report.py "$run" --frames "${FRAMES:-12}" --out "$OUT/fog_${TAG}_$name" \\
+    >> "$run.log" 2>&1 || echo "fog_report $TAG/$name failed" | tee -a "$OUT/log.txt"
+  { echo "== $TAG/$name: $flags"; tail -n 6 "$run.log" | cut -c1-400; } >> "$OUT/log.txt"
+  $GPU --summary fog "$run" "$OUT/fog_${TAG}_$name/fog.json" "$TAG" "$name" "$flags" "$SECS" \\
+    | tee -a "$OUT/fog.md"
+done
+""",
+    ),
     "nerf_materials": (
         "gpu_nerf.sh materials",
         "MLP NeRF on materials with and without view dependence (SECS), eval",
@@ -747,6 +781,21 @@ def summary_ablation(run, tag, name, flags, secs):
         eager = "eager fallback" if "capture failed" in f.read() else "graph"
     print(f"| {tag} | {name} | `{flags}` | {secs} | {h['step'][-1]} | {step:.2f} | {m['n_images']} | "
           f"{m['psnr']:.3f} | {m['ssim']:.4f} | {m['render_ms_median']:.1f} | {eager} |")  # fmt: skip
+
+
+def summary_fog(run, fog, tag, name, flags, secs):
+    """One row of the fog phase: steps, val PSNR/SSIM, fog_report.py's overall figures."""
+    try:
+        h = _load(f"{run}/history.json")
+        m = _load(f"{run}_eval/metrics.json")
+        o = _load(fog)["overall"]
+    except OSError as e:
+        print(f"| {tag} | {name} | `{flags}` | {secs} | failed: {e} | | | | | | |")
+        return
+    near = [f"{o[k]['share']:.4f} | {o[k]['rays_over_10pct']:.3f}"
+            for k in ("near_median", "near_centre")]  # fmt: skip
+    print(f"| {tag} | {name} | `{flags}` | {secs} | {h['step'][-1]} | {m['psnr']:.3f} | "
+          f"{m['ssim']:.4f} | {near[0]} | {near[1]} |")  # fmt: skip
 
 
 def _graph_rows(prefix, versions, sdf):

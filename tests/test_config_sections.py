@@ -104,11 +104,13 @@ def test_nerf_config_is_its_sections_and_saves_the_old_flat_keys():
     proposal = {f.name for f in dataclasses.fields(ProposalConfig)}
     for run in ("nerf_mlp", "nerf_hash"):
         old = json.loads((OLD_RUNS / run / "config.json").read_text())
-        # (+ render_tracer, issue 47: the no-grad renderer, auto for a run written before it)
-        assert set(NeRFConfig().to_dict()) == set(old) | {"model", "field_options"} | recipe | (
-            proposal
-        ) | {"render_tracer"}
+        # (+ render_tracer, issue 47: the no-grad renderer, auto for a run written before it;
+        # issue 48's fog options, off or the old coordinate for a run written before them)
+        fog = {"distortion_space", "near_loss", "near_loss_frac"}
+        new = {"model", "field_options", "render_tracer"} | recipe | proposal | fog
+        assert set(NeRFConfig().to_dict()) == set(old) | new
         loaded = NeRFConfig.from_dict(old, "config.json")
+        assert (loaded.distortion_space, loaded.near_loss) == ("scene", 0.0)
         assert {k: getattr(loaded, k) for k in recipe} == RECIPE_LEGACY
         assert loaded.sampler == "grid"  # (proposal sampling, issue 48: an old run marched)
         assert loaded.render_tracer == "auto"

@@ -288,7 +288,7 @@ def test_depth_maps_of_contracted_runs_show_the_scene():
     from types import SimpleNamespace
 
     from warpnerf.train.nerf import depth_scale
-    from warpnerf.train.nerf_eval import _depth_image
+    from warpnerf.train.nerf_eval import depth_image
 
     depth = torch.linspace(1.0, 4.0, 64).reshape(8, 8)
     opacity = torch.ones(8, 8)
@@ -296,7 +296,7 @@ def test_depth_maps_of_contracted_runs_show_the_scene():
     unbounded = SimpleNamespace(contract="on", far=1500.0)
     scale = depth_scale(unbounded, depth, opacity)
     assert 3.5 < scale <= 4.0
-    img = _depth_image(depth, opacity, scale).numpy()
+    img = depth_image(depth, opacity, scale).numpy()
     assert img.shape == (8, 8, 3) and img.dtype == np.uint8
     assert img[0].max() == 0 and img[1:].min() > 50 and img.max() == 255
     bounded = SimpleNamespace(contract="off", far=6.0)

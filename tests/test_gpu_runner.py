@@ -64,6 +64,13 @@ def test_the_summaries_on_made_up_runs(tmp_path):
     (tmp_path / "abl_lego_base.log").write_text("ok\n")
     row = _gpu("--summary", "ablation", run, "lego", "base", "", "60")
     assert row.startswith("| lego | base |") and "30.000" in row and "| graph |" in row
+    fog = tmp_path / "fog.json"
+    shares = {"share": 0.0123, "rays_over_10pct": 0.045}
+    fog.write_text(json.dumps({"overall": {"near_median": shares, "near_centre": shares}}))
+    row = _gpu("--summary", "fog", run, fog, "lego", "near", "--near-loss 0.1", "60")
+    assert row.startswith("| lego | near | `--near-loss 0.1` | 60 | 400 | 30.000 |")
+    assert row.count("0.0123 | 0.045") == 2
+    assert "failed" in _gpu("--summary", "fog", run, tmp_path / "none.json", "l", "n", "", "1")
     prof = tmp_path / "prof.json"
     prof.write_text(json.dumps({"step_ms_median": 8.2, "top_device_ops_ms_per_step": {"k": 1.0}}))
     assert "8.2" in _gpu("--summary", "graph_profile", prof, "off")

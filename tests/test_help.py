@@ -55,6 +55,12 @@ def test_every_argument_and_subcommand_has_help():
     assert not missing, missing
 
 
+def test_every_command_help_renders():
+    """argparse expands ``%`` in help texts: a stray one breaks ``--help`` of its command."""
+    for path, parser, _ in _commands(build_parser()):
+        assert parser.format_help(), path
+
+
 def test_every_device_flag_says_its_default():
     devices = [(cmd, a) for cmd, a in _arguments() if "--device" in a.option_strings]
     assert len(devices) >= 10, [c for c, _ in devices]

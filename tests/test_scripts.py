@@ -87,6 +87,24 @@ def test_contact_sheet_and_curves(tmp_path, run):
     assert (tmp_path / "c.png").is_file()
 
 
+def test_fog_report(tmp_path, run):
+    """scripts/fog_report.py on the tiny run: the sheet (3 rows of frames), the JSON's figures
+    per frame and overall, shares in [0, 1], the hook's weights summing to each ray's opacity."""
+    import imageio.v3 as iio
+
+    out = _run([SCRIPTS / "fog_report.py", run, "--frames", "2", "--size", "16x12", "--out",
+                "fog", "--json", "f.json"], tmp_path)  # fmt: skip
+    res = json.loads((tmp_path / "f.json").read_text())
+    assert json.loads(out.strip().splitlines()[-1]) == res
+    assert iio.imread(tmp_path / "fog" / "fog_sheet.png").shape[:2] == (36, 32)
+    assert len(res["per_frame"]) == 2 and res["size"] == [16, 12]
+    for row in [res["overall"], *res["per_frame"]]:
+        assert row["rays"] + row["empty_rays"] == 192 * (2 if row is res["overall"] else 1)
+        for name in ("near_median", "near_centre"):
+            assert 0 <= row[name]["share"] <= 1 and 0 <= row[name]["rays_over_10pct"] <= 1
+    assert max(r["opacity_mismatch"] for r in res["per_frame"]) < 1e-5
+
+
 def test_step_profile(tmp_path):
     _run([SCRIPTS / "profile_train_step.py", "--warm", "1", "--steps", "2", "--cprofile", "0",
           "--json", "p.json", "--", "train", "nerf", *TINY, "--out", "x"], tmp_path)  # fmt: skip

@@ -18,9 +18,12 @@ CASES = {
     "random_background": dict(random_background="on"),
     "mask": dict(random_background="on", mask_loss=0.5),  # (the built-in scene's alpha)
     "distortion": dict(distortion_loss=0.01),
+    "near": dict(near_loss=0.1, distortion_loss=0.01, distortion_space="mipnerf360"),
     "hash_sdf": dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=8),
 }
-EXTRA = {"mask": ("mask",), "distortion": ("distortion",), "hash_sdf": ("beta",)}
+EXTRA = {"mask": ("mask",), "distortion": ("distortion",), "near": ("near", "distortion"),
+         "hash_sdf": ("beta",)}  # fmt: skip
+TERMS = {"psnr", "mask", "distortion", "near", "beta"}
 
 
 class _Keep:
@@ -64,8 +67,8 @@ def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
     assert not flags.any()
     # (the static body's masked means sum in another order: float32 round-off)
     assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
-    want = {"psnr", "mask", "distortion", "beta"} & set(terms_e)
-    assert want == {"psnr", "mask", "distortion", "beta"} & set(terms_s)
+    want = TERMS & set(terms_e)
+    assert want == TERMS & set(terms_s)
     assert want == {"psnr", *EXTRA.get(name, ())}
     for k in want:
         assert float(terms_s[k]) == pytest.approx(float(terms_e[k]), rel=1e-6), k

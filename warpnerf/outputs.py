@@ -41,6 +41,7 @@ __all__ = [
     "write_video",
     "to_uint8",
     "depth_to_uint8",
+    "contact_sheet",
 ]
 
 
@@ -436,6 +437,34 @@ def depth_to_uint8(depth, max_value: float | None = None) -> np.ndarray:
     depth = np.asarray(depth, dtype=np.float64)
     m = float(np.nanmax(depth)) if max_value is None else float(max_value)
     return to_uint8(depth / m if m > 0 else depth)
+
+
+def contact_sheet(frames, cols: int = 4, every: int = 1, skipped=None) -> np.ndarray:
+    """One uint8 image [rows * h, cols * w, 3] of ``frames`` (uint8 or float in [0, 1], [H, W]
+    or [H, W, C]) tiled row-major, ``cols`` a row, each decimated by ``every`` pixels (nearest);
+    blank tiles white. Frames of another size than the first are left out, their indices
+    appended to ``skipped`` (a list) when given (device runs return few files: one sheet
+    instead of many frames)."""
+    tiles = []
+    for i, f in enumerate(frames):
+        img = f if getattr(f, "dtype", None) == np.uint8 else to_uint8(f)
+        img = img[..., None].repeat(3, -1) if img.ndim == 2 else img[..., :3]
+        img = img[::every, ::every]
+        if tiles and img.shape != tiles[0].shape:
+            if skipped is not None:
+                skipped.append(i)
+            continue
+        tiles.append(img)
+    if not tiles:
+        raise ValueError("contact_sheet: no frames")
+    cols = max(1, min(int(cols), len(tiles)))
+    rows = -(-len(tiles) // cols)
+    h, w = tiles[0].shape[:2]
+    sheet = np.full((rows * h, cols * w, 3), 255, np.uint8)
+    for i, t in enumerate(tiles):
+        r, c = divmod(i, cols)
+        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = t
+    return sheet
 
 
 def write_image(path, img) -> None:

@@ -13,7 +13,13 @@ import torch
 
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 from .ops.bridge import check_int
-from .render_marched import SAMPLE_BUDGET, render_marched, render_marched_fixed
+from .render_marched import (
+    SAMPLE_BUDGET,
+    render_marched,
+    render_marched_fixed,
+    weight_before,
+    weight_median,
+)
 from .sphere_tracing import CAP, HIT, INSIDE, INVALID, sphere_trace_steps
 
 __all__ = [
@@ -23,6 +29,8 @@ __all__ = [
     "render_nerf",
     "render_marched",
     "render_marched_fixed",
+    "weight_before",
+    "weight_median",
     "render_chunks",
     "render_sphere_traced",
     "SAMPLE_BUDGET",

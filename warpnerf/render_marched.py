@@ -12,7 +12,9 @@ from .ops.bridge import check_int
 from .ops.tracer import COLOR_WEIGHT_EPS
 from .render_traced import SAMPLE_BUDGET, TRACE_COLORS, render_traced
 
-__all__ = ["render_marched", "render_marched_fixed", "SAMPLE_BUDGET"]
+__all__ = [
+    "render_marched", "render_marched_fixed", "weight_before", "weight_median", "SAMPLE_BUDGET",
+]  # fmt: skip
 
 
 TRACERS = ("auto", "traced", "rounds")  # render_marched's rendering paths (without gradients)
@@ -37,8 +39,10 @@ def render_marched(
     jitter: torch.Tensor | None = None,
     ray_images: torch.Tensor | None = None,
     distortion_s=None,
+    near_t=None,
     tracer: str = "auto",
     colors: str = "weighted",
+    on_weights=None,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -80,7 +84,16 @@ def render_marched(
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays], and the sample counts
     ``n_marched`` / ``n_kept`` (ints); with gradients and ``distortion_s`` (a map of ray
     distances t to a normalised coordinate s, increasing) also ``distortion`` [n_rays], each
-    ray's distortion loss (:func:`warpnerf.ops.distortion_loss`) of its kept samples' weights.
+    ray's distortion loss (:func:`warpnerf.ops.distortion_loss`) of its kept samples' weights;
+    with gradients and ``near_t`` (a float or [n_rays]) also ``near_weight`` [n_rays], each
+    ray's weight before that distance (:func:`weight_before`, differentiable).
+
+    ``on_weights`` (rendering without gradients; it selects the rounds path): called once per
+    round with ``(ray_indices [n], t_starts [n], t_ends [n], weights [n])`` of every sample the
+    round composited, ``weights`` being each sample's share of its ray's pixel (its weight
+    within the round times the ray's transmittance before the round), so that a ray's weights
+    over all rounds sum to its opacity: what a caller measures per sample (where along each
+    ray the weight lies) without rendering again.
 
     The packed samples are the grid's own: they are composited without re-checking their indices
     (``render_packed(check=False)``), so no host sync is added to the marching's own.
@@ -95,7 +108,7 @@ def render_marched(
         raise ValueError(f"tracer must be one of {TRACERS}, got {tracer!r}")
     if colors not in TRACE_COLORS:  # (the tracer's option, checked whatever the path)
         raise ValueError(f"colors must be one of {TRACE_COLORS}, got {colors!r}")
-    traced = tracer == "traced"  # ("auto": the rounds path, measured faster on a GPU)
+    traced = tracer == "traced" and on_weights is None  # ("auto": the rounds path, faster)
     if not torch.is_grad_enabled() and traced:
         return render_traced(grid, field, origins, directions, near, far, background=background,
                              t_threshold=t_threshold, half=half, sample_budget=sample_budget,
@@ -103,7 +116,7 @@ def render_marched(
     if not torch.is_grad_enabled():
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
-            round_samples or max_samples, max_samples, half, sample_budget,
+            round_samples or max_samples, max_samples, half, sample_budget, on_weights,
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     if jitter is None and perturb:
@@ -120,7 +133,7 @@ def render_marched(
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
     sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx])
     out = _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
-                      ray_images, distortion_s)  # fmt: skip
+                      ray_images, distortion_s, near_t=near_t)  # fmt: skip
     out.update(n_marched=int(smp.t_starts.shape[0]), n_kept=int(idx.shape[0]))
     return out
 
@@ -155,6 +168,7 @@ def render_marched_fixed(
     max_samples: int = 1024,
     ray_images: torch.Tensor | None = None,
     distortion_s=None,
+    near_t=None,
 ):
     """:func:`render_marched` with static shapes and no host sync, for a training step captured
     in a CUDA graph (:mod:`warpnerf.train.graph_step`): the marched samples fill ``marched``
@@ -166,8 +180,9 @@ def render_marched_fixed(
     samples, colour and gradients are :func:`render_marched`'s.
 
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays] (and ``distortion`` [n_rays] with
-    ``distortion_s``) and ``stats``, an int64 device tensor [5]: (samples marched, marched
-    samples dropped, rays refused, live samples, live samples dropped).
+    ``distortion_s``, ``near_weight`` [n_rays] with ``near_t``) and ``stats``, an int64 device
+    tensor [5]: (samples marched, marched samples dropped, rays refused, live samples, live
+    samples dropped).
     """
     from .ops.occupancy import live_samples_fixed, sample_points
 
@@ -194,17 +209,18 @@ def render_marched_fixed(
         n_live = live_stats[0].clamp_max(kept)
         color_kw = {"valid": torch.arange(kept, device=directions.device) < n_live}
     out = _shade_kept(field, directions, live, sigmas, feats, background, t_threshold,
-                      ray_images, distortion_s, color_kw, dirs)  # fmt: skip
+                      ray_images, distortion_s, color_kw, dirs, near_t)  # fmt: skip
     out["stats"] = torch.cat([march_stats, live_stats])
     return out
 
 
 def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold, ray_images,
-                distortion_s, color_kw=None, dirs=None) -> dict:  # fmt: skip
+                distortion_s, color_kw=None, dirs=None, near_t=None) -> dict:  # fmt: skip
     """The marchers' last part: colours of the kept samples (with their densities and
     features from the field's second pass), compositing, and each ray's distortion loss when
-    ``distortion_s`` is given. ``color_kw``: more keywords for the field's ``color``; ``dirs``:
-    the kept samples' directions when already gathered."""
+    ``distortion_s`` is given, its weight before ``near_t`` when that is given. ``color_kw``:
+    more keywords for the field's ``color``; ``dirs``: the kept samples' directions when
+    already gathered."""
     if dirs is None:
         dirs = directions[kept.ray_indices]
     kw = dict(color_kw or {})
@@ -214,9 +230,12 @@ def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
     rgb, depth, opacity, *weights = render_packed(
         kept.t_starts, kept.t_ends, kept.ray_indices, sigmas, rgbs, directions.shape[0],
         background=background, packed_info=kept.packed_info, t_threshold=t_threshold,
-        check=False, return_weights=distortion_s is not None,
+        check=False, return_weights=distortion_s is not None or near_t is not None,
     )  # fmt: skip
     out = {"rgb": rgb, "depth": depth, "opacity": opacity}
+    if near_t is not None:
+        out["near_weight"] = weight_before(kept.t_starts, kept.t_ends, kept.ray_indices,
+                                           weights[0], kept.packed_info, near_t)  # fmt: skip
     if distortion_s is not None:
         from .ops.distortion import distortion_loss
 
@@ -227,9 +246,61 @@ def _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
     return out
 
 
+def weight_before(
+    t_starts: torch.Tensor,  # [n]
+    t_ends: torch.Tensor,  # [n]
+    ray_indices: torch.Tensor,  # [n] int
+    weights: torch.Tensor,  # [n] compositing weights
+    packed_info: torch.Tensor,  # [n_rays, 2] (start, count)
+    t_cut,  # float or [n_rays]
+) -> torch.Tensor:
+    """Each ray's compositing weight at its samples whose midpoint lies before ``t_cut``,
+    ``[n_rays]``: ``sum_i w_i [(t0_i + t1_i) / 2 < t_cut]`` (differentiable in ``weights``; the
+    indicator is not). A slot outside its ray's range in ``packed_info`` (the fixed-shape
+    step's unused slots, whose weights the compositing leaves unwritten) counts for nothing."""
+    ri, w = ray_indices.long(), _in_range(ray_indices, packed_info, weights)
+    cut = torch.as_tensor(t_cut, device=weights.device, dtype=weights.dtype)
+    cut = cut[ri] if cut.dim() else cut
+    w = torch.where(0.5 * (t_starts + t_ends) < cut, w, torch.zeros_like(w))
+    return weights.new_zeros(packed_info.shape[0]).index_add(0, ri, w)
+
+
+def weight_median(
+    t_starts: torch.Tensor,  # [n] in increasing order within each ray's range
+    t_ends: torch.Tensor,  # [n]
+    ray_indices: torch.Tensor,  # [n] int
+    weights: torch.Tensor,  # [n] compositing weights
+    packed_info: torch.Tensor,  # [n_rays, 2] (start, count)
+) -> torch.Tensor:
+    """Each ray's weighted median distance ``[n_rays]``: the midpoint of its first sample at
+    which the running sum of its weights reaches half their total (NaN for a ray without
+    weight). Running sums in float64; slots outside their ray's range count for nothing."""
+    ri, w = ray_indices.long(), _in_range(ray_indices, packed_info, weights).double()
+    n_rays = packed_info.shape[0]
+    total = w.new_zeros(n_rays).index_add(0, ri, w)
+    run = torch.cumsum(w, 0)  # (each ray's running sum: minus the sum before its first slot)
+    start = packed_info[:, 0].long().clamp(0, max(w.shape[0] - 1, 0))
+    base = (run - w)[start] if w.shape[0] else total
+    run = run - base[ri]
+    half = 0.5 * total[ri]
+    at = (run >= half) & (run - w < half) & (total[ri] > 0)
+    mid = (0.5 * (t_starts + t_ends))[at]
+    out = torch.full((n_rays,), float("nan"), device=weights.device, dtype=weights.dtype)
+    return out.scatter_reduce(0, ri[at], mid.to(out.dtype), "amin", include_self=False)
+
+
+def _in_range(ray_indices, packed_info, values):
+    """``values`` [n] with zeros at the slots outside their ray's range in ``packed_info``."""
+    ri = ray_indices.long()
+    slot = torch.arange(values.shape[0], device=values.device)
+    start, count = packed_info[ri, 0].long(), packed_info[ri, 1].long()
+    mine = (slot >= start) & (slot < start + count)
+    return torch.where(mine, values, torch.zeros_like(values))
+
+
 def _render_rounds(
     grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
-    sample_budget=SAMPLE_BUDGET,
+    sample_budget=SAMPLE_BUDGET, on_weights=None,
 ):  # fmt: skip
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     use_half = half and dev.type == "cuda"
@@ -273,6 +344,8 @@ def _render_rounds(
             check=False,
         )
         t_a = trans[alive]
+        if on_weights is not None:  # each sample's share of its ray's pixel
+            on_weights(alive[ri], smp.t_starts, smp.t_ends, w * t_a[ri])
         seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
         rs = ri[seen]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)

@@ -10,6 +10,7 @@ import torch
 from .ops import render_packed
 from .ops.distortion import distortion_loss
 from .ops.proposal import interlevel_loss, proposal_resample
+from .render_marched import weight_before
 
 __all__ = ["render_proposal", "uniform_edges"]
 
@@ -54,7 +55,9 @@ def render_proposal(
     background=1.0,
     t_threshold: float = 1e-4,
     ray_images: torch.Tensor | None = None,
-    distortion: bool = False,
+    distortion=False,
+    near_t=None,
+    on_weights=None,
 ) -> dict:
     """Volume rendering of rays with proposal sampling.
 
@@ -69,7 +72,13 @@ def render_proposal(
     Returns a dict of rgb [n_rays, 3], depth, opacity [n_rays]; with gradients also
     ``interlevel`` [n_rays] (each ray's interlevel loss summed over the proposal levels, divided
     by the field's samples: nerfacto's mean over intervals) and, with ``distortion``,
-    ``distortion`` [n_rays] (:func:`warpnerf.ops.distortion_loss` of the field's weights in s).
+    ``distortion`` [n_rays] (:func:`warpnerf.ops.distortion_loss` of the field's weights in s,
+    the sampler's coordinate; ``distortion`` may instead be a map of ray distances t to another
+    normalised coordinate, as :func:`~warpnerf.render.render_marched`'s ``distortion_s``) and,
+    with ``near_t`` (a float or [n_rays]), ``near_weight`` [n_rays]: each ray's weight before
+    that distance (:func:`~warpnerf.render_marched.weight_before`). ``on_weights``: called once
+    with ``(ray_indices, t_starts, t_ends, weights)`` of the field's samples (as
+    :func:`~warpnerf.render.render_marched`'s).
     """
     n_rays, dev, dt = origins.shape[0], origins.device, origins.dtype
     near = torch.as_tensor(near, device=dev, dtype=dt).expand(n_rays)
@@ -101,13 +110,17 @@ def render_proposal(
         t_threshold=t_threshold, check=False, return_weights=True,
     )  # fmt: skip
     out = {"rgb": rgb, "depth": depth, "opacity": opacity}
+    if on_weights is not None:
+        on_weights(ri, t0, t1, w)
     if torch.is_grad_enabled():
         w_fine = w.detach().reshape(n_rays, -1)
         loss = sum(interlevel_loss(s, w_fine, sp, wp, check=False) for sp, wp in levels)
         out["interlevel"] = loss / sampler.final
-        if distortion:
-            out["distortion"] = distortion_loss(
-                s[:, :-1].reshape(-1), s[:, 1:].reshape(-1), ri, w, n_rays, packed_info=info,
-                check=False,
-            )  # fmt: skip
+        if distortion:  # True: the sampler's own coordinate s
+            s0, s1 = ((s[:, :-1].reshape(-1), s[:, 1:].reshape(-1)) if distortion is True
+                      else (distortion(t0), distortion(t1)))  # fmt: skip
+            out["distortion"] = distortion_loss(s0, s1, ri, w, n_rays, packed_info=info,
+                                                check=False)  # fmt: skip
+        if near_t is not None:
+            out["near_weight"] = weight_before(t0, t1, ri, w, info, near_t)
     return out

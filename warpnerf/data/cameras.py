@@ -12,7 +12,7 @@ from ..errors import UserError
 
 __all__ = [
     "look_at", "camera_target", "intrinsics_from_fov", "spiral_path", "orbit_views",
-    "frustum_bounds",
+    "frustum_bounds", "camera_rays",
 ]  # fmt: skip
 
 # Limits every dataset loader applies to its cameras (check_poses, check_intrinsics):

@@ -273,7 +273,7 @@ class GraphStep:
                 jitter=shape.jitter, background=cfg.background if shape.bg is None else shape.bg,
                 t_threshold=cfg.t_threshold, max_samples=cfg.max_samples,
                 ray_images=cam if cfg.appearance_dim else None,
-                distortion_s=task.distortion_map(),
+                distortion_s=task.distortion_map(), near_t=task.near_distances(o),
             )  # fmt: skip
         target, alpha = task.pixels(flat)
         weight = active.to(out["rgb"].dtype)

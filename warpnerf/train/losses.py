@@ -19,7 +19,7 @@ __all__ = [
 ]  # fmt: skip
 
 # the terms a step may record besides the loss, by name (history keys)
-TERMS = ("psnr", "distortion", "depth", "beta", "mask")
+TERMS = ("psnr", "distortion", "near", "depth", "beta", "mask")
 
 OPACITY_EPS = 1e-3  # the opacity is clamped to [eps, 1 - eps] in the cross-entropy (finite log)
 

@@ -33,6 +33,7 @@ from .nerf_run import (
     images_stay_on_host,
     load_data,
     load_run,
+    near_zone,
     psnr_of_mse,
     render_dataset_image,
     render_rays_of,
@@ -346,7 +347,8 @@ class NeRFTask(Task):
             out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed,
                                  generator=self.grid_gen, jitter=jitter, ray_images=images,
                                  ray_offset=sl.start, background=bg,
-                                 distortion=cfg.distortion_loss > 0)  # fmt: skip
+                                 distortion=cfg.distortion_loss > 0,
+                                 near=cfg.near_loss > 0)  # fmt: skip
         n_kept = out.get("n_kept")
         terms = {}
         if grid is not None:
@@ -420,6 +422,11 @@ class NeRFTask(Task):
     def distortion_map(self):
         """The ray coordinate of the distortion loss, or None without the loss."""
         return distortion_coordinate(self.cfg) if self.cfg.distortion_loss > 0 else None
+
+    def near_distances(self, origins):
+        """[n_rays] How far along each ray ``--near-loss`` reaches (:func:`near_zone`), or
+        None without the loss."""
+        return near_zone(self.cfg, origins) if self.cfg.near_loss > 0 else None
 
     def _grid_update(self, step: int) -> None:
         """The field's schedules for ``step`` and, every ``grid_every`` steps, the occupancy

@@ -244,6 +244,13 @@ class NeRFConfig(*reversed(SECTIONS)):
                 f"needs {_fields(captures=True)} with an occupancy grid "
                 f"(--grid-res > 0), not --field {self.field} --grid-res {self.grid_res}",
             )
+        if self.near_loss and (not traits.captures or self.grid_res == 0):
+            raise fail("near_loss", f"needs {_fields(captures=True)} with an occupancy grid "
+                       f"(--grid-res > 0), not --field {self.field} --grid-res "
+                       f"{self.grid_res}")  # fmt: skip
+        if self.near_loss and self.scene is not None and self.scene["ndc"] is not None:
+            raise fail("near_loss", "measures distances from the cameras in world space: this "
+                       "capture uses NDC rays (pass --ndc off)")  # fmt: skip
         if self.depth_loss and traits.geometry != "density":
             raise fail("depth_loss", f"needs a NeRF field ({_fields(geometry='density')}), not "
                        f"--field {self.field}")  # fmt: skip
@@ -309,6 +316,9 @@ class NeRFConfig(*reversed(SECTIONS)):
         check_device(self.device)
         if not self.far > self.near >= 0:
             raise UserError(f"need 0 <= --near < --far, got near={self.near}, far={self.far}")
+        if self.distortion_loss and self.distortion_space == "mipnerf360" and self.near <= 0:
+            raise UserError("--distortion-space mipnerf360 measures 1 / t from the near plane: "
+                            f"it needs --near > 0, got {self.near}")  # fmt: skip
         if not (self.lr > 0 and self.lr_final > 0):
             raise UserError("--lr and --lr-final must be positive")
         return self.freeze()

@@ -52,6 +52,8 @@ __all__ = [
     "sphere_depth",
     "depth_error",
     "render_run",
+    "path_cameras",
+    "depth_image",
     "camera_path",
     "train_and_evaluate",
 ]
@@ -64,7 +66,7 @@ RENDER_RANGES = {"chunk": (1, INT32_MAX), "march_step": (1e-9, MAX_DEPTH),
 SSIM_SETTINGS = "Gaussian 11x11, sigma 1.5, K1 0.01, K2 0.03, valid region, mean over RGB"
 
 
-def _depth_image(depth, opacity, scale):
+def depth_image(depth, opacity, scale):
     """The visible surface's depth normalised by ``scale`` (clipped to 1), as RGB uint8."""
     surf = surface_depth(depth, opacity)
     return torch.from_numpy(depth_to_uint8(surf, scale)).unsqueeze(-1).expand(*surf.shape, 3)
@@ -199,7 +201,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=
         side = [
             to_uint8(gt.cpu()),
             to_uint8(rgb.cpu()),
-            _depth_image(
+            depth_image(
                 depth.cpu(), opacity.cpu(), depth_scale(cfg, depth.cpu(), opacity.cpu()) or cfg.far
             ).numpy(),
         ]
@@ -269,15 +271,7 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
         cams = user_path.cameras(frames).to(cfg.device)
         windows = _path_windows(user_path, frames, model, cfg, train)
     else:
-        k = train.intrinsics[0].clone()
-        k[[0, 2]] *= w / w0
-        k[[1, 3]] *= h / h0
-        if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
-            from ..data.cameras import forward_facing_spiral
-
-            cams = forward_facing_spiral(train.c2w, frames).float().to(cfg.device)
-        else:
-            cams = camera_path(train.c2w, path, frames).to(cfg.device)
+        cams, k = path_cameras(cfg, train, path, frames, (w, h))
     name = path if user_path is None else Path(path).stem
     out_dir = Path(run) / (f"render_{name}" + ("_sphere" if renderer == "sphere" else ""))
     names = [f"{kind}_{f:03d}.png" for kind in kinds for f in range(frames)]
@@ -287,6 +281,22 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
         check_foreign([out_dir / x for x in names])
         return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer,
                               windows, progress)  # fmt: skip
+
+
+def path_cameras(cfg, train, path: str, frames: int, size) -> tuple:
+    """(cameras [frames, 4, 4] on the run's device, intrinsics [4]) of `render`'s built-in path
+    ``path`` ("spiral" or "orbit") at ``size`` (W, H): around the training cameras' target
+    (:func:`~warpnerf.data.camera_path.camera_path`), or for a forward-facing (NDC) run a spiral
+    in front of them, with the first training camera's intrinsics scaled to the size."""
+    (w, h), w0, h0 = size, train.width, train.height
+    k = train.intrinsics[0].clone()
+    k[[0, 2]] *= w / w0
+    k[[1, 3]] *= h / h0
+    if cfg.ndc_camera() is not None:  # forward-facing: stay in front, as the captures did
+        from ..data.cameras import forward_facing_spiral
+
+        return forward_facing_spiral(train.c2w, frames).float().to(cfg.device), k
+    return camera_path(train.c2w, path, frames).to(cfg.device), k
 
 
 # what `render` writes: an mp4 (H.264 in yuv420p, even sides: at least 2 pixels a side; x264
@@ -371,7 +381,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
                 opa = out["opacity"][px].reshape(h, w).cpu()
                 if scale is None:  # the first frame that shows a surface sets it for the video
                     scale = depth_scale(cfg, dep, opa)
-                dep = _depth_image(dep, opa, scale or cfg.far).numpy()
+                dep = depth_image(dep, opa, scale or cfg.far).numpy()
                 write_image(out_dir / f"rgb_{f:03d}.png", rgb)
                 write_image(out_dir / f"depth_{f:03d}.png", dep)
                 rgbs.append(rgb)

@@ -22,8 +22,8 @@ from .recipe import wants_alpha
 __all__ = [
     "resolve_data", "settle_new_run", "load_run", "load_data", "data_splits",
     "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
-    "distortion_coordinate", "surface_depth", "depth_scale", "render_dataset_image", "validate",
-    "psnr_of_mse", "CHECKPOINT",
+    "distortion_coordinate", "near_zone", "surface_depth", "depth_scale", "render_dataset_image",
+    "validate", "psnr_of_mse", "CHECKPOINT",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -214,7 +214,8 @@ def dataset_rays(
 
 def render_rays_of(
     model: RadianceModel, cfg: NeRFConfig, o, d, perturb=False, seed=0, chunk=None, generator=None,
-    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False,
+    jitter=None, ray_images=None, ray_offset=0, background=None, distortion=False, near=False,
+    on_weights=None,
 ):  # fmt: skip
     """Renders rays with the run's model: grid marching when it has an occupancy grid
     (``generator``, on the rays' device, jitters the lattice when ``perturb``, unless the draws
@@ -222,18 +223,34 @@ def render_rays_of(
     jitter keyed by ``seed`` and the ray's index + ``ray_offset``). ``background``: None (the
     run's colour) or per-ray colours [n_rays, 3] (grid runs). ``distortion`` (grid runs, with
     gradients): add each ray's distortion loss as ``distortion`` [n_rays]
-    (:func:`distortion_coordinate` normalises the ray distances). A run with proposal
-    sampling (``--sampler proposal``) renders with :func:`warpnerf.render_proposal.render_proposal`
-    (its ``jitter`` [n_rays, levels + 1]; with gradients it adds ``interlevel`` [n_rays])."""
+    (:func:`distortion_coordinate` normalises the ray distances). ``near`` (grid or proposal
+    runs, with gradients): add each ray's weight within :func:`near_zone` as ``near_weight``
+    [n_rays]. ``on_weights`` (grid or proposal runs, rendering): called with each chunk's
+    samples ``(ray_indices, t_starts, t_ends, weights)``, ray indices into ``o``
+    (:func:`warpnerf.render.render_marched`'s hook; grid runs render by the rounds path). A run
+    with proposal sampling (``--sampler proposal``) renders with
+    :func:`warpnerf.render_proposal.render_proposal` (its ``jitter`` [n_rays, levels + 1]; with
+    gradients it adds ``interlevel`` [n_rays])."""
+
+    def hook(sl):  # (the chunk's ray indices made indices into o)
+        if on_weights is None:
+            return None
+        return lambda ri, *rest: on_weights(ri + sl.start, *rest)
+
+    def near_t(sl):
+        return near_zone(cfg, o[sl]) if near else None
+
     if model.proposal is not None:
         from ..render_proposal import render_proposal
 
+        # the distortion loss in the sampler's own coordinate (the scene one) or another
+        s_of_t = distortion and (cfg.distortion_space == "scene" or distortion_coordinate(cfg))
         return render_chunks(o.shape[0], chunk, lambda sl: render_proposal(
             model.proposal, model.coarse, o[sl], d[sl], cfg.near, cfg.far, perturb=perturb,
             generator=generator, jitter=None if jitter is None else jitter[sl],
             background=cfg.background if background is None else background[sl],
             t_threshold=cfg.t_threshold, ray_images=None if ray_images is None else ray_images[sl],
-            distortion=distortion,
+            distortion=s_of_t, near_t=near_t(sl), on_weights=hook(sl),
         ))  # fmt: skip
     if model.grid is not None:
         s_of_t = distortion_coordinate(cfg) if distortion else None
@@ -258,8 +275,12 @@ def render_rays_of(
                 jitter=None if jitter is None else jitter[sl],
                 ray_images=None if ray_images is None else ray_images[sl],
                 distortion_s=s_of_t,
+                near_t=near_t(sl),
+                on_weights=hook(sl),
             ),
         )
+    if on_weights is not None or near:
+        raise ValueError("per-sample weights need a run with an occupancy grid or proposals")
     return render_nerf(
         model.coarse,
         o,
@@ -280,14 +301,27 @@ def render_rays_of(
 
 
 def distortion_coordinate(cfg: NeRFConfig):
-    """The map t -> s in [0, 1) on which the distortion loss measures a ray: t / (t + a) in a
-    contracted scene (a: the inner cube's half-size; distant space is squeezed as the
-    contraction squeezes it), (t - near) / (far - near) otherwise."""
+    """The map t -> s in [0, 1) on which the distortion loss measures a ray. With
+    ``--distortion-space scene``: t / (t + a) in a contracted scene (a: the inner cube's
+    half-size; distant space is squeezed as the contraction squeezes it), (t - near) / (far -
+    near) otherwise. With ``mipnerf360``: mip-NeRF 360's (1/near - 1/t) / (1/near - 1/far) (its
+    ``construct_ray_warps`` with ``raydist_fn = reciprocal``; t below near counts as near)."""
+    if cfg.distortion_space == "mipnerf360":
+        g_near, g_far = 1.0 / float(cfg.near), 1.0 / float(cfg.far)
+        return lambda t: (g_near - 1.0 / t.clamp_min(float(cfg.near))) / (g_near - g_far)
     if cfg.contract == "on":
         a = float(cfg.aabb)
         return lambda t: t / (t + a)
     near, span = float(cfg.near), max(float(cfg.far) - float(cfg.near), 1e-12)
     return lambda t: (t - near) / span
+
+
+def near_zone(cfg: NeRFConfig, origins):
+    """[n_rays] How far along each ray ``--near-loss`` penalises weight: ``--near-loss-frac``
+    times the distance of the ray's origin (its camera) to the scene centre, the origin of the
+    normalised scene (captures: the point nearest to every viewing axis; the built-in and
+    Blender scenes: their centre)."""
+    return float(cfg.near_loss_frac) * origins.detach().norm(dim=-1)
 
 
 def surface_depth(depth, opacity):

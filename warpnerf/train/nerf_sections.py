@@ -29,6 +29,7 @@ GRID = ("grid",)  # flag group: `train nerf` only (VOLSDF: `train volsdf` only)
 
 
 MAX_DEPTH_RAYS = 1 << 20  # --depth-rays: observation rays a step, at most
+DISTORTION_SPACES = ("scene", "mipnerf360")  # --distortion-space: the loss's ray coordinate
 
 
 # --builtin-size at most: the built-in scene renders its 64 training views in one call, and the
@@ -303,8 +304,27 @@ class CaptureConfig:
         0.0, "hash field with a grid: weight of mip-NeRF 360's distortion loss on each training "
         "ray's compositing weights, which pulls a ray's weight into one short stretch (fewer "
         "floaters in real captures; ray positions are normalised to s = t / (t + a) in "
-        "contracted scenes, a the inner half-size, else to (t - near) / (far - near)); 0: off",
-        check="nonnegative",
+        "contracted scenes, a the inner half-size, else to (t - near) / (far - near); see "
+        "--distortion-space); 0: off", check="nonnegative",
+    )  # fmt: skip
+    distortion_space: str = option(
+        "scene", "with --distortion-loss: the ray coordinate the loss measures in: scene (as "
+        "above) or mipnerf360 (mip-NeRF 360's s = (1/near - 1/t) / (1/near - 1/far): t from "
+        "near to 2 near spans half of [0, 1], distant space is packed near 1; on beer the "
+        "stretch in front of the nearest surfaces spans about 4 times more s than in scene's)",
+        choices=DISTORTION_SPACES,
+    )  # fmt: skip
+    near_loss: float = option(
+        0.0, "hash field with a grid or --sampler proposal, world-space rays (not NDC): "
+        "weight of a penalty on each training ray's compositing weight at samples nearer "
+        "than --near-loss-frac x its camera's distance to the scene centre (the rays' mean; "
+        "against fog in front of the cameras); 0: off", check="nonnegative",
+    )  # fmt: skip
+    near_loss_frac: float = option(
+        0.6, "with --near-loss: the penalised stretch of each ray, a fraction of its camera's "
+        "distance to the scene centre (the normalised scene's origin; beer's near plane lies "
+        "at 0.5 of it, all but 0.03 percent of the COLMAP points it sees beyond 0.75)",
+        check="positive",
     )  # fmt: skip
     depth_loss: float = option(
         0.0, "COLMAP captures with sparse points (world-space rays, not NDC): weight of a depth "
@@ -320,10 +340,15 @@ class CaptureConfig:
     def check_section(self, fail) -> None:
         if self.appearance_dim is not None and self.appearance_dim > 256:
             raise fail("appearance_dim", f"must be at most 256, got {self.appearance_dim}")
-        for name in ("distortion_loss", "depth_loss"):
+        for name in ("distortion_loss", "depth_loss", "near_loss"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise fail(name, f"must be finite and >= 0, got {v}")
+        if self.distortion_space not in DISTORTION_SPACES:
+            raise fail("distortion_space", f"must be one of {', '.join(DISTORTION_SPACES)}, "
+                       f"got {self.distortion_space!r}")  # fmt: skip
+        if not (math.isfinite(self.near_loss_frac) and 0 < self.near_loss_frac <= 1):
+            raise fail("near_loss_frac", f"must be in (0, 1], got {self.near_loss_frac}")
         if not 1 <= self.depth_rays <= MAX_DEPTH_RAYS:
             raise fail("depth_rays", f"must be in [1, {MAX_DEPTH_RAYS}], got {self.depth_rays}")
         for name in ("appearance_images", "pose_images"):

@@ -8,6 +8,8 @@ The loss, in this order of sums (each a mean over the step's rays unless said):
   random backgrounds (``--random-background``);
 - ``mask_w`` x the opacity's cross-entropy against the pixels' alpha (``--mask-loss``);
 - ``distortion_w`` x mip-NeRF 360's distortion loss (when the renderer returned it);
+- ``near_w`` x each ray's compositing weight nearer than ``--near-loss-frac`` x its camera's
+  distance to the scene centre (``--near-loss``; when the renderer returned it);
 - ``interlevel_w`` x mip-NeRF 360's interlevel loss of the proposal networks (``--sampler
   proposal``: when the renderer returned it);
 - ``depth_w`` x the depth prior at sparse points (``--depth-loss``; computed by the caller);
@@ -39,6 +41,7 @@ class LossSettings:
     photometric: str = "mse"  # "mse" or "huber"
     mask_w: float = 0.0  # the opacity term's weight (0: none)
     distortion_w: float = 0.0  # the distortion loss's weight (0: none)
+    near_w: float = 0.0  # the near-camera weight penalty's weight (0: none)
     interlevel_w: float = 0.0  # the proposal networks' interlevel loss weight (--sampler proposal)
     depth_w: float = 0.0  # the depth prior's weight (0: none)
     eikonal_w: float = 0.0  # the eikonal term's weight (an SDF field)
@@ -54,6 +57,7 @@ class LossSettings:
         return cls(
             photometric=cfg.photometric_loss, mask_w=float(mask_w),
             distortion_w=float(cfg.distortion_loss), depth_w=float(cfg.depth_loss),
+            near_w=float(cfg.near_loss),
             interlevel_w=float(cfg.interlevel_loss) if cfg.sampler == "proposal" else 0.0,
             eikonal_w=float(cfg.eikonal_weight) if sdf else 0.0, sdf=sdf,
             fine=model.fine is not None, background=float(cfg.background), aabb=float(cfg.aabb),
@@ -88,9 +92,9 @@ def step_loss(
     depth: torch.Tensor | None = None,  # 0-dim: the depth prior's term (with ``depth_w`` > 0)
     dist=None,  # data parallelism (:class:`~warpnerf.train.distributed.Dist`)
 ) -> tuple:
-    """(loss, terms) of a step's render output ``out`` (rgb, opacity, optionally distortion
-    and rgb_coarse) against its pixels. ``terms``: psnr (the MSE), mask, distortion, depth,
-    beta, as the step has them (detached)."""
+    """(loss, terms) of a step's render output ``out`` (rgb, opacity, optionally distortion,
+    interlevel, near_weight and rgb_coarse) against its pixels. ``terms``: psnr (the MSE),
+    mask, distortion, interlevel, near, depth, beta, as the step has them (detached)."""
     if mask is not None:
         why = unsupported_terms(s, model, dist)
         if why is not None:
@@ -112,6 +116,10 @@ def step_loss(
         dist_loss = scaled(ray_mean(out["distortion"], mask, n))
         terms["distortion"] = dist_loss.detach()
         loss = loss + s.distortion_w * dist_loss
+    if "near_weight" in out:  # --near-loss: weight in front of the cameras, the rays' mean
+        near = scaled(ray_mean(out["near_weight"], mask, n))
+        terms["near"] = near.detach()
+        loss = loss + s.near_w * near
     if "interlevel" in out:  # --sampler proposal: the proposal networks' loss
         inter = scaled(ray_mean(out["interlevel"], mask, n))
         terms["interlevel"] = inter.detach()
