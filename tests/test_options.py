@@ -217,6 +217,7 @@ def _tools():
         "geometry_points": (evaluate_geometry, "points"),
         "geometry_views": (evaluate_geometry, "views"),
         "clean": (evaluate_geometry, "clean"),
+        "level": (evaluate_geometry, "level"),
     }
     rd = {
         "path": (render_run, "path"),

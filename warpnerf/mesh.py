@@ -261,8 +261,9 @@ def vertex_colors(
     return torch.cat(out).numpy() if out else np.zeros((0, 3), np.uint8)
 
 
-def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
-    """n points uniformly on the triangle mesh (area-weighted), [n, 3]."""
+def sample_surface(vertices, faces, n: int, seed: int = 0, return_faces: bool = False):
+    """n points uniformly on the triangle mesh (area-weighted), [n, 3]; with ``return_faces``
+    also the index [n] of the face each lies on (the same points)."""
     rng = np.random.default_rng(seed)
     tri = vertices[faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
@@ -271,7 +272,8 @@ def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
     flip = u + w > 1
     u[flip], w[flip] = 1 - u[flip], 1 - w[flip]
     t = tri[idx]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
+    p = t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + w[:, None] * (t[:, 2] - t[:, 0])
+    return (p, idx) if return_faces else p
 
 
 def screenshot(path, vertices, faces, size=(640, 480), color="#d8b25a", colors=None) -> None:

@@ -97,7 +97,8 @@ def option(
 ):
     """A config field: its ``default``, the ``help`` its flag shows, the ``flag`` (default
     ``--name-with-dashes``; None: not on the command line), the ``check`` of its value on the
-    command line (positive, nonnegative, finite, seed, size), its ``choices``, the ``groups`` of
+    command line (positive, nonnegative, finite, seed, size: a type of :data:`CHECKS`; or an
+    argparse type of the field's own), its ``choices``, the ``groups`` of
     commands that show it (empty: every command built from the config), and for a boolean whose
     default is True, ``negate``: the flag that turns it off (e.g. ``--fixed-beta``). ``const``:
     the flag's value may be left out, meaning ``const`` (``--clean`` = ``--clean 0.01``);
@@ -313,9 +314,12 @@ def add_flags(
             action = argparse.BooleanOptionalAction if default else "store_true"
             group.add_argument(flag_of(f), action=action, default=default, **kw)
             continue
-        if (kind, m["check"]) not in CHECKS:
+        if callable(m["check"]):  # (an argparse type of the field's own)
+            kw["type"] = m["check"]
+        elif (kind, m["check"]) not in CHECKS:
             raise TypeError(f"{cls.__name__}.{f.name}: no command-line type for {kind!r}")
-        kw["type"] = CHECKS[(kind, m["check"])]
+        else:
+            kw["type"] = CHECKS[(kind, m["check"])]
         if m["choices"] is not None:
             kw["choices"] = list(m["choices"])
         else:  # the flag's name, as argparse shows a flag whose dest is its own

@@ -17,13 +17,9 @@ import numpy as np
 
 def surface_distance(v: np.ndarray) -> np.ndarray:
     """Unsigned distance [n] from points [n, 3] to the materials spheres and disk."""
-    from warpnerf.data.materials_truth import MATERIALS_DISK, MATERIALS_RADIUS, MATERIALS_SPHERES
+    from warpnerf.data.materials_truth import materials_signed_distances
 
-    c = np.asarray(MATERIALS_SPHERES)
-    d_sph = np.abs(np.linalg.norm(v[:, None, :] - c[None], axis=-1) - MATERIALS_RADIUS).min(1)
-    r = np.linalg.norm(v[:, :2], axis=1)
-    d_disk = np.hypot(np.maximum(r - MATERIALS_DISK, 0.0), v[:, 2])
-    return np.minimum(d_sph, d_disk)
+    return np.abs(materials_signed_distances(v)).min(1)
 
 
 def main(argv=None):

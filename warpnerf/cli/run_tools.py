@@ -94,11 +94,13 @@ def cmd_eval(args) -> int:
         _check_clean(args.clean)
         print(json_dumps(evaluate_geometry(args.run, args.geometry, args.mesh_resolution,
                                            args.geometry_points, device, clean=args.clean,
-                                           views=args.geometry_views,
-                                           progress=not args.quiet)))  # fmt: skip
+                                           views=args.geometry_views, progress=not args.quiet,
+                                           level=args.level)))  # fmt: skip
         return 0
     if args.clean is not None:
         raise UserError("--clean needs --geometry (eval) or the mesh command")
+    if args.level != 0.0:
+        raise UserError("--level needs --geometry (eval) or the mesh command")
     if args.out:
         check_out(args.out)
     elif Path(args.run).is_dir():
@@ -162,6 +164,7 @@ class _MeshSource(NamedTuple):
     density: bool = False  # fn is minus a density (a NeRF): its values are -sigma
     cameras: object = None  # () -> training cameras (c2w, intrinsics, width, height) to cull by
     weights: object = None  # (lower, upper, progress) -> (weight grid to cull by or None, why)
+    level_rule: dict | None = None  # --level rendered: the figures of the level chosen
 
 
 def _mesh_source(args) -> _MeshSource:
@@ -174,9 +177,11 @@ def _mesh_source(args) -> _MeshSource:
         from ..fields.sdf_scene import SDFScene, many_primitives_scene, torus_scene
 
         builtin = {"torus": torus_scene, "scene": many_primitives_scene}
+        from ..train.surface_level import plain_level
+
         scene = builtin[args.sdf]() if args.sdf in builtin else SDFScene.load(args.sdf)
         b = args.bounds or 2.0
-        level = args.level or 0.0
+        level = plain_level(args.level, f"the SDF scene {args.sdf}") or 0.0
         return _MeshSource(lambda p: scene.sdf(p), [-b] * 3, [b] * 3, level, level,
                            f"sdf {args.sdf}", None, dev)  # fmt: skip
     from ..train.methods import method_of_run
@@ -190,7 +195,8 @@ def _mesh_source(args) -> _MeshSource:
     m = method.mesh(opened, args.bounds, args.level)
     return _MeshSource(m["fn"], m["lower"], m["upper"], m["level"], m["shown_level"],
                        f"{m['what']} {args.run}", m["back"], m["device"], m["field"],
-                       m["density"], m["cameras"], m.get("weights"))  # fmt: skip
+                       m["density"], m["cameras"], m.get("weights"),
+                       m.get("level_rule"))  # fmt: skip
 
 
 def _check_clean(clean) -> None:
@@ -335,6 +341,9 @@ def cmd_mesh(args) -> int:
     }
     if chosen:  # the level the run's densities chose, and why (--level sets it)
         res["level_rule"] = f"{chosen['why']}; --level sets it"
+    if src.level_rule is not None:  # --level rendered: the level its renders chose, and why
+        rule = dict(src.level_rule)
+        res.update(level_rule=rule.pop("rule"), level_rendered=rule)
     if "clean" in post or args.decimate is not None:
         res["clean_decimate_seconds"] = post_secs
     print(json_dumps(res))

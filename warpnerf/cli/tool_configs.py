@@ -6,18 +6,31 @@ same defaults)."""
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass
 
 from ..options import option
 from ..train.nerf_eval import RENDERERS
+from ..train.surface_level import LEVEL_BOUND, parse_level
 
 __all__ = ["EvalConfig", "RenderConfig", "MeshConfig", "ExportConfig", "RUN_DEVICE"]
 
 RUN_DEVICE = "cpu or cuda (default: the run's device)"
 QUIET = "no progress on stderr (default: a bar on a terminal, else a line every 10 s)"
 SPLITS = ("train", "val", "test")
+RENDERED_HELP = (f"'rendered': the median SDF at the rendered depths of opaque training rays "
+                 f"(a seeded subset of the training pixels; clamped to +-{LEVEL_BOUND:g} beta), "
+                 "where the renders put the surface")  # fmt: skip
 CLEAN_HELP = ("drop floating pieces: connected components with less than MIN_FRACTION of the "
               "surface area (MIN_FRACTION default 0.01; give it after RUN)")  # fmt: skip
+
+
+def _level_arg(text: str):
+    """--level's argparse type: a finite number or 'rendered' (train/surface_level.py)."""
+    try:
+        return parse_level(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 @dataclass
@@ -58,6 +71,8 @@ class EvalConfig:
     clean: float | None = option(None, "with --geometry: also the figures after cleaning; "
                                  + CLEAN_HELP, check="finite", const=0.01,
                                  metavar="MIN_FRACTION")  # fmt: skip
+    level: float | str = option(0.0, "with --geometry: the SDF level meshed, a number or "
+                                + RENDERED_HELP, check=_level_arg)  # fmt: skip
     quiet: bool = option(False, QUIET)
 
 
@@ -82,11 +97,12 @@ class MeshConfig:
 
     sdf: str | None = option(None, "SDF scene: a JSON file, or 'torus' / 'scene' (built-in)")
     resolution: int = option(256, "grid nodes per axis")
-    level: float | None = option(None, "0 for SDFs; density for NeRF runs: default from the run, "
-                                 "the median density where lines through the grid reach opacity "
-                                 "0.5 as rays (the depth it renders), at most the peak density "
-                                 "nine in ten of those lines reach (no holes)",
-                                 check="finite")  # fmt: skip
+    level: float | str | None = option(
+        None, "SDFs: 0, another number, or " + RENDERED_HELP + "; density for NeRF runs: "
+        "default from the run, the median density where lines through the grid reach opacity "
+        "0.5 as rays (the depth it renders), at most the peak density nine in ten of those "
+        "lines reach (no holes)", check=_level_arg,
+    )  # fmt: skip
     bounds: float | None = option(None, "half-size of the cube", check="positive")
     out: str = option("", "mesh.ply (a PNG screenshot goes beside it)", required=True)
     device: str | None = option(None, "where to evaluate and march (default: the run's device; "

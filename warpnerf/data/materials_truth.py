@@ -19,6 +19,7 @@ __all__ = [
     "sphere_depth",
     "materials_depth",
     "materials_shape_ids",
+    "materials_signed_distances",
     "materials_visible",
 ]
 
@@ -91,16 +92,25 @@ MATERIALS_NAMES = ("gold", "copper", "aluminium", "red plastic", "blue plastic",
                    "glass", "purple paint", "disk")  # fmt: skip
 
 
-def materials_shape_ids(points):
-    """[n] index into :data:`MATERIALS_NAMES` of the analytic shape nearest to each point."""
+def materials_signed_distances(points):
+    """[n, 9] signed distance from each point [n, 3] to each analytic shape, in
+    :data:`MATERIALS_NAMES`' order: to a sphere |p - c| - r (negative inside); to the infinitely
+    thin disk the distance to it, signed by the side (z: negative below)."""
     import numpy as np
 
     p = np.asarray(points, dtype=np.float64)
     c = np.asarray(MATERIALS_SPHERES)
-    d_sph = np.abs(np.linalg.norm(p[:, None] - c[None], axis=-1) - MATERIALS_RADIUS)  # [n, 8]
+    d_sph = np.linalg.norm(p[:, None] - c[None], axis=-1) - MATERIALS_RADIUS  # [n, 8]
     rho = np.linalg.norm(p[:, :2], axis=-1)
-    d_disk = np.hypot(p[:, 2], np.maximum(rho - MATERIALS_DISK, 0.0))
-    return np.argmin(np.concatenate([d_sph, d_disk[:, None]], 1), 1)
+    d_disk = np.copysign(np.hypot(p[:, 2], np.maximum(rho - MATERIALS_DISK, 0.0)), p[:, 2])
+    return np.concatenate([d_sph, d_disk[:, None]], 1)
+
+
+def materials_shape_ids(points):
+    """[n] index into :data:`MATERIALS_NAMES` of the analytic shape nearest to each point."""
+    import numpy as np
+
+    return np.argmin(np.abs(materials_signed_distances(points)), 1)
 
 
 def materials_visible(points, c2w, intrinsics, width: int, height: int, chunk: int = 2048,

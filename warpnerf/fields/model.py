@@ -3,11 +3,12 @@ fields that builds it from a config (:data:`FIELDS`, :func:`register_field`, :fu
 
 A field is an ``nn.Module`` with a declared ``kind`` ("density": ``density(x) -> (sigma,
 features)``; "sdf": a signed distance turned into a density by the field itself, e.g. VolSDF's
-Laplace CDF), ``color(x, d, features)``, ``forward(x, d) -> (sigma, rgb)`` and ``aux_losses()``
-(the regularisers of its last forward pass with gradients). The model holds the field of the
-coarse pass, the fine pass's field (None, or the same module when one network serves both) and
-the occupancy grid (None without one); it is what a run checkpoints (:meth:`parts`) and what the
-renderers of train/nerf.py take.
+Laplace CDF, with ``sdf(x)``, ``gradient(x)``, ``normals(x)`` and the density's scale ``beta``
+for the mesh and geometry tools), ``color(x, d, features)``, ``forward(x, d) -> (sigma, rgb)``
+and ``aux_losses()`` (the regularisers of its last forward pass with gradients). The model holds
+the field of the coarse pass, the fine pass's field (None, or the same module when one network
+serves both) and the occupancy grid (None without one); it is what a run checkpoints
+(:meth:`parts`) and what the renderers of train/nerf.py take.
 
 Adding a field: write the module (one new file in ``warpnerf/fields/``), then one builder::
 

@@ -77,6 +77,10 @@ class VolSDFField(nn.Module):
             (g,) = torch.autograd.grad(d.sum(), p, create_graph=create_graph)
         return d * self.bound, g * self.bound, feat
 
+    def gradient(self, positions: torch.Tensor) -> torch.Tensor:
+        """The SDF's gradient [n, 3] (world units, autograd; no graph) at positions [n, 3]."""
+        return self.sdf_and_gradient(positions, create_graph=False)[1].detach()
+
     def eikonal(self, points: torch.Tensor) -> torch.Tensor:
         """Mean (|grad d| - 1)^2 at points (differentiable)."""
         _, g, _ = self.sdf_and_gradient(points, create_graph=True)
@@ -102,8 +106,7 @@ class VolSDFField(nn.Module):
 
     def normals(self, positions: torch.Tensor) -> torch.Tensor:
         """Unit normals (no graph) at positions [n, 3]."""
-        _, g, _ = self.sdf_and_gradient(positions, create_graph=False)
-        return torch.nn.functional.normalize(g.detach(), dim=-1)
+        return torch.nn.functional.normalize(self.gradient(positions), dim=-1)
 
 
 # the built-in field `volsdf`, registered as an added field is (docs/ARCHITECTURE.md)

@@ -72,10 +72,13 @@ class Method:
     that make it; ``what``: its name in messages; ``view``: one of :data:`VIEWS`;
     ``open_run(run, device) -> LoadedRun``; ``open_task(task) -> LoadedRun`` (the live viewer);
     ``renders``: eval, render and export take it (cameras and images: the NeRF pipeline);
-    ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract): what `warpnerf mesh`
+    ``mesh(opened, bounds, level) -> dict`` (None: no surface to extract; ``level``: None, a
+    number or "rendered", which a method without renders refuses,
+    :func:`~warpnerf.train.surface_level.plain_level`): what `warpnerf mesh`
     marches, as the keywords of the CLI's mesh source (fn: points on ``device`` -> values, lower
     and upper corners, the marched level and the level asked for (both None: a density level
-    the command chooses from the grid), back: vertices -> the data's
+    the command chooses from the grid), optional level_rule: the figures of a level the method
+    chose (:func:`~warpnerf.train.surface_level.rendered_level`), back: vertices -> the data's
     units or None, field for --colors or None, density: fn is minus a density, cameras: a
     callable giving the training cameras in the mesh's frame (or None), or None: what the
     default cleaning culls by; optional weights: None, or a callable (lower, upper, progress)

@@ -40,10 +40,14 @@ def _open_nerf(run, device=None) -> LoadedRun:
 
 
 def _nerf_mesh(o: LoadedRun, bounds, level) -> dict:
-    """A NeRF/VolSDF run's surface: an SDF field's zero level set, else the density's level set
-    marched as -density at -level (inside negative, like an SDF); with no level given, level
-    and shown_level are None: the command chooses the density from the grid
+    """A NeRF/VolSDF run's surface: an SDF field's level set (the zero level unless ``level``
+    is given; "rendered": the level where its renders put the surface, with the figures of
+    :func:`~warpnerf.train.surface_level.rendered_level` as ``level_rule``), else the density's
+    level set marched as -density at -level (inside negative, like an SDF); with no level
+    given, level and shown_level are None: the command chooses the density from the grid
     (:func:`warpnerf.mesh.density_level`)."""
+    from .surface_level import mesh_level, plain_level
+
     cfg, field = o.cfg, o.model.field
     b = bounds or (cfg.aabb if cfg.aabb > 0 else 1.5)
     back = None
@@ -68,10 +72,11 @@ def _nerf_mesh(o: LoadedRun, bounds, level) -> dict:
 
     out = dict(lower=lo, upper=hi, back=back, device=cfg.device, field=field, cameras=cams,
                weights=weights)  # fmt: skip
-    if o.model.kind == "sdf":  # the SDF's zero level set
-        level = level or 0.0
+    if o.model.kind == "sdf":  # the SDF's level set (zero unless given)
+        level, rule = mesh_level(o.model, cfg, level, o.training_cameras)
         return dict(out, fn=lambda p: field.sdf(p.to(cfg.device)), level=level, shown_level=level,
-                    what=cfg.field, density=False)  # fmt: skip
+                    what=cfg.field, density=False, level_rule=rule)  # fmt: skip
+    level = plain_level(level, "a NeRF run (its default level is where its rays turn opaque)")
     return dict(out, fn=lambda p: -field.density(p.to(cfg.device))[0],
                 level=None if level is None else -level, shown_level=level, what="nerf",
                 density=True)  # fmt: skip

@@ -548,10 +548,12 @@ def _point_sdf_mesh(o: LoadedRun, bounds, level) -> dict:
     cloud's units."""
     import numpy as np
 
+    from .surface_level import plain_level
+
     cfg, model = o.cfg, o.model
     c, s = o.extra["normalisation"]["center"], o.extra["normalisation"]["scale"]
     b = bounds or 1.0  # in the normalised frame
-    level = level or 0.0
+    level = plain_level(level, "a neural SDF fitted to points") or 0.0
     return dict(fn=lambda p: model(p.to(cfg.device)), lower=[-b] * 3, upper=[b] * 3, level=level,
                 shown_level=level, what="sdf run", back=lambda v: v / s + np.asarray(c),
                 device=cfg.device, field=None, density=False, cameras=None)  # fmt: skip
