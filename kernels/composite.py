@@ -1,8 +1,12 @@
 """Emission-absorption compositing: forward and hand-written backward (pure Warp).
 
-One thread per ray walks that ray's samples in order. A ray's samples are the contiguous range
-``[start, start + count)`` of the flat sample arrays: ``packed_info[ray] = (start, count)`` in the
-packed layout, ``start = ray * n_dense, count = n_dense`` in the dense layout.
+This module: the maths, the helpers every compositing kernel shares and the one-thread-per-ray
+kernels (``composite_fwd`` / ``composite_bwd``: float32 and float64, densities or opacities).
+``composite_tiled.py``: the cooperative float32 kernels for densities, one block per ray (the
+default path). A ray's samples are the contiguous range ``[start, start + count)`` of the flat
+sample arrays: ``packed_info[ray] = (start, count)`` in the packed layout, ``start = ray * n_dense,
+count = n_dense`` in the dense layout. The backward kernels write the gradient of every sample,
+zero included (``zero_uncovered``), so the bridge allocates them without zeroing them first.
 
 Forward (sample i of a ray, delta_i = t_end_i - t_start_i, t_i = (t_start_i + t_end_i) / 2):
 
@@ -14,7 +18,8 @@ Forward (sample i of a ray, delta_i = t_end_i - t_start_i, t_i = (t_start_i + t_
 
 Early termination: a ray stops at the first sample m whose transmittance T_m < t_threshold
 (t_threshold = 0 never stops). Samples from m on get weight 0 and gradient 0; the forward stores m
-(``n_eff``) and the per-sample transmittance T_i, so the backward sees exactly the same samples.
+(``n_eff``) and the per-sample transmittance T_i, so the backward sees exactly the same samples
+(the tiled kernels store neither per sample: they recompute T_i bit for bit, composite_tiled.py).
 
 Backward. Write every upstream gradient as one scalar per sample,
 ``e_i = v_rgb . c_i + v_depth * t_i + v_opacity + v_weights_i`` and ``e_bg = v_rgb . background``;
@@ -88,6 +93,29 @@ def optical_depth(use_alpha: int, value: Any, delta: Any):
 
 
 @wp.func
+def upstream_value(
+    g0: Any,
+    g1: Any,
+    g2: Any,
+    gd: Any,
+    ga: Any,
+    c0: Any,
+    c1: Any,
+    c2: Any,
+    t_mid: Any,
+    v_weights: wp.array(dtype=Any),
+    i: int,
+):
+    """All upstream gradients of sample i (colour c, midpoint t_mid) as one scalar:
+    e_i = v_rgb . c_i + v_depth * t_i + v_opacity + v_weights_i (v_weights may be empty)."""
+    e = g0 * c0 + g1 * c1 + g2 * c2
+    e += gd * t_mid + ga
+    if v_weights.shape[0] > 0:
+        e += v_weights[i]
+    return e
+
+
+@wp.func
 def upstream_scalar(
     g0: Any,
     g1: Any,
@@ -100,13 +128,12 @@ def upstream_scalar(
     v_weights: wp.array(dtype=Any),
     i: int,
 ):
-    """All upstream gradients of a sample as one scalar:
-    e_i = v_rgb . c_i + v_depth * t_i + v_opacity + v_weights_i (v_weights may be empty)."""
-    e = g0 * rgbs[i, 0] + g1 * rgbs[i, 1] + g2 * rgbs[i, 2]
-    e += gd * type(gd)(0.5) * (t_starts[i] + t_ends[i]) + ga
-    if v_weights.shape[0] > 0:
-        e += v_weights[i]
-    return e
+    """``upstream_value`` of sample i, its colour and midpoint read from the arrays."""
+    t_mid = type(gd)(0.5) * (t_starts[i] + t_ends[i])
+    c0 = rgbs[i, 0]
+    c1 = rgbs[i, 1]
+    c2 = rgbs[i, 2]
+    return upstream_value(g0, g1, g2, gd, ga, c0, c1, c2, t_mid, v_weights, i)
 
 
 @wp.func
@@ -144,6 +171,55 @@ def ray_range(r: int, n_dense: int, packed_info: wp.array2d(dtype=wp.int32)):
     if n_dense > 0:
         return r * n_dense, n_dense
     return int(packed_info[r, 0]), int(packed_info[r, 1])
+
+
+@wp.func
+def zero_sample(i: int, v_values: wp.array(dtype=Any), v_rgbs: wp.array2d(dtype=Any)):
+    zero = v_values.dtype(0.0)
+    v_values[i] = zero
+    v_rgbs[i, 0] = zero
+    v_rgbs[i, 1] = zero
+    v_rgbs[i, 2] = zero
+
+
+@wp.func
+def zero_uncovered(
+    r: int,
+    lane: int,
+    bd: int,
+    n_dense: int,
+    packed_info: wp.array2d(dtype=wp.int32),
+    v_values: wp.array(dtype=Any),
+    v_rgbs: wp.array2d(dtype=Any),
+):
+    """Zero gradients for the samples no ray covers (a fixed-capacity buffer's unused slots), by
+    lane ``lane`` of ``bd`` in ray ``r``'s block: the gap before ray 0 (ray 0), the gap between
+    ray r and ray r + 1 (ray r), and the slots after the last ray, spread over all blocks.
+
+    Exact for segments in ray order (non-decreasing starts, no overlap), which is what
+    ``packed_info_from_ray_indices``, the samplers and the marchers make and what the bridge's
+    ``check_packed_info`` enforces; the dense layout covers every sample.
+    """
+    n_rays = packed_info.shape[0]
+    if n_dense > 0 or n_rays == 0:
+        return
+    start = int(packed_info[r, 0])
+    if r == 0:
+        for i in range(lane, start, bd):
+            zero_sample(i, v_values, v_rgbs)
+    if r + 1 < n_rays:
+        end = start + int(packed_info[r, 1])
+        for i in range(end + lane, int(packed_info[r + 1, 0]), bd):
+            zero_sample(i, v_values, v_rgbs)
+    tail = int(packed_info[n_rays - 1, 0]) + int(packed_info[n_rays - 1, 1])
+    n_tail = v_values.shape[0] - tail
+    n_blocks = n_tail // bd
+    if n_tail % bd != 0:
+        n_blocks += 1
+    for blk in range(r, n_blocks, n_rays):
+        off = blk * bd + lane
+        if off < n_tail:
+            zero_sample(tail + off, v_values, v_rgbs)
 
 
 @wp.kernel(enable_backward=False)
@@ -239,14 +315,10 @@ def composite_bwd(
 ):
     r = wp.tid()
     start, count = ray_range(r, n_dense, packed_info)
-    zero = t_starts.dtype(0.0)
     m = int(n_eff[r])
     for k in range(m, count):
-        i = start + k
-        v_values[i] = zero
-        v_rgbs[i, 0] = zero
-        v_rgbs[i, 1] = zero
-        v_rgbs[i, 2] = zero
+        zero_sample(start + k, v_values, v_rgbs)
+    zero_uncovered(r, 0, 1, n_dense, packed_info, v_values, v_rgbs)
     b = 0
     if background.shape[0] > 1:
         b = r
@@ -291,175 +363,3 @@ def _overloads(dtype):
 
 for _dt in (wp.float32, wp.float64):
     _overloads(_dt)
-
-
-# --------------------------------------------------------------------------------------------------
-# Cooperative float32 kernels for densities: one block per ray (launch_tiled), lane l of a block
-# handles samples base + l, so a block's loads are contiguous (coalesced on a GPU). Transmittance
-# prefix sums come from a block-wide scan of tau; the backward walks the ray's live samples in
-# chunks from the back, lane l taking sample hi - 1 - l, and forms
-#     suffix_i = sum_{j>i, j<m} w_j e_j + T_m e_bg
-# with a block scan (a direct sum of the terms behind i, never a total minus a prefix), then
-#     dL/dsigma_i = delta_i (T_{i+1} e_i - suffix_i),
-# the same quantity as delta_i T_{i+1} (e_i - S_i) above. Semantics (early termination, NaN
-# propagation, outputs) are those of composite_fwd / composite_bwd; on the CPU a block has one lane
-# and the same code walks the ray one sample at a time.
-
-
-@wp.func
-def block_sum(x: float):
-    return wp.tile_extract(wp.tile_sum(wp.tile(x)), 0)
-
-
-@wp.kernel(enable_backward=False)
-def composite_fwd_tiled(
-    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2]
-    n_dense: int,
-    t_starts: wp.array(dtype=float),  # [n]
-    t_ends: wp.array(dtype=float),  # [n]
-    sigmas: wp.array(dtype=float),  # [n]
-    rgbs: wp.array2d(dtype=float),  # [n, 3]
-    background: wp.array2d(dtype=float),  # [n_rays or 1, 3]
-    t_threshold: float,
-    want_weights: int,
-    out_rgb: wp.array2d(dtype=float),  # [n_rays, 3]
-    out_depth: wp.array(dtype=float),  # [n_rays]
-    out_opacity: wp.array(dtype=float),  # [n_rays]
-    out_t_final: wp.array(dtype=float),  # [n_rays]
-    trans: wp.array(dtype=float),  # [n]
-    weights: wp.array(dtype=float),  # [n] or [0]
-    n_eff: wp.array(dtype=wp.int32),  # [n_rays]
-):
-    r, lane = wp.tid()
-    bd = wp.block_dim()
-    start, count = ray_range(r, n_dense, packed_info)
-    acc = float(0.0)  # optical depth of the live samples so far (same value in every lane)
-    c0 = float(0.0)
-    c1 = float(0.0)
-    c2 = float(0.0)
-    depth = float(0.0)
-    op = float(0.0)
-    live_count = int(0)
-    n_chunks = (count + bd - 1) // bd
-    for q in range(n_chunks):
-        k = q * bd + lane
-        i = start + k
-        tau = float(0.0)
-        alpha = float(0.0)
-        if k < count:
-            tau, alpha, keep = optical_depth(0, sigmas[i], t_ends[i] - t_starts[i])
-        # An exclusive scan sums each lane's predecessors: exact, whereas inclusive - tau loses
-        # the small sum in front of a huge tau (and gives inf - inf).
-        excl = wp.untile(wp.tile_scan_exclusive(wp.tile(tau)))
-        t = wp.exp(-(acc + excl))
-        live_tau = float(0.0)
-        if k < count:
-            if t < t_threshold:
-                if want_weights != 0:
-                    weights[i] = 0.0
-            else:
-                w = t * alpha
-                trans[i] = t
-                if want_weights != 0:
-                    weights[i] = w
-                c0 += w * rgbs[i, 0]
-                c1 += w * rgbs[i, 1]
-                c2 += w * rgbs[i, 2]
-                depth += w * 0.5 * (t_starts[i] + t_ends[i])
-                op += w
-                live_count += 1
-                live_tau = tau
-        acc += block_sum(live_tau)
-        if wp.exp(-acc) < t_threshold:
-            # every later sample is dead: zero its weight (uniform exit for the whole block)
-            if want_weights != 0:
-                for kk in range((q + 1) * bd + lane, count, bd):
-                    weights[start + kk] = 0.0
-            break
-    c0 = block_sum(c0)
-    c1 = block_sum(c1)
-    c2 = block_sum(c2)
-    depth = block_sum(depth)
-    op = block_sum(op)
-    m = wp.tile_extract(wp.tile_sum(wp.tile(live_count)), 0)
-    if lane == 0:
-        store_ray(
-            r,
-            c0,
-            c1,
-            c2,
-            depth,
-            op,
-            wp.exp(-acc),
-            m,
-            background,
-            out_rgb,
-            out_depth,
-            out_opacity,
-            out_t_final,
-            n_eff,
-        )
-
-
-@wp.kernel(enable_backward=False)
-def composite_bwd_tiled(
-    packed_info: wp.array2d(dtype=wp.int32),  # [n_rays, 2]
-    n_dense: int,
-    t_starts: wp.array(dtype=float),  # [n]
-    t_ends: wp.array(dtype=float),  # [n]
-    sigmas: wp.array(dtype=float),  # [n]
-    rgbs: wp.array2d(dtype=float),  # [n, 3]
-    background: wp.array2d(dtype=float),  # [n_rays or 1, 3]
-    trans: wp.array(dtype=float),  # [n]
-    n_eff: wp.array(dtype=wp.int32),  # [n_rays]
-    t_final: wp.array(dtype=float),  # [n_rays]
-    v_rgb: wp.array2d(dtype=float),  # [n_rays, 3]
-    v_depth: wp.array(dtype=float),  # [n_rays]
-    v_opacity: wp.array(dtype=float),  # [n_rays]
-    v_weights: wp.array(dtype=float),  # [n] or [0]
-    v_sigmas: wp.array(dtype=float),  # [n] out
-    v_rgbs: wp.array2d(dtype=float),  # [n, 3] out
-):
-    r, lane = wp.tid()
-    bd = wp.block_dim()
-    start, count = ray_range(r, n_dense, packed_info)
-    m = int(n_eff[r])
-    for k in range(m + lane, count, bd):
-        v_sigmas[start + k] = 0.0
-        v_rgbs[start + k, 0] = 0.0
-        v_rgbs[start + k, 1] = 0.0
-        v_rgbs[start + k, 2] = 0.0
-    b = 0
-    if background.shape[0] > 1:
-        b = r
-    g0 = v_rgb[r, 0]
-    g1 = v_rgb[r, 1]
-    g2 = v_rgb[r, 2]
-    gd = v_depth[r]
-    ga = v_opacity[r]
-    carry = t_final[r] * (g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2])
-    n_chunks = (m + bd - 1) // bd
-    for q in range(n_chunks):
-        k = m - 1 - q * bd - lane
-        i = start + k
-        term = float(0.0)
-        e = float(0.0)
-        w = float(0.0)
-        tk = float(0.0)  # T_{i+1}
-        delta = float(0.0)
-        if k >= 0:
-            delta = t_ends[i] - t_starts[i]
-            tau, alpha, keep = optical_depth(0, sigmas[i], delta)
-            t = trans[i]
-            w = t * alpha
-            tk = t * keep
-            e = upstream_scalar(g0, g1, g2, gd, ga, rgbs, t_starts, t_ends, v_weights, i)
-            term = w * e
-        # Terms are bounded by |e| (w <= 1), so inclusive - term has only rounding-level error.
-        behind = wp.untile(wp.tile_scan_inclusive(wp.tile(term))) - term
-        if k >= 0:
-            v_sigmas[i] = delta * (tk * e - (carry + behind))
-            v_rgbs[i, 0] = w * g0
-            v_rgbs[i, 1] = w * g1
-            v_rgbs[i, 2] = w * g2
-        carry += block_sum(term)

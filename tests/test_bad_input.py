@@ -342,6 +342,7 @@ CASES = [
     (["mesh", "--sdf", "torus", "--out", "dir.ply"], ["--out dir.ply", "is a folder"]),
     (["bench", "--quick", "--json", "afile/b.json"], ["--json afile/b.json", "afile is a file"]),
     (["bench", "--quick", "--json", "emptydir"], ["--json emptydir", "is a folder"]),
+    (["bench", "encoding", "--rays", "8"], ["--rays and --samples", "composite"]),
     # numbers that parse but are out of range for the command
     (["train", "box", "--data", "bl", "--out", "OUT", "--near", "-1"], ["--near", "--far"]),
     (["train", "box", "--data", "bl", "--out", "OUT", "--near", "6"], ["--near", "--far"]),
@@ -387,6 +388,8 @@ ARGPARSE_CASES = [
     (["mesh", "--sdf", "torus", "--out", "m.ply", "--bogus"], "unrecognized arguments"),
     (["bench", "--bogus"], "unrecognized arguments: --bogus"),
     (["bench", "frobnicate"], "invalid choice"),
+    (["bench", "--rays", "0"], "argument --rays"),
+    (["bench", "--samples", "-1"], "argument --samples"),
     (["eval", "nerf_run", "--split", "training"], "argument --split"),
     # zero, negative, non-finite and malformed numbers
     (["demo", "--iters", "0"], "argument --iters"),

@@ -117,6 +117,25 @@ def test_cli_bench_quick(tmp_path):
     assert rows and rows[0]["max_err_rgb"] < 1e-4 and rows[0]["max_err_v_sigmas"] < 1e-4
 
 
+def test_cli_bench_composite_one_size(tmp_path):
+    """--rays/--samples time one size; every variant is counted at the fewest bytes (64 B per
+    sample + 56 B per ray forward+backward) and reports its own estimate of what it moves."""
+    from warpnerf.bench import COMPOSITE_VARIANTS
+
+    args = ["bench", "composite", "--rays", "64", "--samples", "8", "--json", "b.json"]
+    p = run(["-m", "warpnerf.cli", *args], tmp_path)
+    rows = json.loads((tmp_path / "b.json").read_text())["rows"]
+    assert [r["kernel"] for r in rows] == [v[0] for v in COMPOSITE_VARIANTS]
+    for r in rows:
+        assert (r["n_rays"], r["n_samples"]) == (64, 512)
+        assert r["bytes_fwdbwd"] == 64 * 512 + 56 * 64 and r["bytes_fwd"] == 24 * 512 + 28 * 64
+        assert r["max_err_rgb"] < 1e-4 and r["max_err_v_sigmas"] < 1e-4 and r["check_ms"] > 0
+    moved = {r["kernel"]: r["bytes_moved_fwdbwd"] for r in rows}
+    assert moved["composite_packed"] == rows[0]["bytes_fwdbwd"] + 16 * 64
+    assert moved["composite_packed_v1"] == moved["composite_packed"] + 24 * 512
+    assert "% copy BW fwd / fwd+bwd" in p.stdout and "64 x 8: " in p.stdout
+
+
 def test_cli_bench_encoding_quick(tmp_path):
     p = run(["-m", "warpnerf.cli", "bench", "encoding", "--quick", "--json", "b.json"], tmp_path)
     rows = json.loads((tmp_path / "b.json").read_text())["rows"]

@@ -1,6 +1,8 @@
-"""The cooperative float32 kernels (composite_fwd_tiled / composite_bwd_tiled, one block per ray)
-against the one-thread-per-ray kernels and the float64 twin: ray lengths around the block width,
-early termination, weights, extreme optical depths, zero-length intervals and NaN."""
+"""The cooperative float32 kernels (composite_fwd_tiled / composite_bwd_tiled, one block per ray;
+and their predecessors "tiled_v1" while the benchmark keeps them) against the one-thread-per-ray
+kernels and the float64 twin: ray lengths around the block width and the chunk length, early
+termination, weights, extreme optical depths, zero-length intervals, NaN, and samples no ray
+covers."""
 
 from __future__ import annotations
 
@@ -89,14 +91,16 @@ def _of_max(atol):
     return {"rtol": 0.0, "atol": atol, "relative_to_max": True}
 
 
-COUNTS = [0, 1, 2, 31, 32, 33, 64, 65, 100, 5]
+COUNTS = [0, 1, 2, 31, 32, 33, 64, 65, 100, 5, 129, 300]  # chunks of 4 x block_dim samples
+TILED = ["tiled", "tiled_v1"]
 
 
+@pytest.mark.parametrize("kind", TILED)
 @pytest.mark.parametrize("block_dim", [4, 32])
 @pytest.mark.parametrize("t_threshold", [0.0, 1e-2, 0.4])
-def test_tiled_matches_sequential_and_float64(device, block_dim, t_threshold):
+def test_tiled_matches_sequential_and_float64(device, kind, block_dim, t_threshold):
     c = _case(device, COUNTS)
-    with impl("tiled", block_dim):
+    with impl(kind, block_dim):
         t = _run(W, c, F32, t_threshold)
     with impl("sequential"):
         s = _run(W, c, F32, t_threshold)
@@ -106,12 +110,13 @@ def test_tiled_matches_sequential_and_float64(device, block_dim, t_threshold):
     assert_outputs_close(tiled, {**r.out, **r.grads}, tol=_of_max(5e-6), other_dtype=True)
 
 
+@pytest.mark.parametrize("kind", TILED)
 @pytest.mark.parametrize(
     "taus", [[0.0, 1e-12, 1.0], [1e3, 1e8, float("inf")], [0.0, 1e-6, 1.0, 1e8, float("inf")]]
 )
-def test_tiled_extreme_optical_depths(device, taus):
+def test_tiled_extreme_optical_depths(device, kind, taus):
     c = _case(device, COUNTS, tau_values=taus, zero_len=float("inf") not in taus)
-    with impl("tiled"):
+    with impl(kind):
         t = _run(W, c, F32, 0.0)
     with impl("sequential"):
         s = _run(W, c, F32, 0.0)
@@ -137,10 +142,11 @@ def test_tiled_huge_tau_does_not_swallow_what_is_in_front(device):
     assert abs(float(w[2]) - float(expect_t2)) < 1e-6
 
 
-def test_tiled_nan_stays_in_its_ray(device):
+@pytest.mark.parametrize("kind", TILED)
+def test_tiled_nan_stays_in_its_ray(device, kind):
     c = _case(device, COUNTS, nan_ray=6)
     clean = _case(device, COUNTS)
-    with impl("tiled"):
+    with impl(kind):
         out = list(_run(W, c, F32, 1e-2).out.values())
         ref = list(_run(W, clean, F32, 1e-2).out.values())
     for o, r in zip(out[:3], ref[:3]):
@@ -151,5 +157,52 @@ def test_tiled_nan_stays_in_its_ray(device):
 
 def test_default_float32_path_is_tiled():
     assert C._IMPL["float32_sigma"] == "tiled"
-    assert C._use_tiled(torch.zeros(1), 0) and not C._use_tiled(torch.zeros(1, dtype=F64), 0)
-    assert not C._use_tiled(torch.zeros(1), 1)
+    assert C._kernels(torch.zeros(1), 0) == "tiled"
+    assert C._kernels(torch.zeros(1, dtype=F64), 0) == "sequential"
+    assert C._kernels(torch.zeros(1), 1) == "sequential"
+
+
+@pytest.mark.parametrize(
+    "kind,block_dim,dtype",
+    [("tiled", 4, F32), ("tiled", 32, F32), ("sequential", 32, F32), ("sequential", 32, F64)],
+)
+def test_samples_no_ray_covers_get_zero_gradients(device, kind, block_dim, dtype, monkeypatch):
+    """A fixed-capacity layout (check=False): gaps before the first ray, between rays and after
+    the last one. The backward allocates its gradients without zero-filling them (here they
+    start as NaN), so the kernels must write those samples' zeros themselves."""
+    info = torch.tensor([[2, 3], [5, 0], [7, 40], [50, 0], [50, 9]], dtype=torch.int32)
+    n, n_rays = 70, info.shape[0]
+    g = torch.Generator().manual_seed(3)
+    t0 = (2.0 + 0.05 * torch.arange(n, dtype=F64)).to(device, dtype)
+    sig = (3 * torch.rand(n, generator=g, dtype=F64)).to(device, dtype).requires_grad_()
+    rgbs = torch.rand(n, 3, generator=g, dtype=F64).to(device, dtype).requires_grad_()
+    ri = torch.zeros(n, dtype=torch.int64, device=device)
+    covered = torch.zeros(n, dtype=torch.bool)
+    for s0, cnt in info.tolist():
+        covered[s0 : s0 + cnt] = True
+    empty_like = torch.empty_like
+    monkeypatch.setattr(
+        torch, "empty_like", lambda x, **kw: empty_like(x, **kw).fill_(float("nan"))
+    )
+    with impl(kind, block_dim):
+        rgb, depth, _ = W.render_packed(t0, t0 + 0.05, ri, sig, rgbs, n_rays, 1.0,
+                                        packed_info=info.to(device), check=False)  # fmt: skip
+        v_sig, v_rgb = torch.autograd.grad(rgb.sum() + depth.sum(), (sig, rgbs))
+    assert bool(torch.isfinite(v_sig).all() and torch.isfinite(v_rgb).all())
+    assert bool((v_sig.cpu()[~covered] == 0).all() and (v_rgb.cpu()[~covered] == 0).all())
+    assert bool((v_rgb.cpu()[covered] != 0).all())
+
+
+def test_backward_uses_the_forwards_kernels_and_block():
+    """The tiled backward re-walks the forward's chunks, so it must run with the forward's
+    block width even when the backward runs after the composite_kernels block has closed."""
+    c = _case("cpu", COUNTS)
+    sig = c["sigmas"].float().requires_grad_()
+    args = (c["t_starts"].float(), c["t_ends"].float(), c["ray_indices"])
+    with impl("tiled", 4):
+        rgb, *_ = W.render_packed(*args, sig, c["rgbs"].float(), c["n_rays"], c["bg"].float())
+    (late,) = torch.autograd.grad(rgb.sum(), sig)
+    with impl("tiled", 4):
+        rgb, *_ = W.render_packed(*args, sig, c["rgbs"].float(), c["n_rays"], c["bg"].float())
+        (inside,) = torch.autograd.grad(rgb.sum(), sig)
+    assert torch.equal(late, inside)

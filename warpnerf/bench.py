@@ -1,10 +1,11 @@
 """``warpnerf bench``: kernels against their PyTorch twins, measured in the same run.
 
 For each size: median time of the Warp op and of the pure-PyTorch twin (``warpnerf.reference``),
-both float32, forward and forward+backward; throughput in samples/s; bytes the Warp kernels must
-move (each input read once, each output written once) over the measured device copy bandwidth;
-and the max abs error of the Warp float32 outputs and gradients against the float64 twin on the
-same inputs.
+both float32, forward and forward+backward; throughput; the fewest bytes the op can move (each
+input read once per pass, each output and gradient written once: :func:`composite_bytes`) over
+the time, as GB/s and as a share of the device copy bandwidth measured in the same run; and the
+max abs error of the Warp float32 outputs and gradients against the float64 twin on the same
+inputs.
 """
 
 from __future__ import annotations
@@ -72,19 +73,48 @@ def measure_copy_bandwidth(dev, nbytes: int) -> float:
 
 
 def composite_bytes(n_rays: int, n: int, backward: bool) -> int:
-    """Fewest bytes the float32 packed compositing kernels move.
+    """Fewest bytes float32 packed compositing can move (what "% copy BW" divides by).
 
-    Forward: read t_starts, t_ends, sigmas, rgbs (24 B/sample) and packed_info (8 B/ray); write
-    trans (4 B/sample), rgb, depth, opacity, n_eff (24 B/ray). Backward: read t_starts, t_ends,
-    sigmas, rgbs, trans (28 B/sample) and packed_info, n_eff, v_rgb, v_depth, v_opacity
-    (32 B/ray); write v_sigmas, v_rgbs (16 B/sample).
+    Forward: read t_starts, t_ends, sigmas, rgbs (24 B/sample) and packed_info (8 B/ray), write
+    rgb, depth, opacity (20 B/ray). Backward: read the same inputs again (24 B/sample: autograd
+    runs it later, nothing stays on chip) and packed_info, v_rgb, v_depth, v_opacity (28 B/ray),
+    write v_sigmas, v_rgbs (16 B/sample). Forward+backward: 64 B/sample + 56 B/ray. Not counted:
+    what an implementation saves for its backward (per-sample transmittance, per-ray totals; see
+    :func:`composite_traffic`) and the shared [1, 3] background. (Before issue 47 this counted
+    the per-sample transmittance too: 28 + 44 = 72 B/sample and 64 B/ray.)
     """
-    fwd = 28 * n + 32 * n_rays
-    bwd = 44 * n + 32 * n_rays
+    fwd = 24 * n + 28 * n_rays
+    bwd = 40 * n + 28 * n_rays
     return fwd + (bwd if backward else 0)
 
 
-def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, check_error: bool):
+def composite_traffic(kind: str, n_rays: int, n: int, extra_chunks: int, backward: bool) -> int:
+    """Bytes the kernels ``kind`` (``composite_kernels``) move in one call, estimated from their
+    code at DRAM level: :func:`composite_bytes` plus what each saves for the backward and the
+    gradients' zero-fill. All save T_m and n_eff (8 B/ray, written then read). ``tiled``: the
+    optical depth at each chunk's first sample but the first (``extra_chunks`` floats, written
+    then read); ``tiled_v1`` and ``sequential``: the per-sample transmittance (4 B/sample written
+    then read); ``tiled_v1``: the bridge zero-fills v_sigmas and v_rgbs before its backward
+    (16 B/sample)."""
+    fwd = composite_bytes(n_rays, n, False) + 8 * n_rays
+    bwd = composite_bytes(n_rays, n, True) - composite_bytes(n_rays, n, False) + 8 * n_rays
+    if kind == "tiled":
+        fwd, bwd = fwd + 4 * extra_chunks, bwd + 4 * extra_chunks
+    else:
+        fwd, bwd = fwd + 4 * n, bwd + 4 * n + (16 * n if kind == "tiled_v1" else 0)
+    return fwd + (bwd if backward else 0)
+
+
+# The compositing kernels compared (label, composite_kernels kind, block_dim): the default, its
+# predecessor (issue 47's A/B; drop with kernels/composite_tiled_v1.py) and one thread per ray.
+COMPOSITE_VARIANTS = (
+    ("composite_packed", "tiled", 32),
+    ("composite_packed_v1", "tiled_v1", 32),
+    ("composite_packed_seq", "sequential", 32),
+)
+
+
+def _composite_inputs(n_rays: int, n_samples: int, dev):
     g = torch.Generator(device="cpu").manual_seed(0)
     near = torch.full((n_rays,), 2.0, device=dev)
     far = torch.full((n_rays,), 6.0, device=dev)
@@ -92,51 +122,86 @@ def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, check_error:
     n = smp.t_starts.shape[0]
     # Densities spread over five decades so rays range from transparent to opaque.
     sig_cpu = torch.exp(torch.empty(n).uniform_(-4.0, 4.0, generator=g)) * 0.3
-    sigmas = sig_cpu.to(dev).requires_grad_()
-    rgbs = torch.rand(n, 3, generator=g).to(dev).requires_grad_()
-    bg = torch.tensor([1.0, 1.0, 1.0], device=dev)
-    v_rgb = torch.randn(n_rays, 3, generator=g).to(dev)
-    v_depth = torch.randn(n_rays, generator=g).to(dev)
-    args = (smp.t_starts, smp.t_ends, smp.ray_indices)
-    kw = {"background": bg, "packed_info": smp.packed_info}
+    return {
+        "smp": smp,
+        "sigmas": sig_cpu.to(dev).requires_grad_(),
+        "rgbs": torch.rand(n, 3, generator=g).to(dev).requires_grad_(),
+        "bg": torch.tensor([1.0, 1.0, 1.0], device=dev),
+        "v_rgb": torch.randn(n_rays, 3, generator=g).to(dev),
+        "v_depth": torch.randn(n_rays, generator=g).to(dev),
+    }
 
-    def run(fn, backward):
+
+def _composite_case(n_rays: int, n_samples: int, dev, repeats: int, variants) -> list:
+    """One row per variant of ``variants`` ((label, kind, block_dim)) at this size: its times,
+    its errors against the float64 twin; the PyTorch twin's times (measured once) in each row.
+    Timed as the library's renderers call it: ``render_packed(..., check=False)`` (the index
+    check of ``check=True`` is timed alone, ``check_ms``)."""
+    from .ops import composite as C
+
+    c = _composite_inputs(n_rays, n_samples, dev)
+    smp, sigmas, rgbs = c["smp"], c["sigmas"], c["rgbs"]
+    n = smp.t_starts.shape[0]
+    args = (smp.t_starts, smp.t_ends, smp.ray_indices)
+    kw = {"background": c["bg"], "packed_info": smp.packed_info}
+
+    def run(fn, backward, **extra):
         def go():
-            rgb, depth, _ = fn(*args, sigmas, rgbs, n_rays, **kw)
+            rgb, depth, _ = fn(*args, sigmas, rgbs, n_rays, **kw, **extra)
             if backward:
-                torch.autograd.backward((rgb, depth), (v_rgb, v_depth))
+                torch.autograd.backward((rgb, depth), (c["v_rgb"], c["v_depth"]))
                 sigmas.grad = rgbs.grad = None
 
         return go
 
-    row = {"n_rays": n_rays, "samples_per_ray": n_samples, "n_samples": n}
-    _warp_vs_torch(row, run, render_packed, reference.render_packed, dev, repeats)
-    row["samples_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
-    row["bytes_fwd"] = composite_bytes(n_rays, n, False)
-    row["bytes_fwdbwd"] = composite_bytes(n_rays, n, True)
-    if check_error:
-        rgb, depth, _ = render_packed(*args, sigmas, rgbs, n_rays, **kw)
-        gs, gc = torch.autograd.grad((rgb, depth), (sigmas, rgbs), (v_rgb, v_depth))
-        s64 = sigmas.detach().double().requires_grad_()
-        c64 = rgbs.detach().double().requires_grad_()
-        r64, d64, _ = reference.render_packed(
-            *(a.double() if a.is_floating_point() else a for a in args),
-            s64,
-            c64,
-            n_rays,
-            background=bg.double(),
-            packed_info=smp.packed_info,
-        )
-        gs64, gc64 = torch.autograd.grad((r64, d64), (s64, c64), (v_rgb.double(), v_depth.double()))
+    twin = {}
+    for name, backward in (("torch_fwd_ms", False), ("torch_fwdbwd_ms", True)):
+        twin[name] = 1e3 * _time(run(reference.render_packed, backward), dev, repeats)
+    check = lambda: C.check_packed_info(smp.packed_info, smp.ray_indices, n, n_rays)  # noqa: E731
+    counts = smp.packed_info[:, 1].long()
+    rows = []
+    for label, kind, block in variants:
+        chunk = 4 * block  # kernels/composite_tiled.py: SPL samples per lane
+        extra_chunks = int(((counts + chunk - 1) // chunk - 1).clamp_min(0).sum())
+        row = {"kernel": label, "n_rays": n_rays, "samples_per_ray": n_samples, "n_samples": n}
+        with C.composite_kernels(kind, block):
+            for name, backward in (("warp_fwd_ms", False), ("warp_fwdbwd_ms", True)):
+                row[name] = 1e3 * _time(run(render_packed, backward, check=False), dev, repeats)
+            row.update(_composite_errors(args, c, n_rays))
+        row.update(twin)
+        row["speedup_fwd"] = row["torch_fwd_ms"] / row["warp_fwd_ms"]
+        row["speedup_fwdbwd"] = row["torch_fwdbwd_ms"] / row["warp_fwdbwd_ms"]
+        row["check_ms"] = 1e3 * _time(check, dev, repeats)
+        row["samples_per_s_fwdbwd"] = n / (row["warp_fwdbwd_ms"] / 1e3)
+        row["bytes_fwd"] = composite_bytes(n_rays, n, False)
+        row["bytes_fwdbwd"] = composite_bytes(n_rays, n, True)
+        row["bytes_moved_fwdbwd"] = composite_traffic(kind, n_rays, n, extra_chunks, True)
+        rows.append(row)
+    return rows
 
-        def err(a, b):
-            return float((a.detach().double() - b.detach()).abs().max())
 
-        row["max_err_rgb"] = err(rgb, r64)
-        row["max_err_depth"] = err(depth, d64)
-        row["max_err_v_sigmas"] = err(gs, gs64)
-        row["max_err_v_rgbs"] = err(gc, gc64)
-    return row
+def _composite_errors(args, c, n_rays: int) -> dict:
+    """Max abs errors of the float32 op's outputs and gradients against the float64 twin."""
+    kw = {"background": c["bg"], "packed_info": c["smp"].packed_info}
+    sigmas, rgbs, up = c["sigmas"], c["rgbs"], (c["v_rgb"], c["v_depth"])
+    rgb, depth, _ = render_packed(*args, sigmas, rgbs, n_rays, **kw, check=False)
+    gs, gc = torch.autograd.grad((rgb, depth), (sigmas, rgbs), up)
+    s64 = sigmas.detach().double().requires_grad_()
+    c64 = rgbs.detach().double().requires_grad_()
+    args64 = [a.double() if a.is_floating_point() else a for a in args]
+    kw64 = {"background": c["bg"].double(), "packed_info": kw["packed_info"]}
+    r64, d64, _ = reference.render_packed(*args64, s64, c64, n_rays, **kw64)
+    gs64, gc64 = torch.autograd.grad((r64, d64), (s64, c64), [u.double() for u in up])
+
+    def err(a, b):
+        return float((a.detach().double() - b.detach()).abs().max())
+
+    return {
+        "max_err_rgb": err(rgb, r64),
+        "max_err_depth": err(depth, d64),
+        "max_err_v_sigmas": err(gs, gs64),
+        "max_err_v_rgbs": err(gc, gc64),
+    }
 
 
 def encoding_bytes(n: int, grid, backward: bool) -> int:
@@ -309,7 +374,11 @@ def _sphere_trace_case(size: int, dev, repeats: int):
     return row
 
 
-def _sizes(dev, quick: bool):
+def _sizes(dev, quick: bool, rays=None, samples=None):
+    """Compositing sizes (rays, samples per ray): the default list, or the one size given."""
+    if rays is not None or samples is not None:
+        default_rays = 1 << 20 if dev.type == "cuda" else 1 << 12
+        return [(default_rays if rays is None else rays, 128 if samples is None else samples)]
     if dev.type == "cuda":
         sizes = [(1 << 14, 128), (1 << 17, 128), (1 << 20, 128)]
     else:
@@ -317,8 +386,12 @@ def _sizes(dev, quick: bool):
     return sizes[:1] if quick else sizes
 
 
-def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, quick=False):
-    """Runs the benchmark, prints a Markdown table and returns (and optionally writes) the JSON."""
+def run_bench(
+    kernel: str = "composite", device: str = "cpu", json_path=None, quick=False, rays=None,
+    samples=None,
+):  # fmt: skip
+    """Runs the benchmark, prints a Markdown table and returns (and optionally writes) the JSON.
+    ``rays``, ``samples``: one compositing size instead of the default list."""
     from .outputs import write_json
 
     dev = torch.device(device)
@@ -334,21 +407,12 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
     repeats = 20 if dev.type == "cuda" else 3
     rows = []
     if kernel in ("composite", "all"):
-        from .ops import composite as C
-
-        # The default float32 path (cooperative kernels, one block of 32 lanes per ray), a wider
-        # block, and the one-thread-per-ray kernels, each against the PyTorch twin.
-        variants = [("composite_packed", "tiled", 32), ("composite_packed_seq", "sequential", 32)]
-        if dev.type == "cuda":
-            variants.insert(1, ("composite_packed_b128", "tiled", 128))
-        for n_rays, n_s in _sizes(dev, quick):
-            for label, impl, block in variants:
-                with C.composite_kernels(impl, block):
-                    row = _composite_case(n_rays, n_s, dev, repeats, check_error=True)
-                row["kernel"] = label
-                row["bw_pct_fwd"] = 100 * row["bytes_fwd"] / (row["warp_fwd_ms"] / 1e3) / bw
-                fwdbwd_s = row["warp_fwdbwd_ms"] / 1e3
-                row["bw_pct_fwdbwd"] = 100 * row["bytes_fwdbwd"] / fwdbwd_s / bw
+        for n_rays, n_s in _sizes(dev, quick, rays, samples):
+            for row in _composite_case(n_rays, n_s, dev, repeats, COMPOSITE_VARIANTS):
+                for part in ("fwd", "fwdbwd"):
+                    rate = row[f"bytes_{part}"] / (row[f"warp_{part}_ms"] / 1e3)
+                    row[f"GBps_{part}"] = rate / 1e9
+                    row[f"bw_pct_{part}"] = 100 * rate / bw
                 rows.append(row)
     if kernel in ("march", "all"):
         if dev.type == "cuda":
@@ -391,14 +455,39 @@ def run_bench(kernel: str = "composite", device: str = "cpu", json_path=None, qu
 _COMPOSITE_COLS = [
     ("rays x samples", lambda r: f"{r['n_rays']} x {r['samples_per_ray']}"),
     ("warp fwd ms", "{warp_fwd_ms:.3f}"),
-    ("torch fwd ms", "{torch_fwd_ms:.3f}"),
     ("warp fwd+bwd ms", "{warp_fwdbwd_ms:.3f}"),
+    ("torch fwd ms", "{torch_fwd_ms:.3f}"),
     ("torch fwd+bwd ms", "{torch_fwdbwd_ms:.3f}"),
     ("speedup fwd / fwd+bwd", "{speedup_fwd:.1f}x / {speedup_fwdbwd:.1f}x"),
-    ("Gsamples/s fwd+bwd", lambda r: f"{r['samples_per_s_fwdbwd'] / 1e9:.3f}"),
-    ("% copy BW fwd+bwd", "{bw_pct_fwdbwd:.1f}"),
+    ("GB/s fwd / fwd+bwd", "{GBps_fwd:.4g} / {GBps_fwdbwd:.4g}"),
+    ("% copy BW fwd / fwd+bwd", "{bw_pct_fwd:.1f} / {bw_pct_fwdbwd:.1f}"),
+    ("B/sample moved fwd+bwd (est.)", lambda r: f"{r['bytes_moved_fwdbwd'] / r['n_samples']:.1f}"),
     ("max err rgb / v_sigmas (vs f64)", "{max_err_rgb:.1e} / {max_err_v_sigmas:.1e}"),
 ]
+
+
+def _composite_notes(rows) -> list:
+    """What the compositing table's bytes count, and the index check's time, per size."""
+    lines = [
+        "Bytes counted (composite_bytes, the fewest: inputs read once per pass, outputs and "
+        "gradients written once): forward 24 B/sample + 28 B/ray, forward+backward 64 B/sample "
+        "+ 56 B/ray; GB/s = those bytes / time, % copy BW = GB/s / copy bandwidth. Timed as the "
+        "renderers call render_packed (check=False)."
+    ]
+    seen = set()
+    for r in rows:
+        key = (r["n_rays"], r["samples_per_ray"])
+        if key in seen or "check_ms" not in r:
+            continue
+        seen.add(key)
+        lines.append(
+            f"{key[0]} x {key[1]}: {r['bytes_fwd'] / 1e9:.4g} GB forward, "
+            f"{r['bytes_fwdbwd'] / 1e9:.4g} GB forward+backward; the index check of "
+            f"check=True (not timed above): {r['check_ms']:.3f} ms"
+        )
+    return lines
+
+
 _TABLES = {
     "composite": _COMPOSITE_COLS,
     "march": [
@@ -487,6 +576,8 @@ def markdown_table(result) -> str:
         if not rows:
             continue
         lines += ["", markdown_rows(rows, [("kernel", "{kernel}"), *cols])]
+        if fam == "composite":
+            lines += ["", *_composite_notes(rows)]
     return "\n".join(lines)
 
 

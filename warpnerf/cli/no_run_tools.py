@@ -48,7 +48,11 @@ def cmd_bench(args) -> int:
 
     if args.json:
         check_out(args.json, "--json", file=True)
-    run_bench(args.kernel, device=parse_device(args.device), json_path=args.json, quick=args.quick)
+    one_size = args.rays is not None or args.samples is not None
+    if one_size and args.kernel not in ("composite", "all"):
+        raise UserError("--rays and --samples size the composite benchmark only")
+    run_bench(args.kernel, device=parse_device(args.device), json_path=args.json,
+              quick=args.quick, rays=args.rays, samples=args.samples)  # fmt: skip
     return 0
 
 

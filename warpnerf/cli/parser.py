@@ -238,6 +238,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     b.add_argument("--json", default=None, help="write the results as JSON here")
     b.add_argument("--quick", action="store_true", help="smallest sizes only")
+    b.add_argument(
+        "--rays", type=positive_arg(int), default=None,
+        help="composite: time this many rays only (default: the size list; 2^20 rays on cuda, "
+        "2^12 on cpu when only --samples is given)",
+    )  # fmt: skip
+    b.add_argument(
+        "--samples", type=positive_arg(int), default=None,
+        help="composite: samples per ray of that one size (default 128)",
+    )  # fmt: skip
     b.set_defaults(func=cmd_bench)
     return p
 

@@ -15,20 +15,24 @@ from . import bridge
 __all__ = ["render_packed", "render_dense", "packed_info_from_ray_indices"]
 
 
-# Which kernels composite float32 densities: "tiled" (one block per ray, coalesced loads; the
-# default) or "sequential" (one thread per ray, the only choice for float64 and for alphas).
-# Switched only through composite_kernels() (tests and benchmarks compare the two).
+# Which kernels composite float32 densities: "tiled" (kernels/composite_tiled.py: one block per
+# ray, coalesced loads, no per-sample state; the default), "tiled_v1" (the issue-5 cooperative
+# kernels, kept for issue 47's A/B in the bench only) or "sequential" (one thread per ray, the only
+# choice for float64 and for alphas). Switched only through composite_kernels() (tests and
+# benchmarks compare them).
 _IMPL = {"float32_sigma": "tiled", "block_dim": 32}
+_KINDS = ("tiled", "tiled_v1", "sequential")
 
 
 @contextlib.contextmanager
 def composite_kernels(float32_sigma: str = "tiled", block_dim: int = 32):
     """Within the block, float32 densities are composited by the ``"tiled"`` kernels (one block
-    of ``block_dim`` lanes per ray, the default) or the ``"sequential"`` ones (one thread per
-    ray); restored on exit. For tests and benchmarks: both give the same results within float32
+    of ``block_dim`` lanes per ray, the default), the ``"tiled_v1"`` ones (their issue-5
+    predecessors, for the benchmark's A/B) or the ``"sequential"`` ones (one thread per ray);
+    restored on exit. For tests and benchmarks: all give the same results within float32
     round-off (tests/test_composite_tiled.py)."""
-    if float32_sigma not in ("tiled", "sequential"):
-        raise ValueError(f"float32_sigma must be 'tiled' or 'sequential', got {float32_sigma!r}")
+    if float32_sigma not in _KINDS:
+        raise ValueError(f"float32_sigma must be one of {_KINDS}, got {float32_sigma!r}")
     block_dim = bridge.check_int("block_dim", block_dim, lo=1, hi=1024)
     saved = dict(_IMPL)
     _IMPL.update(float32_sigma=float32_sigma, block_dim=block_dim)
@@ -39,8 +43,21 @@ def composite_kernels(float32_sigma: str = "tiled", block_dim: int = 32):
         _IMPL.update(saved)
 
 
-def _use_tiled(values: torch.Tensor, use_alpha: int) -> bool:
-    return values.dtype == torch.float32 and not use_alpha and _IMPL["float32_sigma"] == "tiled"
+def _kernels(values: torch.Tensor, use_alpha: int) -> str:
+    """Which kernels composite ``values``: the chosen float32 kernels for float32 densities,
+    else ``"sequential"``."""
+    if values.dtype == torch.float32 and not use_alpha:
+        return _IMPL["float32_sigma"]
+    return "sequential"
+
+
+def _tiled_module(kind: str):
+    """The Warp module of the cooperative kernels ``kind`` ("tiled" or "tiled_v1")."""
+    if kind == "tiled":
+        from warpnerf.kernels import composite_tiled as T
+    else:
+        from warpnerf.kernels import composite_tiled_v1 as T
+    return T
 
 
 class _Composite(torch.autograd.Function):
@@ -70,7 +87,10 @@ class _Composite(torch.autograd.Function):
             return torch.empty(shape, device=dev, dtype=dtype)
 
         rgb, depth, opacity, t_final = new(n_rays, 3), new(n_rays), new(n_rays), new(n_rays)
-        trans, weights = new(n), new(n if want_weights else 0)
+        # per-sample state for the backward: the transmittances (sequential, tiled_v1) or the
+        # optical depth at each chunk's first sample (tiled: written once per chunk, and never for
+        # rays of at most one chunk; the rest of the buffer is never touched)
+        state, weights = new(n), new(n if want_weights else 0)
         n_eff = new(n_rays, dtype=torch.int32)
         a = bridge.arr
         head = [a(packed_info), n_dense, a(t_starts), a(t_ends), a(values)]
@@ -83,19 +103,22 @@ class _Composite(torch.autograd.Function):
             a(depth),
             a(opacity),
             a(t_final),
-            a(trans),
+            a(state),
             a(weights),
             a(n_eff),
         ]
-        ctx.tiled = _use_tiled(values, use_alpha)
-        if ctx.tiled:
-            bridge.launch_tiled(K.composite_fwd_tiled, n_rays, _IMPL["block_dim"], head + tail, dev)
-        else:
+        ctx.kernels = _kernels(values, use_alpha)
+        ctx.block_dim = _IMPL["block_dim"]
+        if ctx.kernels == "sequential":
             bridge.launch(K.composite_fwd, n_rays, head + [int(use_alpha)] + tail, dev)
+        else:
+            fwd = _tiled_module(ctx.kernels).composite_fwd_tiled
+            bridge.launch_tiled(fwd, n_rays, ctx.block_dim, head + tail, dev)
         ctx.save_for_backward(
-            packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final
+            packed_info, t_starts, t_ends, values, rgbs, background, state, n_eff, t_final
         )
         ctx.n_dense, ctx.use_alpha, ctx.n_rays = n_dense, use_alpha, n_rays
+        ctx.t_threshold = t_threshold
         ctx.mark_non_differentiable(n_eff)
         return rgb, depth, opacity, weights
 
@@ -104,7 +127,7 @@ class _Composite(torch.autograd.Function):
         from warpnerf.kernels import composite as K
 
         saved = ctx.saved_tensors
-        packed_info, t_starts, t_ends, values, rgbs, background, trans, n_eff, t_final = saved
+        packed_info, t_starts, t_ends, values, rgbs, background, state, n_eff, t_final = saved
         dev, dt = values.device, values.dtype
         n_rays = ctx.n_rays
 
@@ -116,19 +139,24 @@ class _Composite(torch.autograd.Function):
         v_opacity = grad_or_zeros(v_opacity, (n_rays,))
         if v_weights is None or v_weights.numel() == 0:
             v_weights = torch.empty(0, device=dev, dtype=dt)
-        # zeros: samples no ray references (the unused slots of a fixed-capacity buffer) get a
-        # zero gradient; the kernels write every sample that a ray's range covers
-        v_values = torch.zeros_like(values)
-        v_rgbs = torch.zeros_like(rgbs)
+        # The kernels write every sample's gradient, the samples no ray covers (the unused slots
+        # of a fixed-capacity buffer) included, so no zero-fill first (16 B per sample); the
+        # tiled_v1 kernels, kept for the benchmark's A/B, still need one.
+        alloc = torch.zeros_like if ctx.kernels == "tiled_v1" or n_rays == 0 else torch.empty_like
+        v_values, v_rgbs = alloc(values), alloc(rgbs)
         a = bridge.arr
         head = [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values)]
         upstream = [a(v_rgb), a(v_depth), a(v_opacity), a(v_weights), a(v_values), a(v_rgbs)]
-        if ctx.tiled:
-            inputs = head + [a(rgbs), a(background), a(trans), a(n_eff), a(t_final)] + upstream
-            bridge.launch_tiled(K.composite_bwd_tiled, n_rays, _IMPL["block_dim"], inputs, dev)
-        else:
-            inputs = head + [int(ctx.use_alpha), a(rgbs), a(background), a(trans), a(n_eff)]
+        if ctx.kernels == "sequential":
+            inputs = head + [int(ctx.use_alpha), a(rgbs), a(background), a(state), a(n_eff)]
             bridge.launch(K.composite_bwd, n_rays, inputs + upstream, dev)
+        else:
+            inputs = head + [a(rgbs), a(background)]
+            if ctx.kernels == "tiled":
+                inputs.append(bridge.scalar(ctx.t_threshold, dt))
+            inputs += [a(state), a(n_eff), a(t_final)] + upstream
+            bwd = _tiled_module(ctx.kernels).composite_bwd_tiled
+            bridge.launch_tiled(bwd, n_rays, ctx.block_dim, inputs, dev)
         v_background = None
         if ctx.needs_input_grad[7]:
             # d rgb / d background = T_m, the forward's own final transmittance (not 1 - opacity,
