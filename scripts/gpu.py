@@ -158,6 +158,36 @@ done
     )
 
 
+def _row_runs(table, prefix, *, data, secs, rows, header, train, then, settings="") -> str:
+    """A phase that trains one NeRF per row of ROWS ('name|flags;...', default ``rows``) and
+    appends a line per row to $OUT/TABLE.md (``header`` its first line, written once). DATA
+    (default ``data``), SECS (default ``secs``) and TAG (DATA's folder name) are set, then
+    ``settings`` (bash: more of them). Each row trains on DATA with ``train`` and the row's flags
+    for SECS into /tmp/PREFIX_TAG_NAME (log in ``$run.log``), then runs ``then`` (bash, with $run,
+    $name and $flags set), which scores the run and prints the row's line."""
+    rule = "|" + "---|" * header.count(" | ") + "---|"
+    return f"""
+DATA=${{DATA:-{data}}}
+SECS=${{SECS:-{secs}}}
+TAG=${{TAG:-$(basename "$DATA")}}
+{settings}IFS=';' read -ra rows <<< "${{ROWS:-{rows}}}"
+[ -f "$OUT/{table}.md" ] || {{
+  echo "{header}"
+  echo "{rule}"
+}} > "$OUT/{table}.md"
+for row in "${{rows[@]}}"; do
+  name=${{row%%|*}}
+  flags=${{row#*|}}
+  run=/tmp/{prefix}_${{TAG}}_$name
+  rm -rf "$run" "${{run}}_eval"
+  # shellcheck disable=SC2086
+  python3 -m warpnerf.cli train nerf --data "$DATA" {train} --max-seconds "$SECS" \\
+    --val-images 0 --quiet --no-tensorboard $flags --out "$run" > "$run.log" 2>&1 \\
+    || echo "train $TAG/$name failed" | tee -a "$OUT/log.txt"
+{then}done
+"""
+
+
 PHASES: dict[str, tuple[str, str, str]] = {
     # -- checks ---------------------------------------------------------------------------------
     "check": (
@@ -437,31 +467,23 @@ fi
         "the training recipe's ablation (issue 44): one run per "
         "row of ROWS ('name|flags;...') with BASE flags for SECS, every val image scored, "
         "appended to $OUT/ablation.md; a row that fell back from the CUDA graph is marked",
-        """
-DATA=${DATA:-.gpu/lego}
-SECS=${SECS:-60}
-TAG=${TAG:-$(basename "$DATA")}
-BASE=${BASE:---field hash --device cuda --tf32 --batch 4096 --target-samples 524288}
-IFS=';' read -ra rows <<< "${ROWS:-base|}"
-[ -f "$OUT/ablation.md" ] || {
-  echo "| data | row | flags | seconds | steps | median step ms | val images | val PSNR | val SSIM | median frame ms | step |"
-  echo "|---|---|---|---|---|---|---|---|---|---|---|"
-} > "$OUT/ablation.md"
-for row in "${rows[@]}"; do
-  name=${row%%|*}
-  flags=${row#*|}
-  run=/tmp/abl_${TAG}_$name
-  rm -rf "$run" "${run}_eval"
-  # shellcheck disable=SC2086
-  python3 -m warpnerf.cli train nerf --data "$DATA" $BASE --iters 1000000 --max-seconds "$SECS" \\
-    --val-images 0 --quiet --no-tensorboard $flags --out "$run" > "$run.log" 2>&1 \\
-    || echo "train $TAG/$name failed" | tee -a "$OUT/log.txt"
-  python3 -m warpnerf.cli eval "$run" --split val --chunk 400000 --out "${run}_eval" \\
+        _row_runs(
+            "ablation",
+            "abl",
+            data=".gpu/lego",
+            secs=60,
+            rows="base|",
+            settings="BASE=${BASE:---field hash --device cuda --tf32 --batch 4096 "
+            "--target-samples 524288}\n",
+            header="| data | row | flags | seconds | steps | median step ms | val images | "
+            "val PSNR | val SSIM | median frame ms | step |",
+            train="$BASE --iters 1000000",
+            then="""  python3 -m warpnerf.cli eval "$run" --split val --chunk 400000 --out "${run}_eval" \\
     >> "$run.log" 2>&1 || echo "eval $TAG/$name failed" | tee -a "$OUT/log.txt"
   { echo "== $TAG/$name: $flags"; tail -n 15 "$run.log"; } >> "$OUT/log.txt"
   $GPU --summary ablation "$run" "$TAG" "$name" "$flags" "$SECS" | tee -a "$OUT/ablation.md"
-done
 """,
+        ),
     ),
     "fog": (
         "none: issue 48",
@@ -469,33 +491,24 @@ done
         "capture defaults for SECS, every val image scored, scripts/fog_report.py on the spiral "
         "(FRAMES frames: its sheet and fog.json in $OUT/fog_TAG_NAME), a row each in $OUT/fog.md "
         "(about 3.5 minutes a row at SECS=120: two rows a call)",
-        """
-DATA=${DATA:-/root/stage/beer}
-SECS=${SECS:-120}
-TAG=${TAG:-$(basename "$DATA")}
-IFS=';' read -ra rows <<< "${ROWS:-base|;near|--near-loss 0.1}"
-[ -f "$OUT/fog.md" ] || {
-  echo "| data | row | flags | seconds | steps | val PSNR | val SSIM | near_median share | rays > 10 % | near_centre share | rays > 10 % |"
-  echo "|---|---|---|---|---|---|---|---|---|---|---|"
-} > "$OUT/fog.md"
-for row in "${rows[@]}"; do
-  name=${row%%|*}
-  flags=${row#*|}
-  run=/tmp/fog_${TAG}_$name
-  rm -rf "$run" "${run}_eval"
-  # shellcheck disable=SC2086
-  python3 -m warpnerf.cli train nerf --data "$DATA" --device cuda --max-seconds "$SECS" \\
-    --val-images 0 --quiet --no-tensorboard $flags --out "$run" > "$run.log" 2>&1 \\
-    || echo "train $TAG/$name failed" | tee -a "$OUT/log.txt"
-  python3 -m warpnerf.cli eval "$run" --split val --quiet --out "${run}_eval" >> "$run.log" 2>&1 \\
+        _row_runs(
+            "fog",
+            "fog",
+            data="/root/stage/beer",
+            secs=120,
+            rows="base|;near|--near-loss 0.1",
+            header="| data | row | flags | seconds | steps | val PSNR | val SSIM | "
+            "near_median share | rays > 10 % | near_centre share | rays > 10 % |",
+            train="--device cuda",
+            then="""  python3 -m warpnerf.cli eval "$run" --split val --quiet --out "${run}_eval" >> "$run.log" 2>&1 \\
     || echo "eval $TAG/$name failed" | tee -a "$OUT/log.txt"
   python3 scripts/fog_report.py "$run" --frames "${FRAMES:-12}" --out "$OUT/fog_${TAG}_$name" \\
     >> "$run.log" 2>&1 || echo "fog_report $TAG/$name failed" | tee -a "$OUT/log.txt"
   { echo "== $TAG/$name: $flags"; tail -n 6 "$run.log" | cut -c1-400; } >> "$OUT/log.txt"
   $GPU --summary fog "$run" "$OUT/fog_${TAG}_$name/fog.json" "$TAG" "$name" "$flags" "$SECS" \\
     | tee -a "$OUT/fog.md"
-done
 """,
+        ),
     ),
     "nerf_materials": (
         "gpu_nerf.sh materials",

@@ -132,7 +132,7 @@ def test_cli_bench_composite_one_size(tmp_path):
         assert r["max_err_rgb"] < 1e-4 and r["max_err_v_sigmas"] < 1e-4 and r["check_ms"] > 0
     moved = {r["kernel"]: r["bytes_moved_fwdbwd"] for r in rows}
     assert moved["composite_packed"] == rows[0]["bytes_fwdbwd"] + 16 * 64
-    assert moved["composite_packed_v1"] == moved["composite_packed"] + 24 * 512
+    assert moved["composite_packed_seq"] == moved["composite_packed"] + 8 * 512
     assert "% copy BW fwd / fwd+bwd" in p.stdout and "64 x 8: " in p.stdout
 
 

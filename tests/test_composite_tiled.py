@@ -1,8 +1,7 @@
-"""The cooperative float32 kernels (composite_fwd_tiled / composite_bwd_tiled, one block per ray;
-and their predecessors "tiled_v1" while the benchmark keeps them) against the one-thread-per-ray
-kernels and the float64 twin: ray lengths around the block width and the chunk length, early
-termination, weights, extreme optical depths, zero-length intervals, NaN, and samples no ray
-covers."""
+"""The cooperative float32 kernels (composite_fwd_tiled / composite_bwd_tiled, one block per ray)
+against the one-thread-per-ray kernels and the float64 twin: ray lengths around the block width
+and the chunk length, early termination, weights, extreme optical depths, zero-length intervals,
+NaN, and samples no ray covers."""
 
 from __future__ import annotations
 
@@ -92,15 +91,13 @@ def _of_max(atol):
 
 
 COUNTS = [0, 1, 2, 31, 32, 33, 64, 65, 100, 5, 129, 300]  # chunks of 4 x block_dim samples
-TILED = ["tiled", "tiled_v1"]
 
 
-@pytest.mark.parametrize("kind", TILED)
 @pytest.mark.parametrize("block_dim", [4, 32])
 @pytest.mark.parametrize("t_threshold", [0.0, 1e-2, 0.4])
-def test_tiled_matches_sequential_and_float64(device, kind, block_dim, t_threshold):
+def test_tiled_matches_sequential_and_float64(device, block_dim, t_threshold):
     c = _case(device, COUNTS)
-    with impl(kind, block_dim):
+    with impl("tiled", block_dim):
         t = _run(W, c, F32, t_threshold)
     with impl("sequential"):
         s = _run(W, c, F32, t_threshold)
@@ -110,13 +107,12 @@ def test_tiled_matches_sequential_and_float64(device, kind, block_dim, t_thresho
     assert_outputs_close(tiled, {**r.out, **r.grads}, tol=_of_max(5e-6), other_dtype=True)
 
 
-@pytest.mark.parametrize("kind", TILED)
 @pytest.mark.parametrize(
     "taus", [[0.0, 1e-12, 1.0], [1e3, 1e8, float("inf")], [0.0, 1e-6, 1.0, 1e8, float("inf")]]
 )
-def test_tiled_extreme_optical_depths(device, kind, taus):
+def test_tiled_extreme_optical_depths(device, taus):
     c = _case(device, COUNTS, tau_values=taus, zero_len=float("inf") not in taus)
-    with impl(kind):
+    with impl("tiled"):
         t = _run(W, c, F32, 0.0)
     with impl("sequential"):
         s = _run(W, c, F32, 0.0)
@@ -142,11 +138,10 @@ def test_tiled_huge_tau_does_not_swallow_what_is_in_front(device):
     assert abs(float(w[2]) - float(expect_t2)) < 1e-6
 
 
-@pytest.mark.parametrize("kind", TILED)
-def test_tiled_nan_stays_in_its_ray(device, kind):
+def test_tiled_nan_stays_in_its_ray(device):
     c = _case(device, COUNTS, nan_ray=6)
     clean = _case(device, COUNTS)
-    with impl(kind):
+    with impl("tiled"):
         out = list(_run(W, c, F32, 1e-2).out.values())
         ref = list(_run(W, clean, F32, 1e-2).out.values())
     for o, r in zip(out[:3], ref[:3]):

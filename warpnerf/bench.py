@@ -93,23 +93,23 @@ def composite_traffic(kind: str, n_rays: int, n: int, extra_chunks: int, backwar
     code at DRAM level: :func:`composite_bytes` plus what each saves for the backward and the
     gradients' zero-fill. All save T_m and n_eff (8 B/ray, written then read). ``tiled``: the
     optical depth at each chunk's first sample but the first (``extra_chunks`` floats, written
-    then read); ``tiled_v1`` and ``sequential``: the per-sample transmittance (4 B/sample written
-    then read); ``tiled_v1``: the bridge zero-fills v_sigmas and v_rgbs before its backward
-    (16 B/sample)."""
+    then read); ``sequential``: the per-sample transmittance (4 B/sample written then read). (The
+    issue-5 kernels, compared in issue 47's A/B, also had the bridge zero-fill v_sigmas and v_rgbs
+    before their backward: 16 B/sample more; docs/design/kernels.md keeps the figures.)"""
     fwd = composite_bytes(n_rays, n, False) + 8 * n_rays
     bwd = composite_bytes(n_rays, n, True) - composite_bytes(n_rays, n, False) + 8 * n_rays
     if kind == "tiled":
         fwd, bwd = fwd + 4 * extra_chunks, bwd + 4 * extra_chunks
     else:
-        fwd, bwd = fwd + 4 * n, bwd + 4 * n + (16 * n if kind == "tiled_v1" else 0)
+        fwd, bwd = fwd + 4 * n, bwd + 4 * n
     return fwd + (bwd if backward else 0)
 
 
-# The compositing kernels compared (label, composite_kernels kind, block_dim): the default, its
-# predecessor (issue 47's A/B; drop with kernels/composite_tiled_v1.py) and one thread per ray.
+# The compositing kernels compared (label, composite_kernels kind, block_dim): the default and
+# one thread per ray. (The issue-5 kernels' row, composite_packed_v1, was removed with them after
+# issue 47's A/B was measured on 2026-12-02; docs/design/kernels.md keeps the figures.)
 COMPOSITE_VARIANTS = (
     ("composite_packed", "tiled", 32),
-    ("composite_packed_v1", "tiled_v1", 32),
     ("composite_packed_seq", "sequential", 32),
 )
 

@@ -16,20 +16,18 @@ __all__ = ["render_packed", "render_dense", "packed_info_from_ray_indices"]
 
 
 # Which kernels composite float32 densities: "tiled" (kernels/composite_tiled.py: one block per
-# ray, coalesced loads, no per-sample state; the default), "tiled_v1" (the issue-5 cooperative
-# kernels, kept for issue 47's A/B in the bench only) or "sequential" (one thread per ray, the only
-# choice for float64 and for alphas). Switched only through composite_kernels() (tests and
+# ray, coalesced loads, no per-sample state; the default) or "sequential" (one thread per ray, the
+# only choice for float64 and for alphas). Switched only through composite_kernels() (tests and
 # benchmarks compare them).
 _IMPL = {"float32_sigma": "tiled", "block_dim": 32}
-_KINDS = ("tiled", "tiled_v1", "sequential")
+_KINDS = ("tiled", "sequential")
 
 
 @contextlib.contextmanager
 def composite_kernels(float32_sigma: str = "tiled", block_dim: int = 32):
     """Within the block, float32 densities are composited by the ``"tiled"`` kernels (one block
-    of ``block_dim`` lanes per ray, the default), the ``"tiled_v1"`` ones (their issue-5
-    predecessors, for the benchmark's A/B) or the ``"sequential"`` ones (one thread per ray);
-    restored on exit. For tests and benchmarks: all give the same results within float32
+    of ``block_dim`` lanes per ray, the default) or the ``"sequential"`` ones (one thread per
+    ray); restored on exit. For tests and benchmarks: both give the same results within float32
     round-off (tests/test_composite_tiled.py)."""
     if float32_sigma not in _KINDS:
         raise ValueError(f"float32_sigma must be one of {_KINDS}, got {float32_sigma!r}")
@@ -49,15 +47,6 @@ def _kernels(values: torch.Tensor, use_alpha: int) -> str:
     if values.dtype == torch.float32 and not use_alpha:
         return _IMPL["float32_sigma"]
     return "sequential"
-
-
-def _tiled_module(kind: str):
-    """The Warp module of the cooperative kernels ``kind`` ("tiled" or "tiled_v1")."""
-    if kind == "tiled":
-        from warpnerf.kernels import composite_tiled as T
-    else:
-        from warpnerf.kernels import composite_tiled_v1 as T
-    return T
 
 
 class _Composite(torch.autograd.Function):
@@ -87,7 +76,7 @@ class _Composite(torch.autograd.Function):
             return torch.empty(shape, device=dev, dtype=dtype)
 
         rgb, depth, opacity, t_final = new(n_rays, 3), new(n_rays), new(n_rays), new(n_rays)
-        # per-sample state for the backward: the transmittances (sequential, tiled_v1) or the
+        # per-sample state for the backward: the transmittances (sequential) or the
         # optical depth at each chunk's first sample (tiled: written once per chunk, and never for
         # rays of at most one chunk; the rest of the buffer is never touched)
         state, weights = new(n), new(n if want_weights else 0)
@@ -112,8 +101,9 @@ class _Composite(torch.autograd.Function):
         if ctx.kernels == "sequential":
             bridge.launch(K.composite_fwd, n_rays, head + [int(use_alpha)] + tail, dev)
         else:
-            fwd = _tiled_module(ctx.kernels).composite_fwd_tiled
-            bridge.launch_tiled(fwd, n_rays, ctx.block_dim, head + tail, dev)
+            from warpnerf.kernels import composite_tiled as T
+
+            bridge.launch_tiled(T.composite_fwd_tiled, n_rays, ctx.block_dim, head + tail, dev)
         ctx.save_for_backward(
             packed_info, t_starts, t_ends, values, rgbs, background, state, n_eff, t_final
         )
@@ -140,9 +130,8 @@ class _Composite(torch.autograd.Function):
         if v_weights is None or v_weights.numel() == 0:
             v_weights = torch.empty(0, device=dev, dtype=dt)
         # The kernels write every sample's gradient, the samples no ray covers (the unused slots
-        # of a fixed-capacity buffer) included, so no zero-fill first (16 B per sample); the
-        # tiled_v1 kernels, kept for the benchmark's A/B, still need one.
-        alloc = torch.zeros_like if ctx.kernels == "tiled_v1" or n_rays == 0 else torch.empty_like
+        # of a fixed-capacity buffer) included, so no zero-fill first (16 B per sample).
+        alloc = torch.zeros_like if n_rays == 0 else torch.empty_like
         v_values, v_rgbs = alloc(values), alloc(rgbs)
         a = bridge.arr
         head = [a(packed_info), ctx.n_dense, a(t_starts), a(t_ends), a(values)]
@@ -151,12 +140,13 @@ class _Composite(torch.autograd.Function):
             inputs = head + [int(ctx.use_alpha), a(rgbs), a(background), a(state), a(n_eff)]
             bridge.launch(K.composite_bwd, n_rays, inputs + upstream, dev)
         else:
-            inputs = head + [a(rgbs), a(background)]
-            if ctx.kernels == "tiled":
-                inputs.append(bridge.scalar(ctx.t_threshold, dt))
-            inputs += [a(state), a(n_eff), a(t_final)] + upstream
-            bwd = _tiled_module(ctx.kernels).composite_bwd_tiled
-            bridge.launch_tiled(bwd, n_rays, ctx.block_dim, inputs, dev)
+            from warpnerf.kernels import composite_tiled as T
+
+            threshold = bridge.scalar(ctx.t_threshold, dt)
+            inputs = head + [a(rgbs), a(background), threshold, a(state), a(n_eff), a(t_final)]
+            bridge.launch_tiled(
+                T.composite_bwd_tiled, n_rays, ctx.block_dim, inputs + upstream, dev
+            )
         v_background = None
         if ctx.needs_input_grad[7]:
             # d rgb / d background = T_m, the forward's own final transmittance (not 1 - opacity,
