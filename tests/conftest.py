@@ -1,5 +1,6 @@
 """Shared fixtures: a ``device`` fixture over cpu and cuda, fixed seeds for every test, and
-``fifo`` (a FIFO that fails the test instead of hanging it)."""
+``fifo`` (a FIFO that fails the test instead of hanging it); the session runs torch on one CPU
+thread (see ``pytest_configure``)."""
 
 from __future__ import annotations
 
@@ -32,13 +33,29 @@ def device(request) -> torch.device:
 def pytest_configure(config) -> None:
     """The session's disk cache (the built-in scene's images) is a temporary folder, never the
     user's ~/.cache; subprocesses of tests inherit it through the environment. Set before
-    collection, so even a test module's import-time use of the built-in scene goes there."""
+    collection, so even a test module's import-time use of the built-in scene goes there.
+
+    torch runs on one CPU thread, here and (through OMP_NUM_THREADS) in the tests' subprocesses,
+    unless OMP_NUM_THREADS is set already: the tests' tensors are tiny, and on a 2-core machine
+    torch's second intra-op thread made each small op wait for it, most of all after Warp's
+    single-threaded CPU kernels and whenever anything else ran (tests/test_nerf.py: 576 s with
+    the default 2 threads against 102 s with one, load about 3, 2026-12-02). One thread also
+    keeps the suite's floats independent of the machine's core count (docs/DETERMINISM.md:
+    torch's CPU sums depend on the thread count)."""
     folder = tempfile.mkdtemp(prefix="wn-cache-")
     config._warpnerf_cache = (os.environ.get("WARPNERF_CACHE"), folder)
     os.environ["WARPNERF_CACHE"] = folder
+    if "OMP_NUM_THREADS" not in os.environ:
+        config._warpnerf_threads = torch.get_num_threads()
+        os.environ["OMP_NUM_THREADS"] = "1"
+        torch.set_num_threads(1)
 
 
 def pytest_unconfigure(config) -> None:
+    threads = getattr(config, "_warpnerf_threads", None)
+    if threads is not None:
+        os.environ.pop("OMP_NUM_THREADS", None)
+        torch.set_num_threads(threads)
     old, folder = getattr(config, "_warpnerf_cache", (None, None))
     if folder is None:
         return
