@@ -1,6 +1,6 @@
-"""Shared fixtures: a ``device`` fixture over cpu and cuda, fixed seeds for every test, and
-``fifo`` (a FIFO that fails the test instead of hanging it); the session runs torch on one CPU
-thread (see ``pytest_configure``)."""
+"""Shared fixtures: a ``device`` fixture over cpu and cuda, fixed seeds for every test, ``fifo``
+(a FIFO that fails the test instead of hanging it) and ``cli_launches`` (Warp's CPU launches as
+the command makes them); the session runs torch on one CPU thread (see ``pytest_configure``)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ import time
 import pytest
 import torch
 import warp as wp
+
+from ._launches import cli_cpu_launches
 
 # CPU launches honour the block width, so the cooperative (tiled) kernels run their real multi-lane
 # code on the CPU too, not the one-lane degenerate walk Warp uses on CPUs by default.
@@ -64,6 +66,14 @@ def pytest_unconfigure(config) -> None:
     else:
         os.environ["WARPNERF_CACHE"] = old
     shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture
+def cli_launches():
+    """Warp's CPU launches as ``warpnerf`` makes them outside the tests (one lane per block) for
+    the test: the long convergence and end-to-end runs (tests/_launches.py says why)."""
+    with cli_cpu_launches():
+        yield
 
 
 @pytest.fixture

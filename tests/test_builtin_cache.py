@@ -118,8 +118,9 @@ def test_commands_load_the_builtin_scene_from_the_cache(cache, monkeypatch):
 
 
 @pytest.mark.slow
-def test_the_default_size_is_much_faster_from_the_cache(cache):
-    """The commands' built-in scene (64 + 4 views of 48 x 48): rendered once, then read."""
+def test_the_default_size_is_much_faster_from_the_cache(cache, cli_launches):
+    """The commands' built-in scene (64 + 4 views of 48 x 48): rendered once (as the commands
+    render it on the CPU, one lane per block), then read."""
     t0 = time.perf_counter()
     made = synthetic.make_synthetic_dataset.__wrapped__()
     t_make = time.perf_counter() - t0

@@ -1,6 +1,9 @@
 """Data-parallel training (train/distributed.py) with two CPU processes on gloo, launched with
 torchrun as a user would: the same loss curve as one process with the whole batch, files
-written by rank 0 only, and a resume with another number of ranks."""
+written by rank 0 only, and a resume with another number of ranks. The one-process runs they
+are compared with run in the test's process (``warpnerf.cli.main``, Warp's CPU launches and one
+torch thread as in the ranks: the same arithmetic as a command, without a second import of
+torch and Warp)."""
 
 import json
 import os
@@ -9,6 +12,8 @@ import subprocess
 import sys
 
 import pytest
+
+from ._launches import cli_cpu_launches
 
 ARGS = ("--data builtin --builtin-size 12 --batch 96 --samples 16 --near 1 --far 4 "
         "--val-every 3 --val-images 1 --ckpt-every 3 --lr 5e-3 --no-tensorboard "
@@ -27,13 +32,16 @@ def _train(out, extra, ranks: int, resume=False, iters=6, model="nerf"):
     hashed = any(a in ("hash", "hash_sdf") for a in extra)  # (no MLP flags: refused there)
     base = ARGS + ([] if hashed else MLP)
     cmd = cmd + (["--resume"] if resume else base) + list(extra)  # (extra overrides ARGS)
-    env = dict(os.environ, WARPNERF_DIST_TIMEOUT="120", OMP_NUM_THREADS="1")
     if ranks == 1:
-        argv = [sys.executable, "-m", "warpnerf.cli", *cmd]
-    else:
-        argv = [sys.executable, "-m", "torch.distributed.run", f"--nproc-per-node={ranks}",
-                "--master-addr=127.0.0.1", f"--master-port={_port()}", "-m", "warpnerf.cli",
-                *cmd]  # fmt: skip
+        from warpnerf.cli import main
+
+        with cli_cpu_launches():
+            assert main(cmd) == 0
+        return json.loads((out / "history.json").read_text())
+    env = dict(os.environ, WARPNERF_DIST_TIMEOUT="120", OMP_NUM_THREADS="1")
+    argv = [sys.executable, "-m", "torch.distributed.run", f"--nproc-per-node={ranks}",
+            "--master-addr=127.0.0.1", f"--master-port={_port()}", "-m", "warpnerf.cli",
+            *cmd]  # fmt: skip
     res = subprocess.run(argv, capture_output=True, text=True, timeout=600, env=env)
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
     _train.output = res.stdout + res.stderr  # (the last run's, for the tests that read it)
