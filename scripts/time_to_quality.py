@@ -5,6 +5,7 @@ reference, Chamfer distance) against training seconds.
     warpnerf train volsdf --data lego --field hash_sdf ... --snapshots 15,30,60,120,300 \
         --max-seconds 300 --out RUN
     python scripts/time_to_quality.py eval RUN OUT.json [--label L] [--images 0] [--chunk 400000]
+        [--spp 1,4]
         [--geometry materials] [--mesh-resolution 384]
     python scripts/time_to_quality.py plot OUT.json [OUT2.json ...] --png docs/x.png [--title T]
     python scripts/time_to_quality.py run DIR [--budgets 5,15,30,60,120,300] [--label L]
@@ -40,7 +41,9 @@ def snapshots(run) -> list:
     return sorted(out)
 
 
-def evaluate(run, out, label, images, chunk, geometry, mesh_resolution):
+def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(1,)):
+    """Each snapshot scored on the val split; ``spp``: rays a pixel of each scoring (`eval
+    --spp`), the first gives ``psnr``/``ssim``, each other N adds ``psnr_sppN``/``ssim_sppN``."""
     from warpnerf.train.nerf import load_run
     from warpnerf.train.nerf_eval import evaluate_geometry, evaluate_run
 
@@ -51,10 +54,15 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution):
         row = {"budget_s": s, "step": ckpt["step"], "train_seconds": h["seconds"][-1]}
         if "beta" in h and h["beta"]:
             row["beta"] = h["beta"][-1]
-        with tempfile.TemporaryDirectory() as tmp:
-            m = evaluate_run(run, "val", max_images=images, out_dir=tmp, snapshot=s, chunk=chunk)
-        row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"],
-                   render_ms_median=m["render_ms_median"])  # fmt: skip
+        for k, n in enumerate(spp):
+            with tempfile.TemporaryDirectory() as tmp:
+                m = evaluate_run(run, "val", max_images=images, out_dir=tmp, snapshot=s,
+                                 chunk=chunk, spp=n)  # fmt: skip
+            if k == 0:
+                row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"], spp=n,
+                           render_ms_median=m["render_ms_median"])  # fmt: skip
+            else:
+                row.update({f"psnr_spp{n}": m["psnr"], f"ssim_spp{n}": m["ssim"]})
         if geometry:
             g = evaluate_geometry(run, geometry, mesh_resolution, snapshot=s)
             row.update({k: g[k] for k in g if k not in ("run", "reference")})
@@ -125,7 +133,8 @@ def plot(paths, png, title):
         fig.savefig(tmp, dpi=110, format="png")
 
 
-def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geometry, res):
+def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geometry, res,
+                       spp=(1,)):  # fmt: skip
     """One training with snapshots at ``budgets`` (its last one the time limit), then
     :func:`evaluate` and :func:`plot` into ``out_dir``."""
     from warpnerf.cli.parser import main as cli
@@ -143,7 +152,7 @@ def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geome
     if cli(argv) != 0:
         raise SystemExit(f"training failed: warpnerf {' '.join(argv)}")
     js = Path(out_dir) / "ttq.json"
-    evaluate(run, js, label, images, chunk, geometry, res)
+    evaluate(run, js, label, images, chunk, geometry, res, spp)
     plot([js], Path(out_dir) / "ttq.png", label or "val PSNR against training time")
 
 
@@ -164,16 +173,24 @@ def main():
         q.add_argument("--chunk", type=int, default=None)
         q.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
         q.add_argument("--mesh-resolution", type=int, default=384)
+        q.add_argument("--spp", default="1", help="rays a pixel of each scoring, a comma list "
+                       "(e.g. 1,4: psnr at the pixels' centres, psnr_spp4 supersampled)")
     q = sub.add_parser("plot")
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)
     q.add_argument("--title", default="val PSNR against training time")
     a = p.parse_args(argv)
+    spp = ()
+    if a.cmd in ("run", "eval"):
+        try:
+            spp = tuple(int(x) for x in a.spp.split(","))
+        except ValueError:
+            raise SystemExit(f"--spp: a comma list of integers, got {a.spp!r}") from None
     if a.cmd == "run":
         train_and_evaluate(a.dir, a.budgets, train_argv, a.label, a.images, a.chunk, a.geometry,
-                           a.mesh_resolution)  # fmt: skip
+                           a.mesh_resolution, spp)  # fmt: skip
     elif a.cmd == "eval":
-        evaluate(a.run, a.out, a.label, a.images, a.chunk, a.geometry, a.mesh_resolution)
+        evaluate(a.run, a.out, a.label, a.images, a.chunk, a.geometry, a.mesh_resolution, spp)
     else:
         plot(a.json, a.png, a.title)
 

@@ -119,8 +119,9 @@ def cmd_eval(args) -> int:
         render_tracer=args.tracer,
         renderer=args.renderer,
         progress=not args.quiet,
+        spp=args.spp,
     )
-    keys = ("split", "step", "n_images", "renderer", "psnr", "ssim", "render_ms_median")
+    keys = ("split", "step", "n_images", "renderer", "spp", "psnr", "ssim", "render_ms_median")
     sub = f"eval_{args.split}" + ("_sphere" if args.renderer == "sphere" else "")
     folder = Path(args.out) if args.out else Path(args.run) / sub  # (evaluate_run's)
     print(json_dumps({**{k: m[k] for k in keys}, "out": str(folder),

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from ..options import option
 from ..train.nerf_eval import RENDERERS
+from ..train.nerf_run import MAX_SPP
 from ..train.surface_level import LEVEL_BOUND, parse_level
 
 __all__ = ["EvalConfig", "RenderConfig", "MeshConfig", "ExportConfig", "RUN_DEVICE"]
@@ -58,6 +59,10 @@ class EvalConfig:
     renderer: str = option("volume", "SDF runs: sphere (trace the surface, colour at the hit; "
                            "default folder RUN/eval_SPLIT_sphere) or volume",
                            choices=RENDERERS)  # fmt: skip
+    spp: int = option(1, f"rays a pixel, averaged (1 = the pixels' centres; k^2: a k x k grid "
+                      f"in each pixel, else R2 points; at most {MAX_SPP}): the box-filtered image "
+                      "an area-averaged dataset holds, as instant-ngp scores its test views "
+                      "(8); each is one more render", check="positive")  # fmt: skip
     out: str | None = option(None, "output folder (default: RUN/eval_SPLIT)")
     geometry: str | None = option(None, "SDF runs: instead of images, the surface's accuracy, "
                                   "completeness and Chamfer distance against REF: 'materials' "

@@ -85,7 +85,8 @@ def unsupported(cfg, model, task) -> str | None:
 class _Shape:
     """One set of capacities: its static input buffers, and its graph once captured."""
 
-    def __init__(self, key: tuple, device, random_bg: bool, near: float, far: float):
+    def __init__(self, key: tuple, device, random_bg: bool, near: float, far: float,
+                 pixel_jitter: bool = False):  # fmt: skip
         rays = key[0]
         self.key, self.runs, self.graph, self.out = key, 0, None, None
         # constants of the step (made once, not filled again in every step): the slots'
@@ -98,6 +99,8 @@ class _Shape:
         self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
         self.jitter = torch.zeros(rays, device=device, dtype=torch.float32)
         self.bg = torch.zeros(rays, 3, device=device) if random_bg else None
+        # --pixel-jitter: each ray's point in its pixel (else the pixel's centre)
+        self.pix = torch.full((rays, 2), 0.5, device=device) if pixel_jitter else None
         self.box = None  # an SDF field's eikonal points in [0, 1)^3 [batch, 3] (drawn per step)
 
 
@@ -159,7 +162,8 @@ class GraphStep:
         shape = self.shapes.pop(key, None)
         if shape is None:
             cfg = self.task.cfg
-            shape = _Shape(key, self.device, self.task.random_bg, float(cfg.near), float(cfg.far))
+            shape = _Shape(key, self.device, self.task.random_bg, float(cfg.near), float(cfg.far),
+                           bool(getattr(cfg, "pixel_jitter", False)))  # fmt: skip
             while len(self.shapes) >= MAX_GRAPHS:
                 self.shapes.popitem(last=False)  # least recently used (its graph and pool go)
         self.shapes[key] = shape
@@ -229,6 +233,8 @@ class GraphStep:
             torch.rand(batch, device=dev, generator=task.grid_gen, out=shape.jitter[:batch])
             if shape.bg is not None:
                 torch.rand(batch, 3, device=dev, generator=task.grid_gen, out=shape.bg[:batch])
+            if shape.pix is not None:
+                torch.rand(batch, 2, device=dev, generator=task.grid_gen, out=shape.pix[:batch])
         if task.model.kind == "sdf":  # the eikonal term's box points, as the eager step draws
             box = torch.rand(task.cfg.batch, 3, generator=task.gen)
             if shape.box is None:
@@ -260,8 +266,12 @@ class GraphStep:
         flat, w = shape.flat, task.w
         cam = flat // (w * task.h)
         rem = flat % (w * task.h)
-        py = (rem // w).to(torch.float32) + 0.5
-        px = (rem % w).to(torch.float32) + 0.5
+        if shape.pix is None:
+            py = (rem // w).to(torch.float32) + 0.5
+            px = (rem % w).to(torch.float32) + 0.5
+        else:  # --pixel-jitter
+            py = (rem // w).to(torch.float32) + shape.pix[:, 1]
+            px = (rem % w).to(torch.float32) + shape.pix[:, 0]
         o, d = task.batch_rays(cam, px, py)
         active = shape.slots < shape.n_active
         near = shape.near

@@ -312,6 +312,14 @@ class NeRFTask(Task):
             kept, self._kept = self._kept, None
             self._next_batch(int(kept.item()))
 
+    def pixel_offsets(self, n: int) -> torch.Tensor:
+        """--pixel-jitter: [n, 2] uniform points in [0, 1)^2 of the batch's pixels, from the
+        device generator where the run has one (grid and proposal runs; the graph step draws
+        them the same way), else from the host's."""
+        if self.grid_gen is not None:
+            return torch.rand(n, 2, device=self.cfg.device, generator=self.grid_gen)
+        return torch.rand(n, 2, generator=self.gen).to(self.cfg.device)
+
     def loss(self, step):
         self._settle_batch()
         cfg, model, grid = self.cfg, self.model, self.grid
@@ -328,6 +336,9 @@ class NeRFTask(Task):
             jitter = torch.rand(n, *cols, device=cfg.device, generator=self.grid_gen)
             if self.random_bg:  # (contracted: no fixed colour behind the scene)
                 bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
+        if getattr(cfg, "pixel_jitter", False):  # rays through random points of their pixels (after the draws
+            off = self.pixel_offsets(n)  # above: the graph step draws in the same order)
+            px, py = px + (off[:, 0] - 0.5), py + (off[:, 1] - 0.5)
         if self.dist is not None:  # this rank's share
             sl = self.dist.share(n)
             jitter = None if jitter is None else jitter[sl]

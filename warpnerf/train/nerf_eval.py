@@ -42,6 +42,7 @@ from .nerf import (
     surface_depth,
     with_refined_poses,
 )
+from .nerf_run import MAX_SPP
 
 __all__ = [
     "sphere_traced_rays_of",
@@ -106,6 +107,7 @@ def evaluate_run(
     snapshot: float | None = None,
     renderer: str = "volume",
     progress: bool = False,
+    spp: int = 1,
     **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
@@ -117,12 +119,18 @@ def evaluate_run(
     (``train --snapshots``) instead of its last checkpoint. ``renderer="sphere"`` (SDF runs)
     sphere-traces the surface instead (:func:`sphere_traced_rays_of`; default folder
     RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction).
-    ``progress``: images done on stderr (:class:`~warpnerf.train.progress.Progress`)."""
+    ``progress``: images done on stderr (:class:`~warpnerf.train.progress.Progress`).
+    ``spp``: rays a pixel, averaged (volume rendering; :func:`render_dataset_image`: the
+    box-filtered image, 1 = the pixels' centres; metrics.json records it)."""
     # every number the command takes, before any work (the kernels' limits)
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
+    if isinstance(spp, bool) or not isinstance(spp, int) or not 1 <= spp <= MAX_SPP:
+        raise UserError(f"--spp must be an integer in [1, {MAX_SPP}], got {spp!r}")
+    if spp > 1 and renderer == "sphere":
+        raise UserError("--spp needs --renderer volume (sphere tracing renders pixel centres)")
     for key, value in render.items():
         if key not in RENDER_SETTINGS:
             raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
@@ -158,11 +166,11 @@ def evaluate_run(
         sphere = (render.get("chunk") or True) if renderer == "sphere" else None
         which = CHECKPOINT if snapshot is None else snapshot_name(float(snapshot))
         return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere, which,
-                         progress)  # fmt: skip
+                         progress, spp)  # fmt: skip
 
 
 def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=CHECKPOINT,
-              progress=False):  # fmt: skip
+              progress=False, spp=1):  # fmt: skip
     """``sphere``: None (volume rendering), else sphere tracing (the --chunk given, or True);
     ``which``: the checkpoint file evaluated (metrics.json names it, its step, and the software
     and device of the evaluation: :func:`~warpnerf.train.provenance.environment`)."""
@@ -183,7 +191,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=
             rgb, depth, opacity = (out[k].reshape(ds.height, ds.width, -1).squeeze(-1)
                                    for k in ("rgb", "depth", "opacity"))  # fmt: skip
         else:
-            rgb, depth, opacity = render_dataset_image(model, cfg, ds, i)
+            rgb, depth, opacity = render_dataset_image(model, cfg, ds, i, spp)
         sync()
         render_ms = 1e3 * (time.perf_counter() - tr)
         gt = ds.images[i].to(rgb.device)
@@ -223,6 +231,7 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=
         "render_ms_median": statistics.median(r["render_ms"] for r in rows) if rows else None,
         **{k: getattr(cfg, k) if k == "chunk" or grid else None for k in RENDER_SETTINGS},
         "renderer": "sphere" if sphere else "volume",
+        "spp": spp,
         "per_image": rows,
         "provenance": {**command_now(), **environment(cfg.device)},
     }

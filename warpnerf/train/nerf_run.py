@@ -23,7 +23,7 @@ __all__ = [
     "resolve_data", "settle_new_run", "load_run", "load_data", "data_splits",
     "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
     "distortion_coordinate", "near_zone", "surface_depth", "depth_scale", "render_dataset_image",
-    "validate", "psnr_of_mse", "CHECKPOINT",
+    "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -344,13 +344,51 @@ def depth_scale(cfg: NeRFConfig, depth, opacity) -> float | None:
     return float(torch.quantile(seen[::step].double(), 0.99).clamp_min(1e-6))
 
 
+MAX_SPP = 64  # eval --spp: rays a pixel at most (each one more whole-image render)
+
+
+def pixel_points(spp: int) -> list:
+    """The ``spp`` points (x, y) in [0, 1)^2 of a pixel that a supersampled image averages:
+    1: the centre; a square k^2: the centres of the pixel's k x k cells (stratified); otherwise
+    the first ``spp`` points of the R2 sequence (Roberts 2018; low discrepancy). Deterministic,
+    so a supersampled evaluation is repeatable."""
+    spp = int(spp)
+    if not 1 <= spp <= MAX_SPP:
+        raise ValueError(f"spp must be in [1, {MAX_SPP}], got {spp}")
+    k = math.isqrt(spp)
+    if k * k == spp:
+        return [((i + 0.5) / k, (j + 0.5) / k) for j in range(k) for i in range(k)]
+    g = 1.32471795724474602596  # the plastic number: R2's generator
+    a1, a2 = 1.0 / g, 1.0 / (g * g)
+    return [((0.5 + a1 * n) % 1.0, (0.5 + a2 * n) % 1.0) for n in range(spp)]
+
+
 @torch.no_grad()
-def render_dataset_image(model, cfg, ds, i):
-    """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset."""
+def render_dataset_image(model, cfg, ds, i, spp: int = 1):
+    """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset. ``spp`` > 1: the
+    mean of ``spp`` renders, each through another point of every pixel (:func:`pixel_points`):
+    the box-filtered image a camera with square pixels records (what a dataset downsampled by
+    area averaging holds, and what ``--pixel-jitter`` trains for)."""
     h, w = ds.height, ds.width
-    o, d = dataset_rays(cfg, ds, image=i)
-    out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
-    return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
+    if spp == 1:
+        o, d = dataset_rays(cfg, ds, image=i)
+        out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+        return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
+    dev = ds.c2w.device
+    py, px = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float32),
+                            torch.arange(w, device=dev, dtype=torch.float32),
+                            indexing="ij")  # fmt: skip
+    px, py = px.reshape(-1), py.reshape(-1)
+    cam = torch.full((h * w,), int(i), dtype=torch.int64, device=dev)
+    points = pixel_points(spp)
+    total = None
+    for x, y in points:
+        o, d = dataset_rays(cfg, ds, cam, px + x, py + y)
+        out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
+        each = (out["rgb"], out["depth"], out["opacity"])
+        total = each if total is None else tuple(a + b for a, b in zip(total, each))
+    rgb, depth, opacity = (t / len(points) for t in total)
+    return rgb.reshape(h, w, 3), depth.reshape(h, w), opacity.reshape(h, w)
 
 
 def psnr_of_mse(mse: float) -> float:

@@ -1,7 +1,8 @@
 """The training recipe of instant-ngp and tiny-cuda-nn, one option each (issue 44): random
 backgrounds behind RGBA pixels, occupancy cells outside every training frustum, Adam that leaves
 hash-table rows without a gradient alone, L2 on the MLP weights, an exponential moving average of
-the weights, the Huber photometric loss, the opacity (mask) loss and half-precision MLPs. Each is
+the weights, the Huber photometric loss, the opacity (mask) loss, half-precision MLPs and rays through random
+points of their pixels. Each is
 a field of :class:`RecipeConfig`, a section of a NeRF/VolSDF run's config; a config.json written
 before the section existed reads the values those runs trained with (:data:`LEGACY`)."""
 
@@ -33,6 +34,7 @@ LEGACY = {
     "photometric_loss": "mse",
     "mask_loss": 0.0,
     "mlp_precision": "fp32",
+    "pixel_jitter": False,
 }
 
 
@@ -80,6 +82,11 @@ class RecipeConfig:
         "fp16 under autocast (float32 weights; fp16's gradients scaled inside the MLP); "
         "validation and renders stay float32",
         choices=PRECISION_NAMES,
+    )  # fmt: skip
+    pixel_jitter: bool = option(
+        False, "each training ray passes through a uniform random point of its pixel instead "
+        "of the pixel's centre (instant-ngp; the images are area averages); its colour is the "
+        "pixel's. `eval --spp` renders the matching supersampled image",
     )  # fmt: skip
 
     def check_section(self, fail) -> None:
