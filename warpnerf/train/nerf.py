@@ -336,8 +336,8 @@ class NeRFTask(Task):
             jitter = torch.rand(n, *cols, device=cfg.device, generator=self.grid_gen)
             if self.random_bg:  # (contracted: no fixed colour behind the scene)
                 bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
-        if getattr(cfg, "pixel_jitter", False):  # rays through random points of their pixels (after the draws
-            off = self.pixel_offsets(n)  # above: the graph step draws in the same order)
+        if getattr(cfg, "pixel_jitter", False):  # rays through random points of their pixels
+            off = self.pixel_offsets(n)  # (after the draws above, as the graph step draws)
             px, py = px + (off[:, 0] - 0.5), py + (off[:, 1] - 0.5)
         if self.dist is not None:  # this rank's share
             sl = self.dist.share(n)
