@@ -2,8 +2,9 @@
 backgrounds behind RGBA pixels, occupancy cells outside every training frustum, Adam that leaves
 hash-table rows without a gradient alone, L2 on the MLP weights, an exponential moving average of
 the weights, the Huber photometric loss, the opacity (mask) loss, half-precision MLPs and rays
-through random points of their pixels. Each is a field of :class:`RecipeConfig`, a section of a NeRF/VolSDF run's config; a config.json written
-before the section existed reads the values those runs trained with (:data:`LEGACY`)."""
+through random points of their pixels. Each is a field of :class:`RecipeConfig`, a section of a
+NeRF/VolSDF run's config; a config.json written before the section existed reads the values those
+runs trained with (:data:`LEGACY`)."""
 
 from __future__ import annotations
 
