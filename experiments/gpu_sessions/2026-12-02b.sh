@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# The GPU driver of the second 2026-12-02 session (issue 44: rays through random points of their
+# pixels and supersampled scoring; issue 49: lego hash_sdf re-measured; one H200), kept as the
+# record of how the design notes' figures of that session were measured. Run from the tree root
+# on the device with Warp unpacked in /tmp/site and the data carried in .gpu/data: bash THIS PHASE
+set -u
+R=$(pwd)
+ln -sfn "$R/kernels" "$R/warpnerf/kernels"
+export PYTHONPATH=/tmp/site:$R PYTHONUNBUFFERED=1
+FINAL=${OUT:-/tmp/out}; OUT=/root/res/$1; rm -rf "$OUT"; mkdir -p "$OUT" "$FINAL"
+trap 'tar czf $FINAL/$1.tgz -C /root/res $1 2>/dev/null' EXIT
+S=/root/stage; Q=/root/q; mkdir -p $S $Q
+DEADLINE=$(( $(date +%s) + ${LIMIT:-560} ))
+left() { echo $(( DEADLINE - $(date +%s) - ${1:-0} )); }
+pin() { OMP_NUM_THREADS=8 MKL_NUM_THREADS=8 taskset -c 0-15 "$@"; }
+step() {  # name seconds-wanted command...: runs it under the deadline, logs to $OUT/name.log
+  local name=$1 want=$2; shift 2
+  local l; l=$(left 5)
+  if [ "$l" -lt "$want" ]; then echo "$name skipped (left $l s < $want s)" >> $OUT/fail.txt; return; fi
+  local t0; t0=$(date +%s)
+  pin timeout "$l" "$@" > "$OUT/$name.log" 2>&1 || echo "$name failed rc=$?" >> $OUT/fail.txt
+  echo "$name wall $(( $(date +%s) - t0 )) s" >> $OUT/walls.txt
+}
+ttq() {  # name want ttq-args...: scripts/time_to_quality.py run into $Q/name, its JSON kept
+  local name=$1 want=$2; shift 2
+  rm -rf "${Q:?}/$name"; mkdir -p "$Q/$name"
+  step "$name" "$want" python3 scripts/time_to_quality.py run "$Q/$name" "$@"
+  cp "$Q/$name/ttq.json" "$OUT/$name.ttq.json" 2>/dev/null
+}
+F="--quiet --no-tensorboard --val-images 0"
+LEGO="train nerf --data $S/lego --device cuda --iters 40000 $F"  # the plain command (40,000 steps)
+case $1 in
+setup)
+  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
+  cat "$R/.commit" 2>/dev/null; nproc; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv ;;
+g1)  # 44: the plain command, scored at the pixels' centres and with 4 rays a pixel
+  cp -r .gpu/data/* $S/ 2>/dev/null; ls $S
+  nvidia-smi --query-gpu=name,driver_version --format=csv,noheader > $OUT/gpu.txt
+  ttq lego_plain 400 --budgets 60,300 --spp 1,4 --label "the plain command" -- $LEGO
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g2)  # 44: the same with --pixel-jitter
+  ttq lego_jitter 400 --budgets 60,300 --spp 1,4 --label "the plain command, --pixel-jitter" -- $LEGO --pixel-jitter
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g3)  # 44: materials (NeRF hash, the smaller grid of the third round), with and without --pixel-jitter
+  M="train nerf --data $S/materials --device cuda --iters 40000 --hash-max-res 512 --hash-log2-size 16 $F"
+  ttq mat_base 160 --budgets 120 --spp 1,4 --label "materials, r512 t16" -- $M
+  ttq mat_jitter 160 --budgets 120 --spp 1,4 --label "materials, r512 t16, --pixel-jitter" -- $M --pixel-jitter
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g4)  # 49: lego hash_sdf (train volsdf's defaults on a GPU), 300 s; its step and frame
+  SDF="train volsdf --data $S/lego --field hash_sdf --device cuda --tf32 --batch 4096 --target-samples 262144 $F"
+  ttq lego_sdf 380 --budgets 60,300 --label "lego hash_sdf" -- $SDF ${SDF_EXTRA:-}
+  step frame_sdf 40 python3 scripts/bench_frame.py $Q/lego_sdf/run --device cuda --data $S/lego --chunk 400000 --repeat 2 --json $OUT/frame_sdf.json
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+esac
