@@ -174,7 +174,7 @@ def main():
         q.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
         q.add_argument("--mesh-resolution", type=int, default=384)
         q.add_argument("--spp", default="1", help="rays a pixel of each scoring, a comma list "
-                       "(e.g. 1,4: psnr at the pixels' centres, psnr_spp4 supersampled)")  # fmt: skip
+                       "(1,4: psnr at the pixels' centres, psnr_spp4 supersampled)")  # fmt: skip
     q = sub.add_parser("plot")
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)
