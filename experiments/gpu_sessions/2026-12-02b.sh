@@ -41,6 +41,11 @@ g1)  # 44: the plain command, scored at the pixels' centres and with 4 rays a pi
 g2)  # 44: the same with --pixel-jitter
   ttq lego_jitter 400 --budgets 60,300 --spp 1,4 --label "the plain command, --pixel-jitter" -- $LEGO --pixel-jitter
   cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g5)  # 44: the plain command with --train-spp 4 (each pixel the mean of its 2x2 sub-rays), setup first
+  cp -r .gpu/data/* $S/ 2>/dev/null; ls $S
+  nvidia-smi --query-gpu=name,driver_version --format=csv,noheader > $OUT/gpu.txt
+  ttq lego_tspp4 400 --budgets 60,300 --spp 1,4 --label "the plain command, --train-spp 4" -- $LEGO --train-spp 4
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
 g3)  # 44: materials (NeRF hash, the smaller grid of the third round), with and without --pixel-jitter
   M="train nerf --data $S/materials --device cuda --iters 40000 --hash-max-res 512 --hash-log2-size 16 $F"
   ttq mat_base 160 --budgets 120 --spp 1,4 --label "materials, r512 t16" -- $M

@@ -35,6 +35,7 @@ import torch
 from ..render import render_marched_fixed
 from .divergence import nonfinite_flags
 from .step_loss import step_loss, unsupported_terms
+from .supersample import expand_rows, pixel_means, sub_rays
 
 __all__ = ["GraphStep", "unsupported", "tier", "HEADROOM", "MAX_GRAPHS"]
 
@@ -86,18 +87,18 @@ class _Shape:
     """One set of capacities: its static input buffers, and its graph once captured."""
 
     def __init__(self, key: tuple, device, random_bg: bool, near: float, far: float,
-                 pixel_jitter: bool = False):  # fmt: skip
-        rays = key[0]
+                 pixel_jitter: bool = False, spp: int = 1):  # fmt: skip
+        rays = key[0]  # pixel slots (--train-spp: spp rays each, pixel i's at i*spp ..)
         self.key, self.runs, self.graph, self.out = key, 0, None, None
         # constants of the step (made once, not filled again in every step): the slots'
         # indices and the near and far planes
         self.slots = torch.arange(rays, device=device)
-        self.near = torch.full((rays,), near, device=device)
-        self.far = torch.full((rays,), far, device=device)
+        self.near = torch.full((rays * spp,), near, device=device)
+        self.far = torch.full((rays * spp,), far, device=device)
         # the batch's flat pixel indices (unused slots: 0), then the number of rays used
         self.inputs = torch.zeros(rays + 1, device=device, dtype=torch.int64)
         self.flat, self.n_active = self.inputs[:rays], self.inputs[rays]
-        self.jitter = torch.zeros(rays, device=device, dtype=torch.float32)
+        self.jitter = torch.zeros(rays * spp, device=device, dtype=torch.float32)
         self.bg = torch.zeros(rays, 3, device=device) if random_bg else None
         # --pixel-jitter: each ray's point in its pixel (else the pixel's centre)
         self.pix = torch.full((rays, 2), 0.5, device=device) if pixel_jitter else None
@@ -163,7 +164,8 @@ class GraphStep:
         if shape is None:
             cfg = self.task.cfg
             shape = _Shape(key, self.device, self.task.random_bg, float(cfg.near), float(cfg.far),
-                           bool(getattr(cfg, "pixel_jitter", False)))  # fmt: skip
+                           bool(getattr(cfg, "pixel_jitter", False)),
+                           self.task.train_spp)  # fmt: skip
             while len(self.shapes) >= MAX_GRAPHS:
                 self.shapes.popitem(last=False)  # least recently used (its graph and pool go)
         self.shapes[key] = shape
@@ -230,7 +232,8 @@ class GraphStep:
             shape.inputs[:batch] = host
             shape.inputs[rays] = batch
         if task.grid is not None:  # the lattice jitter (and backgrounds): the eager step's draws
-            torch.rand(batch, device=dev, generator=task.grid_gen, out=shape.jitter[:batch])
+            m = batch * task.train_spp  # (the rays of the batch's pixels)
+            torch.rand(m, device=dev, generator=task.grid_gen, out=shape.jitter[:m])
             if shape.bg is not None:
                 torch.rand(batch, 3, device=dev, generator=task.grid_gen, out=shape.bg[:batch])
             if shape.pix is not None:
@@ -272,19 +275,27 @@ class GraphStep:
         else:  # --pixel-jitter
             py = (rem // w).to(torch.float32) + shape.pix[:, 1]
             px = (rem % w).to(torch.float32) + shape.pix[:, 0]
-        o, d = task.batch_rays(cam, px, py)
+        spp, bg = task.train_spp, shape.bg
         active = shape.slots < shape.n_active
+        active_rays = active
+        if spp > 1:  # --train-spp: each pixel's sub-rays (its background, its activity)
+            cam, px, py = sub_rays(cam, px, py, task.sub_offsets)
+            bg = None if bg is None else expand_rows(bg, spp)
+            active_rays = expand_rows(active, spp)
+        o, d = task.batch_rays(cam, px, py)
         near = shape.near
-        far = torch.where(active, shape.far, near)  # unused slots: no samples
+        far = torch.where(active_rays, shape.far, near)  # unused slots: no samples
         opt.zero_grad(set_to_none=True)
         with task.mlp_precision():
             out = render_marched_fixed(
                 task.grid, model.coarse, o, d, near, far, marched=marched, kept=kept,
-                jitter=shape.jitter, background=cfg.background if shape.bg is None else shape.bg,
+                jitter=shape.jitter, background=cfg.background if bg is None else bg,
                 t_threshold=cfg.t_threshold, max_samples=cfg.max_samples,
                 ray_images=cam if cfg.appearance_dim else None,
                 distortion_s=task.distortion_map(), near_t=task.near_distances(o),
             )  # fmt: skip
+        if spp > 1:  # the pixels' renders: the means of their sub-rays'
+            out = pixel_means(out, shape.slots.shape[0], spp)
         target, alpha = task.pixels(flat)
         weight = active.to(out["rgb"].dtype)
         n_active = shape.n_active.to(out["rgb"].dtype)

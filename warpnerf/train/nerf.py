@@ -45,6 +45,7 @@ from .nerf_run import (
 )
 from .recipe import mask_weight, random_background, wants_alpha
 from .step_loss import LossSettings, step_loss
+from .supersample import expand_rows, pixel_means, sub_offsets, sub_rays
 
 __all__ = [
     "NeRFConfig", "train_nerf", "load_run", "build_model", "load_data", "render_rays_of",
@@ -225,6 +226,9 @@ class NeRFTask(Task):
         elif model.proposal is not None:  # --sampler proposal: its jitter (and backgrounds)
             self.grid_gen = torch.Generator(device=cfg.device).manual_seed(cfg.seed + 1)
         self.batch = cfg.batch
+        # --train-spp: rays a training pixel, and their offsets from its centre (on the device)
+        self.train_spp = int(getattr(cfg, "train_spp", 1) or 1)
+        self.sub_offsets = sub_offsets(self.train_spp, cfg.device) if self.train_spp > 1 else None
         self._kept = None  # data-parallel: the last step's global sample count (on the device)
         self.keypoints = None  # --depth-loss: the training split's sparse-point observations
         if cfg.depth_loss > 0:
@@ -330,10 +334,11 @@ class NeRFTask(Task):
         )  # fmt: skip
         n = cam.shape[0]  # the global batch (every rank draws it whole)
         sl, jitter, scale, bg = slice(0, n), None, 1.0, None
+        spp = self.train_spp  # rays a pixel (--train-spp; supersample.py): pixel i's are i*spp..
         if self.grid_gen is not None:  # the lattice jitter (and backgrounds), drawn for all the
             # batch's rays; proposal sampling: one column per level (fields/proposal.py)
             cols = () if grid is not None else (model.proposal.n_draws,)
-            jitter = torch.rand(n, *cols, device=cfg.device, generator=self.grid_gen)
+            jitter = torch.rand(n * spp, *cols, device=cfg.device, generator=self.grid_gen)
             if self.random_bg:  # (contracted: no fixed colour behind the scene)
                 bg = torch.rand(n, 3, device=cfg.device, generator=self.grid_gen)
         if getattr(cfg, "pixel_jitter", False):  # rays through random points of their pixels
@@ -341,7 +346,7 @@ class NeRFTask(Task):
             px, py = px + (off[:, 0] - 0.5), py + (off[:, 1] - 0.5)
         if self.dist is not None:  # this rank's share
             sl = self.dist.share(n)
-            jitter = None if jitter is None else jitter[sl]
+            jitter = None if jitter is None else jitter[sl.start * spp : sl.stop * spp]
             bg = None if bg is None else bg[sl]
             # the share's mean loss weighted so that the ranks' average is the batch's mean
             scale = (sl.stop - sl.start) * self.dist.world / max(n, 1)
@@ -350,6 +355,10 @@ class NeRFTask(Task):
         if self.host_images:
             idx, idx_host = idx
             target, alpha = self._pixels_on_host(idx_host)
+        bg_rays = bg
+        if spp > 1:  # each pixel's sub-rays (their backgrounds: the pixel's)
+            cam, px, py = sub_rays(cam, px, py, self.sub_offsets)
+            bg_rays = None if bg is None else expand_rows(bg, spp)
         o, d = dataset_rays(cfg, self.train, cam, px, py, check=False,  # (our own indices)
                             poses=model.poses)  # fmt: skip
         seed = cfg.seed * 1000003 + step  # (stratified jitter: keyed by the global ray index)
@@ -357,9 +366,11 @@ class NeRFTask(Task):
         with self.mlp_precision():
             out = render_rays_of(model, cfg, o, d, perturb=True, seed=seed,
                                  generator=self.grid_gen, jitter=jitter, ray_images=images,
-                                 ray_offset=sl.start, background=bg,
+                                 ray_offset=sl.start * spp, background=bg_rays,
                                  distortion=cfg.distortion_loss > 0,
                                  near=cfg.near_loss > 0)  # fmt: skip
+        if spp > 1:  # the pixels' renders: the means of their sub-rays'
+            out = pixel_means(out, o.shape[0] // spp, spp)
         n_kept = out.get("n_kept")
         terms = {}
         if grid is not None:

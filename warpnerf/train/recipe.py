@@ -16,11 +16,12 @@ from ..options import option
 
 __all__ = [
     "RecipeConfig", "LEGACY", "HUBER_DELTA", "EMA_MAX", "MASK_LOSS_MAX", "random_background",
-    "wants_alpha", "mask_weight",
+    "wants_alpha", "mask_weight", "TRAIN_SPP_MAX",
 ]  # fmt: skip
 
 HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
 MASK_LOSS_MAX = 100.0  # --mask-loss: a weight this large would drown the photometric term
+TRAIN_SPP_MAX = 16  # --train-spp: rays a training pixel at most
 EMA_MAX = 0.9999  # --ema above this would freeze the averaged weights for ~10^4+ steps
 PRECISION_NAMES = tuple(PRECISIONS)  # --mlp-precision's choices (fields/mlp.py)
 
@@ -35,6 +36,7 @@ LEGACY = {
     "mask_loss": 0.0,
     "mlp_precision": "fp32",
     "pixel_jitter": False,
+    "train_spp": 1,
 }
 
 
@@ -88,6 +90,13 @@ class RecipeConfig:
         "of the pixel's centre (instant-ngp; the images are area averages); its colour is the "
         "pixel's. `eval --spp` renders the matching supersampled image",
     )  # fmt: skip
+    train_spp: int = option(
+        1, f"each training pixel rendered as the mean of N rays through fixed points of it (a "
+        f"k x k grid for N = k^2; at most {TRAIN_SPP_MAX}) against its colour: the image of a "
+        "dataset downsampled by area averaging; N times the samples a pixel (the batch adapts "
+        "to --target-samples). Score with `eval --spp N`",
+        check="positive",
+    )  # fmt: skip
 
     def check_section(self, fail) -> None:
         if self.random_background not in ("auto", "on", "off"):
@@ -105,6 +114,12 @@ class RecipeConfig:
         if self.mlp_precision not in PRECISION_NAMES:
             raise fail("mlp_precision", f"must be one of {', '.join(PRECISION_NAMES)}, got "
                        f"{self.mlp_precision!r}")  # fmt: skip
+        t = self.train_spp
+        if isinstance(t, bool) or not isinstance(t, int) or not 1 <= t <= TRAIN_SPP_MAX:
+            raise fail("train_spp", f"must be an integer in [1, {TRAIN_SPP_MAX}], got {t!r}")
+        if t > 1 and self.pixel_jitter:
+            raise fail("train_spp", "and --pixel-jitter exclude each other (fixed points of "
+                       "each pixel, or one random point)")  # fmt: skip
         m = self.mask_loss
         if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
             raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")
