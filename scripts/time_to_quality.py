@@ -41,9 +41,10 @@ def snapshots(run) -> list:
     return sorted(out)
 
 
-def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(1,)):
+def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(None,)):
     """Each snapshot scored on the val split; ``spp``: rays a pixel of each scoring (`eval
-    --spp`), the first gives ``psnr``/``ssim``, each other N adds ``psnr_sppN``/``ssim_sppN``."""
+    --spp`; None: the run's), the first gives ``psnr``/``ssim`` (and ``spp``), each other N adds
+    ``psnr_sppN``/``ssim_sppN``."""
     from warpnerf.train.nerf import load_run
     from warpnerf.train.nerf_eval import evaluate_geometry, evaluate_run
 
@@ -59,10 +60,10 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(1,)
                 m = evaluate_run(run, "val", max_images=images, out_dir=tmp, snapshot=s,
                                  chunk=chunk, spp=n)  # fmt: skip
             if k == 0:
-                row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"], spp=n,
+                row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"], spp=m["spp"],
                            render_ms_median=m["render_ms_median"])  # fmt: skip
             else:
-                row.update({f"psnr_spp{n}": m["psnr"], f"ssim_spp{n}": m["ssim"]})
+                row.update({f"psnr_spp{m['spp']}": m["psnr"], f"ssim_spp{m['spp']}": m["ssim"]})
         if geometry:
             g = evaluate_geometry(run, geometry, mesh_resolution, snapshot=s)
             row.update({k: g[k] for k in g if k not in ("run", "reference")})
@@ -134,7 +135,7 @@ def plot(paths, png, title):
 
 
 def train_and_evaluate(out_dir, budgets, train_argv, label, images, chunk, geometry, res,
-                       spp=(1,)):  # fmt: skip
+                       spp=(None,)):  # fmt: skip
     """One training with snapshots at ``budgets`` (its last one the time limit), then
     :func:`evaluate` and :func:`plot` into ``out_dir``."""
     from warpnerf.cli.parser import main as cli
@@ -173,8 +174,8 @@ def main():
         q.add_argument("--chunk", type=int, default=None)
         q.add_argument("--geometry", default=None, help="SDF runs: materials or a point cloud")
         q.add_argument("--mesh-resolution", type=int, default=384)
-        q.add_argument("--spp", default="1", help="rays a pixel of each scoring, a comma list "
-                       "(1,4: psnr at the pixels' centres, psnr_spp4 supersampled)")  # fmt: skip
+        q.add_argument("--spp", default="run", help="rays a pixel of each scoring, a comma list "
+                       "(run: the run's --train-spp; 1,4: psnr_spp4 too)")  # fmt: skip
     q = sub.add_parser("plot")
     q.add_argument("json", nargs="+")
     q.add_argument("--png", required=True)
@@ -183,7 +184,7 @@ def main():
     spp = ()
     if a.cmd in ("run", "eval"):
         try:
-            spp = tuple(int(x) for x in a.spp.split(","))
+            spp = tuple(None if x == "run" else int(x) for x in a.spp.split(","))
         except ValueError:
             raise SystemExit(f"--spp: a comma list of integers, got {a.spp!r}") from None
     if a.cmd == "run":

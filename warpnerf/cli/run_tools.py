@@ -147,6 +147,7 @@ def cmd_render(args) -> int:
         device=parse_device(args.device) if args.device else None,
         renderer=args.renderer,
         progress=not args.quiet,
+        spp=args.spp,
     )
     print(json_dumps(res))
     return 0

@@ -59,10 +59,11 @@ class EvalConfig:
     renderer: str = option("volume", "SDF runs: sphere (trace the surface, colour at the hit; "
                            "default folder RUN/eval_SPLIT_sphere) or volume",
                            choices=RENDERERS)  # fmt: skip
-    spp: int = option(1, f"rays a pixel, averaged (1 = the pixels' centres; k^2: a k x k grid "
-                      f"in each pixel, else R2 points; at most {MAX_SPP}): the box-filtered image "
-                      "an area-averaged dataset holds, as instant-ngp scores its test views "
-                      "(8); each is one more render", check="positive")  # fmt: skip
+    spp: int | None = option(None, f"rays a pixel, averaged (1 = the pixels' centres; k^2: a "
+                             f"k x k grid in each pixel, else R2 points; at most {MAX_SPP}): the "
+                             "box-filtered image an area-averaged dataset holds; each is one "
+                             "more render (default: the run's --train-spp)",
+                             check="positive")  # fmt: skip
     out: str | None = option(None, "output folder (default: RUN/eval_SPLIT)")
     geometry: str | None = option(None, "SDF runs: instead of images, the surface's accuracy, "
                                   "completeness and Chamfer distance against REF: 'materials' "
@@ -93,6 +94,8 @@ class RenderConfig:
     device: str | None = option(None, RUN_DEVICE)
     renderer: str = option("volume", "SDF runs: sphere-trace the surface (into "
                            "RUN/render_PATH_sphere) or volume", choices=RENDERERS)  # fmt: skip
+    spp: int | None = option(None, f"rays a pixel, averaged (at most {MAX_SPP}; default: the "
+                             "run's --train-spp)", check="positive")  # fmt: skip
     quiet: bool = option(False, QUIET)
 
 

@@ -149,6 +149,8 @@ class NeRFConfig(*reversed(SECTIONS)):
         capture = self.scene is not None  # a COLMAP/LLFF capture (photos, not renders)
         if self.appearance_dim is None:  # photos: exposure changes between them
             self.appearance_dim = 16 if capture and captures else 0
+        if self.train_spp is None:  # (a new run's data set it: nerf_run._with_data)
+            self.train_spp = 1
         if self.hash_max_res is None:  # (captures: less capacity to fit noise, measured)
             self.hash_max_res = 1024 if capture and traits.captures else 2048
         contracted = self.contract == "on"

@@ -42,7 +42,7 @@ from .nerf import (
     surface_depth,
     with_refined_poses,
 )
-from .nerf_run import MAX_SPP
+from .nerf_run import MAX_SPP, pixel_points, run_spp
 
 __all__ = [
     "sphere_traced_rays_of",
@@ -107,7 +107,7 @@ def evaluate_run(
     snapshot: float | None = None,
     renderer: str = "volume",
     progress: bool = False,
-    spp: int = 1,
+    spp: int | None = None,
     **render,
 ):
     """Renders every image of ``split``; writes metrics.json and gt | prediction | depth PNGs under
@@ -121,16 +121,14 @@ def evaluate_run(
     RUN/eval_{split}_sphere/; metrics add the mean marching steps and hit fraction).
     ``progress``: images done on stderr (:class:`~warpnerf.train.progress.Progress`).
     ``spp``: rays a pixel, averaged (volume rendering; :func:`render_dataset_image`: the
-    box-filtered image, 1 = the pixels' centres; metrics.json records it)."""
+    box-filtered image, 1 = the pixels' centres; None: the run's ``--train-spp``, 1 when
+    sphere tracing; metrics.json records it)."""
     # every number the command takes, before any work (the kernels' limits)
     if split not in ("train", "val", "test"):
         raise UserError(f"--split must be train, val or test, got {split!r}")
     if max_images < 0:
         raise UserError(f"--max-images must be >= 0, got {max_images}")
-    if isinstance(spp, bool) or not isinstance(spp, int) or not 1 <= spp <= MAX_SPP:
-        raise UserError(f"--spp must be an integer in [1, {MAX_SPP}], got {spp!r}")
-    if spp > 1 and renderer == "sphere":
-        raise UserError("--spp needs --renderer volume (sphere tracing renders pixel centres)")
+    _check_spp(spp, renderer)
     for key, value in render.items():
         if key not in RENDER_SETTINGS:
             raise TypeError(f"evaluate_run: unknown rendering setting {key!r}")
@@ -139,6 +137,8 @@ def evaluate_run(
             raise UserError(f"--{key.replace('_', '-')} must be in [{lo:g}, {hi:g}], got {value}")
     cfg, model, ckpt = load_run(run, device, snapshot)
     _check_renderer(renderer, model, cfg)
+    if spp is None:  # the run's own (what it trained for); sphere tracing: the centres
+        spp = 1 if renderer == "sphere" else run_spp(cfg)
     grid = model.grid
     changed = {}
     for key, value in render.items():
@@ -167,6 +167,17 @@ def evaluate_run(
         which = CHECKPOINT if snapshot is None else snapshot_name(float(snapshot))
         return _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere, which,
                          progress, spp)  # fmt: skip
+
+
+def _check_spp(spp, renderer: str):
+    """--spp given to eval or render: None (the run's) or an integer in [1, MAX_SPP]; more than
+    one only for volume rendering (UserError otherwise)."""
+    if spp is not None and (isinstance(spp, bool) or not isinstance(spp, int)
+                            or not 1 <= spp <= MAX_SPP):  # fmt: skip
+        raise UserError(f"--spp must be an integer in [1, {MAX_SPP}], got {spp!r}")
+    if spp is not None and spp > 1 and renderer == "sphere":
+        raise UserError("--spp needs --renderer volume (sphere tracing renders pixel centres)")
+    return spp
 
 
 def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=CHECKPOINT,
@@ -244,17 +255,21 @@ def _evaluate(cfg, model, ckpt, grid, ds, split, n, out_dir, sphere=None, which=
 
 @torch.no_grad()
 def render_run(run, path: str = "spiral", frames: int | None = None, size=None, device=None, fps=20,
-               renderer: str = "volume", progress: bool = False):  # fmt: skip
+               renderer: str = "volume", progress: bool = False,
+               spp: int | None = None):  # fmt: skip
     """Colour and depth videos (mp4 + gif) and PNG frames along a camera path, under
     RUN/render_{path}/ (RUN/render_{path}_sphere/ with ``renderer="sphere"``: SDF runs'
     surfaces sphere-traced). ``size`` = (W, H), default the training resolution. ``path``:
     "spiral", "orbit" or a camera-path file saved by the viewer (its keyframes, field of view,
     frame count and the near/far the viewer rendered each keyframe with; ``frames`` overrides
     the count; output in RUN/render_{file stem}/). ``progress``: frames done on stderr
-    (:class:`~warpnerf.train.progress.Progress`)."""
+    (:class:`~warpnerf.train.progress.Progress`). ``spp``: rays a pixel, averaged (volume
+    rendering; None: the run's ``--train-spp``)."""
     check_video_numbers(frames, size)  # before any work
+    spp = _check_spp(spp, renderer)
     cfg, model, _ = load_run(run, device)
     _check_renderer(renderer, model, cfg)
+    spp = spp or (1 if renderer == "sphere" else run_spp(cfg))
     user_path = None
     if path not in PATHS:
         from ..data.camera_path import load_camera_path
@@ -289,7 +304,7 @@ def render_run(run, path: str = "spiral", frames: int | None = None, size=None, 
     with output_lock(out_dir, "render folder"):
         check_foreign([out_dir / x for x in names])
         return _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer,
-                              windows, progress)  # fmt: skip
+                              windows, progress, spp)  # fmt: skip
 
 
 def path_cameras(cfg, train, path: str, frames: int, size) -> tuple:
@@ -360,8 +375,20 @@ def frames_per_batch(w: int, h: int, frames: int, chunk: int | None) -> int:
     return max(1, min(frames, int(chunk) // max(w * h, 1)))
 
 
+def _frame_rays(cfg, c2w, k, w, h, point):
+    """Rays of one frame through ``point`` (x, y in [0, 1)) of every pixel."""
+    if point == (0.5, 0.5):
+        return camera_rays(c2w, k, w, h, ndc=cfg.ndc_camera())
+    py, px = torch.meshgrid(torch.arange(h, device=c2w.device, dtype=torch.float32),
+                            torch.arange(w, device=c2w.device, dtype=torch.float32),
+                            indexing="ij")  # fmt: skip
+    cam = torch.zeros(w * h, dtype=torch.int64, device=c2w.device)
+    return camera_rays(c2w[None], k[None], cam_idx=cam, px=px.reshape(-1) + point[0],
+                       py=py.reshape(-1) + point[1], ndc=cfg.ndc_camera())  # fmt: skip
+
+
 def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume",
-                   windows=None, progress=False):  # fmt: skip
+                   windows=None, progress=False, spp=1):  # fmt: skip
     from .progress import Progress
 
     rgbs, depths, geo, t0, scale = [], [], [], time.perf_counter(), None
@@ -371,16 +398,25 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
     with bar:
         for f0 in range(0, frames, per):
             fs = range(f0, min(f0 + per, frames))
-            rays = [camera_rays(cams[f], k, w, h, ndc=cfg.ndc_camera()) for f in fs]
-            o, d = (torch.cat(x) for x in zip(*rays))
             fc = cfg
             if windows is not None:  # this frame's near/far (a viewer's camera path)
                 near, far = float(windows[f0][0]), float(windows[f0][1])
                 fc = dataclasses.replace(cfg, near=near, far=far)
-            if renderer == "sphere":
-                out = sphere_traced_rays_of(model, fc, o, d)
-            else:
+            total = None
+            for point in pixel_points(spp):  # (spp > 1: the mean of the pixels' points)
+                rays = [_frame_rays(cfg, cams[f], k, w, h, point) for f in fs]
+                o, d = (torch.cat(x) for x in zip(*rays))
+                if renderer == "sphere":
+                    out = sphere_traced_rays_of(model, fc, o, d)
+                    break
                 out = render_rays_of(model, fc, o, d, chunk=cfg.chunk)
+                each = {key: out[key] for key in ("rgb", "depth", "opacity")}
+                total = each if total is None else {x: total[x] + each[x] for x in total}
+            if renderer != "sphere" and spp > 1:
+                out = {x: v / spp for x, v in total.items()}
+                if model.kind == "sdf":  # (the geometry image: the pixels' centres)
+                    rays = [_frame_rays(cfg, cams[f], k, w, h, (0.5, 0.5)) for f in fs]
+                    o, d = (torch.cat(x) for x in zip(*rays))
             if model.kind == "sdf":  # geometry: sphere-trace the learned SDF, Lambert-shaded
                 shaded = _geometry_image(model.coarse, cfg, o, d)
             for i, f in enumerate(fs):
@@ -416,6 +452,7 @@ def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="vo
         "seconds": time.perf_counter() - t0,
         "out": str(out_dir),
         "renderer": renderer,
+        "spp": spp,
     }
 
 

@@ -17,13 +17,13 @@ from ..fields.model import RadianceModel, build_model
 from ..outputs import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
 from .nerf_config import MODEL, NeRFConfig, scene_settings
-from .recipe import wants_alpha
+from .recipe import default_train_spp, wants_alpha
 
 __all__ = [
     "resolve_data", "settle_new_run", "load_run", "load_data", "data_splits",
     "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
     "distortion_coordinate", "near_zone", "surface_depth", "depth_scale", "render_dataset_image",
-    "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points",
+    "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points", "run_spp",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -38,7 +38,13 @@ def _with_data(cfg: NeRFConfig) -> NeRFConfig:
     from ..data.blender import data_root
 
     cfg = dataclasses.replace(cfg, data=str(data_root(cfg.data)))
-    return dataclasses.replace(cfg, scene=scene_settings(cfg))
+    cfg = dataclasses.replace(cfg, scene=scene_settings(cfg))
+    if cfg.train_spp is None and Path(cfg.data).is_dir():  # rays a training pixel: where
+        from ..data.loading import detect_format  # measured to win (recipe.py)
+
+        fmt = cfg.data_format if cfg.data_format != "auto" else detect_format(cfg.data)
+        cfg = dataclasses.replace(cfg, train_spp=default_train_spp(cfg, fmt))
+    return cfg
 
 
 def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
@@ -347,6 +353,12 @@ def depth_scale(cfg: NeRFConfig, depth, opacity) -> float | None:
 MAX_SPP = 64  # eval --spp: rays a pixel at most (each one more whole-image render)
 
 
+def run_spp(cfg) -> int:
+    """Rays a pixel the run's images are rendered with by default (eval, validation): its
+    ``--train-spp`` (1 for runs saved before it)."""
+    return int(getattr(cfg, "train_spp", None) or 1)
+
+
 def pixel_points(spp: int) -> list:
     """The ``spp`` points (x, y) in [0, 1)^2 of a pixel that a supersampled image averages:
     1: the centre; a square k^2: the centres of the pixel's k x k cells (stratified); otherwise
@@ -368,7 +380,7 @@ def render_dataset_image(model, cfg, ds, i, spp: int = 1):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset. ``spp`` > 1: the
     mean of ``spp`` renders, each through another point of every pixel (:func:`pixel_points`):
     the box-filtered image a camera with square pixels records (what a dataset downsampled by
-    area averaging holds, and what ``--pixel-jitter`` trains for)."""
+    area averaging holds, and what ``--train-spp`` trains)."""
     h, w = ds.height, ds.width
     if spp == 1:
         o, d = dataset_rays(cfg, ds, image=i)
@@ -464,12 +476,14 @@ def load_run(run, device: str | None = None, snapshot: float | None = None,
 
 
 def validate(model, cfg, val, keep: dict | None = None) -> float:
-    """Mean PSNR over the first cfg.val_images validation images (``keep``, a dict: receives
-    the first image's ``rgb`` [H, W, 3] and ``depth`` [H, W])."""
+    """Mean PSNR over the first cfg.val_images validation images, each rendered with the run's
+    ``train_spp`` rays a pixel (``keep``, a dict: receives the first image's ``rgb`` [H, W, 3]
+    and ``depth`` [H, W])."""
     n = min(cfg.val_images, val.images.shape[0])
+    spp = run_spp(cfg)
     mses = []
     for i in range(n):
-        rgb, depth, opacity = render_dataset_image(model, cfg, val, i)
+        rgb, depth, opacity = render_dataset_image(model, cfg, val, i, spp)
         if keep is not None and i == 0:
             keep.update(rgb=rgb, depth=depth, opacity=opacity)
         mses.append(float(((rgb - val.images[i].to(rgb.device)) ** 2).mean()))

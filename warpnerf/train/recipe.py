@@ -16,7 +16,7 @@ from ..options import option
 
 __all__ = [
     "RecipeConfig", "LEGACY", "HUBER_DELTA", "EMA_MAX", "MASK_LOSS_MAX", "random_background",
-    "wants_alpha", "mask_weight", "TRAIN_SPP_MAX",
+    "wants_alpha", "mask_weight", "TRAIN_SPP_MAX", "TRAIN_SPP_OBJECTS", "default_train_spp",
 ]  # fmt: skip
 
 HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
@@ -90,11 +90,12 @@ class RecipeConfig:
         "of the pixel's centre (instant-ngp; the images are area averages); its colour is the "
         "pixel's. `eval --spp` renders the matching supersampled image",
     )  # fmt: skip
-    train_spp: int = option(
-        1, f"each training pixel rendered as the mean of N rays through fixed points of it (a "
-        f"k x k grid for N = k^2; at most {TRAIN_SPP_MAX}) against its colour: the image of a "
-        "dataset downsampled by area averaging; N times the samples a pixel (the batch adapts "
-        "to --target-samples). Score with `eval --spp N`",
+    train_spp: int | None = option(
+        None, f"each training pixel rendered as the mean of N rays through fixed points of it "
+        f"(a k x k grid for N = k^2; at most {TRAIN_SPP_MAX}) against its colour: the image of "
+        "a dataset downsampled by area averaging; N times the rays a pixel (the batch adapts to "
+        "--target-samples); eval and validation render N rays a pixel too. Default: 4 for "
+        "--field hash on CUDA with rendered objects (Blender format; measured on lego), else 1",
         check="positive",
     )  # fmt: skip
 
@@ -115,14 +116,31 @@ class RecipeConfig:
             raise fail("mlp_precision", f"must be one of {', '.join(PRECISION_NAMES)}, got "
                        f"{self.mlp_precision!r}")  # fmt: skip
         t = self.train_spp
-        if isinstance(t, bool) or not isinstance(t, int) or not 1 <= t <= TRAIN_SPP_MAX:
+        if t is not None and (isinstance(t, bool) or not isinstance(t, int)
+                              or not 1 <= t <= TRAIN_SPP_MAX):  # fmt: skip
             raise fail("train_spp", f"must be an integer in [1, {TRAIN_SPP_MAX}], got {t!r}")
-        if t > 1 and self.pixel_jitter:
+        if t is not None and t > 1 and self.pixel_jitter:
             raise fail("train_spp", "and --pixel-jitter exclude each other (fixed points of "
                        "each pixel, or one random point)")  # fmt: skip
         m = self.mask_loss
         if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
             raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")
+
+
+# --train-spp's default where it is measured to win: the hash NeRF on CUDA, on renders of an
+# object (lego 400x400, the 2x2 means of 800x800 renders: +1.3 dB at 60 s, +1.8 at 300 s, each
+# scored with 4 rays a pixel; materials, rendered at its own size: -0.02 dB. One H200,
+# 2026-12-02, docs/design/nerf.md "Issue 44, fifth round")
+TRAIN_SPP_OBJECTS = 4
+
+
+def default_train_spp(cfg, data_format: str | None) -> int:
+    """--train-spp when not given: :data:`TRAIN_SPP_OBJECTS` for ``--field hash`` on CUDA with
+    a dataset of rendered objects (``data_format`` "blender"), else 1 (photo captures, the
+    built-in scene, which warpnerf renders through the pixels' centres, SDF fields, the paper's
+    MLP and CPU runs: not measured)."""
+    cuda = str(cfg.device).startswith("cuda")
+    return TRAIN_SPP_OBJECTS if cfg.field == "hash" and data_format == "blender" and cuda else 1
 
 
 def wants_alpha(cfg) -> bool:
