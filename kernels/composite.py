@@ -167,6 +167,26 @@ def store_ray(
 
 
 @wp.func
+def ray_upstream(
+    r: int,
+    background: wp.array2d(dtype=Any),  # [n_rays or 1, 3]
+    v_rgb: wp.array2d(dtype=Any),  # [n_rays, 3]
+    v_depth: wp.array(dtype=Any),  # [n_rays]
+    v_opacity: wp.array(dtype=Any),  # [n_rays]
+):
+    """Ray ``r``'s upstream gradients (colour g0..g2, depth, opacity) and the background term
+    of the suffix, g . C_bg (its background row: ``r``, or the one shared row)."""
+    b = 0
+    if background.shape[0] > 1:
+        b = r
+    g0 = v_rgb[r, 0]
+    g1 = v_rgb[r, 1]
+    g2 = v_rgb[r, 2]
+    s = g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2]
+    return g0, g1, g2, v_depth[r], v_opacity[r], s
+
+
+@wp.func
 def ray_range(r: int, n_dense: int, packed_info: wp.array2d(dtype=wp.int32)):
     if n_dense > 0:
         return r * n_dense, n_dense
@@ -319,15 +339,7 @@ def composite_bwd(
     for k in range(m, count):
         zero_sample(start + k, v_values, v_rgbs)
     zero_uncovered(r, 0, 1, n_dense, packed_info, v_values, v_rgbs)
-    b = 0
-    if background.shape[0] > 1:
-        b = r
-    g0 = v_rgb[r, 0]
-    g1 = v_rgb[r, 1]
-    g2 = v_rgb[r, 2]
-    gd = v_depth[r]
-    ga = v_opacity[r]
-    s = g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2]
+    g0, g1, g2, gd, ga, s = ray_upstream(r, background, v_rgb, v_depth, v_opacity)
     for kk in range(m):
         i = start + m - 1 - kk
         delta = t_ends[i] - t_starts[i]

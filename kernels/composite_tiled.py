@@ -43,6 +43,7 @@ import warp as wp
 from .composite import (
     optical_depth,
     ray_range,
+    ray_upstream,
     store_ray,
     upstream_value,
     zero_sample,
@@ -216,16 +217,9 @@ def composite_bwd_tiled(
     for k in range(walked + lane, count, bd):
         zero_sample(start + k, v_sigmas, v_rgbs)
     zero_uncovered(r, lane, bd, n_dense, packed_info, v_sigmas, v_rgbs)
-    b = 0
-    if background.shape[0] > 1:
-        b = r
-    g0 = v_rgb[r, 0]
-    g1 = v_rgb[r, 1]
-    g2 = v_rgb[r, 2]
-    gd = v_depth[r]
-    ga = v_opacity[r]
+    g0, g1, g2, gd, ga, s_bg = ray_upstream(r, background, v_rgb, v_depth, v_opacity)
     # the suffix behind the chunk: T_m e_bg, then the terms of the chunks walked so far
-    carry = t_final[r] * (g0 * background[b, 0] + g1 * background[b, 1] + g2 * background[b, 2])
+    carry = t_final[r] * s_bg
     n_chunks = (walked + chunk - 1) // chunk
     for qq in range(n_chunks):
         base = (n_chunks - 1 - qq) * chunk

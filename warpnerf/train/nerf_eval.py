@@ -42,7 +42,7 @@ from .nerf import (
     surface_depth,
     with_refined_poses,
 )
-from .nerf_run import MAX_SPP, pixel_points, run_spp
+from .nerf_run import MAX_SPP, pixel_corners, pixel_points, run_spp
 
 __all__ = [
     "sphere_traced_rays_of",
@@ -379,12 +379,10 @@ def _frame_rays(cfg, c2w, k, w, h, point):
     """Rays of one frame through ``point`` (x, y in [0, 1)) of every pixel."""
     if point == (0.5, 0.5):
         return camera_rays(c2w, k, w, h, ndc=cfg.ndc_camera())
-    py, px = torch.meshgrid(torch.arange(h, device=c2w.device, dtype=torch.float32),
-                            torch.arange(w, device=c2w.device, dtype=torch.float32),
-                            indexing="ij")  # fmt: skip
+    px, py = pixel_corners(w, h, c2w.device)
     cam = torch.zeros(w * h, dtype=torch.int64, device=c2w.device)
-    return camera_rays(c2w[None], k[None], cam_idx=cam, px=px.reshape(-1) + point[0],
-                       py=py.reshape(-1) + point[1], ndc=cfg.ndc_camera())  # fmt: skip
+    return camera_rays(c2w[None], k[None], cam_idx=cam, px=px + point[0], py=py + point[1],
+                       ndc=cfg.ndc_camera())  # fmt: skip
 
 
 def _render_frames(cfg, model, cams, k, w, h, frames, fps, out_dir, renderer="volume",

@@ -23,7 +23,8 @@ __all__ = [
     "resolve_data", "settle_new_run", "load_run", "load_data", "data_splits",
     "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
     "distortion_coordinate", "near_zone", "surface_depth", "depth_scale", "render_dataset_image",
-    "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points", "run_spp",
+    "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points", "pixel_corners",
+    "run_spp",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -376,6 +377,15 @@ def pixel_points(spp: int) -> list:
 
 
 @torch.no_grad()
+def pixel_corners(width: int, height: int, device) -> tuple:
+    """(px, py) [H * W] float32: each pixel's top-left corner (column, row), in the (row,
+    column) order of an image's rays; add a point of :func:`pixel_points` for rays through it."""
+    py, px = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32),
+                            torch.arange(width, device=device, dtype=torch.float32),
+                            indexing="ij")  # fmt: skip
+    return px.reshape(-1), py.reshape(-1)
+
+
 def render_dataset_image(model, cfg, ds, i, spp: int = 1):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset. ``spp`` > 1: the
     mean of ``spp`` renders, each through another point of every pixel (:func:`pixel_points`):
@@ -387,10 +397,7 @@ def render_dataset_image(model, cfg, ds, i, spp: int = 1):
         out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
     dev = ds.c2w.device
-    py, px = torch.meshgrid(torch.arange(h, device=dev, dtype=torch.float32),
-                            torch.arange(w, device=dev, dtype=torch.float32),
-                            indexing="ij")  # fmt: skip
-    px, py = px.reshape(-1), py.reshape(-1)
+    px, py = pixel_corners(w, h, dev)
     cam = torch.full((h * w,), int(i), dtype=torch.int64, device=dev)
     points = pixel_points(spp)
     total = None
