@@ -46,6 +46,16 @@ g5)  # 44: the plain command with --train-spp 4 (each pixel the mean of its 2x2 
   nvidia-smi --query-gpu=name,driver_version --format=csv,noheader > $OUT/gpu.txt
   ttq lego_tspp4 400 --budgets 60,300 --spp 1,4 --label "the plain command, --train-spp 4" -- $LEGO --train-spp 4
   cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g6)  # 44: materials 60 s, plain and --train-spp 4, each scored with 1 and 4 rays a pixel (run as
+  # one inline command at the end of the session, with the same flags)
+  M="train nerf --data $S/materials --device cuda --iters 40000 $F"
+  ttq mat_base 90 --budgets 60 --spp 1,4 --label "materials base" -- $M
+  ttq mat_tspp4 90 --budgets 60 --spp 1,4 --label "materials tspp4" -- $M --train-spp 4
+  cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true ;;
+g2b)  # 44: the g1/g2 runs' snapshots scored with 2, 8 and 16 rays a pixel (run inline likewise)
+  for s in 2 8 16; do pin python3 scripts/time_to_quality.py eval $Q/lego_plain/run $OUT/plain_spp$s.json --spp $s --label "plain spp $s"; done
+  pin python3 scripts/time_to_quality.py eval $Q/lego_jitter/run $OUT/jitter_spp16.json --spp 16 --label "jitter spp 16" ;;
+# not run this session (no device time left): g3 (materials with the smaller grid, +-jitter), g4
 g3)  # 44: materials (NeRF hash, the smaller grid of the third round), with and without --pixel-jitter
   M="train nerf --data $S/materials --device cuda --iters 40000 --hash-max-res 512 --hash-log2-size 16 $F"
   ttq mat_base 160 --budgets 120 --spp 1,4 --label "materials, r512 t16" -- $M
