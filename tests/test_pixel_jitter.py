@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -35,12 +36,17 @@ from .test_hostile_runs import _one_line
 from .test_step_loss import FORCE, _Keep, _pair
 
 
+def trained(tmp_path_factory, name: str, *flags) -> Path:
+    """A tiny hash-grid run of the built-in scene (4 steps) trained with ``flags``."""
+    out = tmp_path_factory.mktemp(name) / "run"
+    assert main(["train", "nerf", *FLAGS, *flags, "--out", str(out)]) == 0
+    return out
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A tiny hash-grid run of the built-in scene trained with --pixel-jitter (4 steps)."""
-    out = tmp_path_factory.mktemp("jitter") / "run"
-    assert main(["train", "nerf", *FLAGS, "--pixel-jitter", "--out", str(out)]) == 0
-    return out
+    return trained(tmp_path_factory, "jitter", "--pixel-jitter")
 
 
 # ------------------------------------------------------------------------------ pixel_points
@@ -125,11 +131,31 @@ def test_render_dataset_image_spp_1_is_the_pixel_centre_render(run):
 # ----------------------------------------------------------------------------- evaluate_run
 
 
-@pytest.mark.parametrize("spp", [0, -2, MAX_SPP + 1, True, 2.5, "4", None])
+@pytest.mark.parametrize("spp", [0, -2, MAX_SPP + 1, True, 2.5, "4"])
 def test_evaluate_run_refuses_a_bad_spp_before_any_work(run, spp):
     with pytest.raises(UserError, match=r"--spp must be an integer in \[1, 64\]"):
         evaluate_run(run, "val", max_images=1, spp=spp)
     assert not (run / "eval_val").exists()
+
+
+def test_evaluate_run_spp_none_scores_with_the_runs_train_spp(run, tmp_path_factory, tmp_path):
+    """spp None (eval without --spp): the rays a pixel the run trained with (--train-spp; 1 for
+    a run without it), recorded in metrics.json; the score is that of the explicit count."""
+    spp_run = trained(tmp_path_factory, "train_spp", "--train-spp", "4")
+    assert json.loads((spp_run / "config.json").read_text())["train_spp"] == 4
+    assert json.loads((run / "config.json").read_text())["train_spp"] == 1
+    scores = {}
+    for r, want in ((spp_run, 4), (run, 1)):
+        for spp in (None, want):
+            out = tmp_path / f"{r.parent.name}_{spp}"
+            m = evaluate_run(r, "val", max_images=1, out_dir=out, spp=spp)
+            assert m["spp"] == want and m["n_images"] == 1
+            assert json.loads((out / "metrics.json").read_text())["spp"] == want
+            scores[r, spp] = m["psnr"]
+        assert scores[r, None] == scores[r, want]
+    # a given --spp wins over the run's (another image, another score)
+    m = evaluate_run(spp_run, "val", max_images=1, out_dir=tmp_path / "one", spp=1)
+    assert m["spp"] == 1 and m["psnr"] != scores[spp_run, None]
 
 
 def test_evaluate_run_refuses_supersampled_sphere_tracing(run):

@@ -13,6 +13,7 @@ from warpnerf.train.graph_step import GraphStep, unsupported
 from warpnerf.train.step_loss import LossSettings, step_loss, unsupported_terms
 
 FORCE = (4096, 1 << 16, 1 << 15)  # room for every sample: the static body drops nothing
+SPP_FORCE = (256, 1 << 18, 1 << 17)  # --train-spp 4: four rays (and their samples) a pixel
 CASES = {
     "plain": {},
     "random_background": dict(random_background="on"),
@@ -20,7 +21,10 @@ CASES = {
     "distortion": dict(distortion_loss=0.01),
     "near": dict(near_loss=0.1, distortion_loss=0.01, distortion_space="mipnerf360"),
     "hash_sdf": dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=8),
+    "train_spp": dict(train_spp=4),
+    "pixel_jitter": dict(pixel_jitter=True),
 }
+FORCES = {"train_spp": SPP_FORCE}  # (the cases whose samples outgrow FORCE)
 EXTRA = {"mask": ("mask",), "distortion": ("distortion",), "near": ("near", "distortion"),
          "hash_sdf": ("beta",)}  # fmt: skip
 TERMS = {"psnr", "mask", "distortion", "near", "beta"}
@@ -40,8 +44,9 @@ class _Keep:
         pass
 
 
-def _pair(kw):
-    """Two tasks after the same eager first step; the second with the static-shape body."""
+def _pair(kw, force=FORCE):
+    """Two tasks after the same eager first step; the second with the static-shape body (its
+    capacities ``force``)."""
     tasks = []
     for static in (False, True):
         task = _task("cpu", **kw)
@@ -50,7 +55,7 @@ def _pair(kw):
                                          generator=torch.Generator().manual_seed(5))  # fmt: skip
         if static:
             task.graph = GraphStep(task, capture=False)
-            task.graph.force = FORCE
+            task.graph.force = force
         _train(task, 1)  # (step 0: eager on both, it sizes the static buffers)
         tasks.append(task)
     return tasks
@@ -58,13 +63,13 @@ def _pair(kw):
 
 @pytest.mark.parametrize("name", list(CASES))
 def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
-    eager, static = _pair(CASES[name])
+    eager, static = _pair(CASES[name], FORCES.get(name, FORCE))
     params_e, params_s = eager.parameters(), static.parameters()
     loss_e, terms_e = eager.loss(1)
     _Keep(params_e).zero_grad()
     loss_e.backward()
     loss_s, terms_s, flags = static.train_step(1, _Keep(params_s), params_s)
-    assert not flags.any()
+    assert not flags.any() and int(terms_s["dropped_samples"]) == 0
     # (the static body's masked means sum in another order: float32 round-off)
     assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
     want = TERMS & set(terms_e)

@@ -376,7 +376,6 @@ def pixel_points(spp: int) -> list:
     return [((0.5 + a1 * n) % 1.0, (0.5 + a2 * n) % 1.0) for n in range(spp)]
 
 
-@torch.no_grad()
 def pixel_corners(width: int, height: int, device) -> tuple:
     """(px, py) [H * W] float32: each pixel's top-left corner (column, row), in the (row,
     column) order of an image's rays; add a point of :func:`pixel_points` for rays through it."""
@@ -386,6 +385,7 @@ def pixel_corners(width: int, height: int, device) -> tuple:
     return px.reshape(-1), py.reshape(-1)
 
 
+@torch.no_grad()
 def render_dataset_image(model, cfg, ds, i, spp: int = 1):
     """rgb [H, W, 3], depth [H, W], opacity [H, W] of image i of a dataset. ``spp`` > 1: the
     mean of ``spp`` renders, each through another point of every pixel (:func:`pixel_points`):

@@ -120,8 +120,8 @@ class RecipeConfig:
                               or not 1 <= t <= TRAIN_SPP_MAX):  # fmt: skip
             raise fail("train_spp", f"must be an integer in [1, {TRAIN_SPP_MAX}], got {t!r}")
         if t is not None and t > 1 and self.pixel_jitter:
-            raise fail("train_spp", "and --pixel-jitter exclude each other (fixed points of "
-                       "each pixel, or one random point)")  # fmt: skip
+            raise fail("train_spp", "cannot be combined with pixel_jitter (--pixel-jitter): "
+                       "fixed points of each pixel, or one random point")  # fmt: skip
         m = self.mask_loss
         if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
             raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")

@@ -17,7 +17,7 @@ __all__ = ["PER_RAY", "sub_offsets", "sub_rays", "expand_rows", "pixel_means"]
 
 # the renderers' per-ray outputs that a pixel averages over its sub-rays (every other entry,
 # sample counts and statistics, is left as it is)
-PER_RAY = ("rgb", "depth", "opacity", "distortion", "near_weight", "interlevel")
+PER_RAY = ("rgb", "rgb_coarse", "depth", "opacity", "distortion", "near_weight", "interlevel")
 
 
 def sub_offsets(spp: int, device) -> torch.Tensor:
