@@ -87,8 +87,9 @@ class RecipeConfig:
     )  # fmt: skip
     pixel_jitter: bool = option(
         False, "each training ray passes through a uniform random point of its pixel instead "
-        "of the pixel's centre (instant-ngp; the images are area averages); its colour is the "
-        "pixel's. `eval --spp` renders the matching supersampled image",
+        "of the pixel's centre (instant-ngp's training rays), against the pixel's colour; on "
+        "lego 0.8-1.2 dB below one ray through the centre (it learns the pixels' blur once "
+        "more); --train-spp models area-averaged pixels instead",
     )  # fmt: skip
     train_spp: int | None = option(
         None, f"each training pixel rendered as the mean of N rays through fixed points of it "
