@@ -396,17 +396,23 @@ def render_dataset_image(model, cfg, ds, i, spp: int = 1):
         o, d = dataset_rays(cfg, ds, image=i)
         out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
         return out["rgb"].reshape(h, w, 3), out["depth"].reshape(h, w), out["opacity"].reshape(h, w)
-    dev = ds.c2w.device
+    dev, m = ds.c2w.device, h * w
     px, py = pixel_corners(w, h, dev)
-    cam = torch.full((h * w,), int(i), dtype=torch.int64, device=dev)
-    points = pixel_points(spp)
+    points = torch.tensor(pixel_points(spp), dtype=torch.float32, device=dev)  # [spp, 2]
+    # as many points a call as fill one rendering chunk (each ray's result is its own)
+    per = max(1, min(spp, int(cfg.chunk) // m)) if cfg.chunk else spp
     total = None
-    for x, y in points:
-        o, d = dataset_rays(cfg, ds, cam, px + x, py + y)
+    for p0 in range(0, spp, per):
+        pts = points[p0 : p0 + per]
+        k = pts.shape[0]
+        cam = torch.full((k * m,), int(i), dtype=torch.int64, device=dev)
+        xs = (px[None, :] + pts[:, :1]).reshape(-1)  # point-major: [k, H * W]
+        ys = (py[None, :] + pts[:, 1:]).reshape(-1)
+        o, d = dataset_rays(cfg, ds, cam, xs, ys)
         out = render_rays_of(model, cfg, o, d, chunk=cfg.chunk)
-        each = (out["rgb"], out["depth"], out["opacity"])
-        total = each if total is None else tuple(a + b for a, b in zip(total, each))
-    rgb, depth, opacity = (t / len(points) for t in total)
+        each = [out[key].reshape(k, m, -1).sum(0) for key in ("rgb", "depth", "opacity")]
+        total = each if total is None else [a + b for a, b in zip(total, each)]
+    rgb, depth, opacity = (t / spp for t in total)
     return rgb.reshape(h, w, 3), depth.reshape(h, w), opacity.reshape(h, w)
 
 
