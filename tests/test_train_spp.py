@@ -478,3 +478,23 @@ def test_cli_eval_without_spp_scores_with_the_runs_train_spp(spp_run, tmp_path, 
     assert main(argv) == 0
     assert _printed(capsys)["spp"] == 4
     assert json.loads((out / "metrics.json").read_text())["spp"] == 4
+
+
+def test_four_rays_a_pixel_are_the_2x2_means_of_a_render_at_twice_the_size():
+    """The points of `--spp 4` / `--train-spp 4` are the pixel centres of the same camera at
+    twice the resolution: a supersampled image equals the 2x2 means of that larger render (how
+    lego 400x400 was made from its 800x800 renders), and a one-ray image does not."""
+    from warpnerf.data.cameras import camera_rays
+
+    task = _task("cpu")
+    model, cfg = task.model, task.cfg
+    val = load_data(cfg, "val")
+    h, w = val.height, val.width
+    small = nerf_run.render_dataset_image(model, cfg, val, 0, 4)[0]
+    centres = nerf_run.render_dataset_image(model, cfg, val, 0, 1)[0]
+    o, d = camera_rays(val.c2w[:1], val.intrinsics[:1] * 2, 2 * w, 2 * h)  # fx, fy, cx, cy x 2
+    with torch.no_grad():
+        big = nerf_run.render_rays_of(model, cfg, o, d, chunk=cfg.chunk)["rgb"]
+    means = big.reshape(h, 2, w, 2, 3).mean((1, 3))
+    assert torch.allclose(small, means, atol=1e-5)
+    assert (centres - means).abs().max() > 1e-3  # (the field is not flat at this scale)
