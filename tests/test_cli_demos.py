@@ -1,6 +1,9 @@
 """Smoke tests: every demo and CLI command runs as a subprocess with tiny settings; user errors
-run in-process (``warpnerf.cli.main``: the subprocess start-up, importing torch and warp, would
-dominate), end-to-end exit codes are checked here and in test_bad_input.py."""
+and refusals, a resume in the middle of a chain of commands and a demo's second run run
+in-process (``warpnerf.cli.main``, a demo's ``main``, with the command's CPU launches: the
+subprocess start-up, importing torch and warp, would dominate), end-to-end exit codes are checked
+here and in test_bad_input.py. Independent subprocesses of one test run side by side (the suite's
+torch uses one of the machine's cores)."""
 
 import json
 import os
@@ -23,6 +26,70 @@ def run(args, cwd, check=True):
     if check and p.returncode != 0:
         raise AssertionError(f"{args} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
+
+
+def run_all(commands, cwd, check=True) -> list:
+    """``run`` of each args in ``commands``, the processes side by side."""
+    procs = [start(args, cwd) for args in commands]
+    try:
+        return [finish(p, check) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+
+
+def start(args, cwd) -> subprocess.Popen:
+    """``python *args`` started in folder ``cwd`` (``finish`` waits for it)."""
+    return subprocess.Popen([sys.executable, *args], cwd=cwd, env=ENV, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+
+
+def finish(p, check=True) -> subprocess.CompletedProcess:
+    """Waits for the process ``p`` (of ``start``): ``run``'s result."""
+    try:
+        out, err = p.communicate(timeout=600)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        raise
+    args = p.args[1:]
+    if check and p.returncode != 0:
+        raise AssertionError(f"{args} failed ({p.returncode}):\n{out}\n{err}")
+    return subprocess.CompletedProcess(p.args, p.returncode, out, err)
+
+
+def cli_ok(argv, cwd, monkeypatch, capsys) -> str:
+    """stdout of ``warpnerf argv`` run in-process in folder ``cwd`` with Warp's CPU launches as
+    the command makes them (exit status 0 asserted)."""
+    from warpnerf.cli import main
+
+    from ._launches import cli_cpu_launches
+
+    monkeypatch.chdir(cwd)
+    with cli_cpu_launches():
+        rc = main(argv)
+    out, err = capsys.readouterr()
+    assert rc == 0, f"{argv} failed ({rc}):\n{out}\n{err}"
+    return out
+
+
+def demo_ok(demo, argv, cwd, monkeypatch, capsys) -> str:
+    """stdout of demos/``demo``'s ``main(argv)`` run in-process in folder ``cwd`` with Warp's CPU
+    launches as the command makes them (exit status 0 asserted)."""
+    import importlib.util
+
+    from ._launches import cli_cpu_launches
+
+    spec = importlib.util.spec_from_file_location(f"demo_{demo[:2]}", ROOT / "demos" / demo)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.chdir(cwd)
+    with cli_cpu_launches():
+        rc = mod.main(argv)
+    out, err = capsys.readouterr()
+    assert rc == 0, f"{demo} {argv} failed ({rc}):\n{out}\n{err}"
+    return out
 
 
 def cli_error(argv, cwd, monkeypatch, capsys) -> tuple[int, str]:
@@ -81,33 +148,20 @@ def test_cli_demo_tiny(tmp_path):
 
 
 def test_cli_user_errors_exit_2_without_traceback(tmp_path):
-    p = run(
-        ["-m", "warpnerf.cli", "train", "box", "--data", "missing_dir", "--out", "o"],
-        tmp_path,
-        check=False,
-    )
-    assert p.returncode == 2 and "missing_dir" in p.stderr and "Traceback" not in p.stderr
-    p = run(["-m", "warpnerf.cli", "demo", "--iters", "-3"], tmp_path, check=False)
-    assert p.returncode == 2 and "Traceback" not in p.stderr
-    p = run(
+    cli = ["-m", "warpnerf.cli"]
+    missing, iters, near_far = run_all(
         [
-            "-m",
-            "warpnerf.cli",
-            "train",
-            "box",
-            "--data",
-            ".",
-            "--out",
-            "o",
-            "--near",
-            "3",
-            "--far",
-            "1",
+            [*cli, "train", "box", "--data", "missing_dir", "--out", "o"],
+            [*cli, "demo", "--iters", "-3"],
+            [*cli, "train", "box", "--data", ".", "--out", "o", "--near", "3", "--far", "1"],
         ],
         tmp_path,
         check=False,
     )
-    assert p.returncode == 2 and "--far" in p.stderr
+    assert missing.returncode == 2 and "missing_dir" in missing.stderr
+    assert "Traceback" not in missing.stderr
+    assert iters.returncode == 2 and "Traceback" not in iters.stderr
+    assert near_far.returncode == 2 and "--far" in near_far.stderr
     assert not (tmp_path / "o").exists()
 
 
@@ -147,14 +201,18 @@ def test_cli_bench_encoding_quick(tmp_path):
 def test_cli_bench_march_and_sphere_trace_quick(tmp_path):
     """Marching: samples per ray grow with occupancy, the kernel matches the float64 brute force
     (at most a boundary sample off); sphere tracing matches the float64 twin."""
-    p = run(["-m", "warpnerf.cli", "bench", "march", "--quick", "--json", "m.json"], tmp_path)
+    p, _ = run_all(
+        [
+            ["-m", "warpnerf.cli", "bench", "march", "--quick", "--json", "m.json"],
+            ["-m", "warpnerf.cli", "bench", "sphere-trace", "--quick", "--json", "s.json"],
+        ],
+        tmp_path,
+    )
     rows = json.loads((tmp_path / "m.json").read_text())["rows"]
     assert [r["kernel"] for r in rows] == ["march", "march"] and "| march |" in p.stdout
     assert rows[0]["occupancy"] < rows[1]["occupancy"]
     assert rows[0]["samples_per_ray"] < rows[1]["samples_per_ray"]
     assert all(r["count_mismatch"] <= 2 and r["max_err_t"] < 1e-5 for r in rows)
-    args = ["-m", "warpnerf.cli", "bench", "sphere-trace", "--quick", "--json", "s.json"]
-    p = run(args, tmp_path)
     (row,) = json.loads((tmp_path / "s.json").read_text())["rows"]
     assert row["status_mismatch"] <= 2 and row["max_err_t"] < 2e-4 and row["evals_per_ray"] > 1
 
@@ -273,7 +331,7 @@ TINY_NERF = [
 
 
 @pytest.mark.slow
-def test_cli_train_eval_render_nerf(tmp_path):
+def test_cli_train_eval_render_nerf(tmp_path, monkeypatch, capsys):
     p = run(
         [
             "-m",
@@ -314,22 +372,10 @@ def test_cli_train_eval_render_nerf(tmp_path):
     assert last_json(p.stdout)["step"] == 4
     cfg = json.loads((tmp_path / "r" / "config.json").read_text())
     assert cfg["n_fine"] == 8 and cfg["near"] == 1.0 and cfg["lr_decay_steps"] == 4
-    p = run(
-        [
-            "-m",
-            "warpnerf.cli",
-            "train",
-            "nerf",
-            "--out",
-            "r",
-            "--resume",
-            "--iters",
-            "6",
-            "--quiet",
-        ],
-        tmp_path,
-    )
-    assert last_json(p.stdout)["step"] == 6
+    # the resume in-process (the command's subprocess ran above)
+    out = cli_ok(["train", "nerf", "--out", "r", "--resume", "--iters", "6", "--quiet"], tmp_path,
+                 monkeypatch, capsys)  # fmt: skip
+    assert last_json(out)["step"] == 6
     p = run(["-m", "warpnerf.cli", "eval", "r", "--split", "val", "--max-images", "1"], tmp_path)
     assert last_json(p.stdout)["n_images"] == 1
     run(["-m", "warpnerf.cli", "render", "r", "--frames", "2", "--size", "8x6"], tmp_path)
@@ -442,7 +488,7 @@ def test_cli_mesh_user_errors(tmp_path, monkeypatch, capsys, args, needle):
 
 
 @pytest.mark.slow
-def test_cli_train_sdf_resume_and_mesh(tmp_path):
+def test_cli_train_sdf_resume_and_mesh(tmp_path, monkeypatch, capsys):
     import numpy as np
 
     g = np.random.default_rng(0).normal(size=(400, 3))
@@ -451,9 +497,10 @@ def test_cli_train_sdf_resume_and_mesh(tmp_path):
     args += ["--layers", "2", "--width", "16", "--pos-freqs", "2", "--resolution", "16", "--quiet"]
     p = run(["-m", "warpnerf.cli", *args], tmp_path)
     assert last_json(p.stdout)["step"] == 3 and (tmp_path / "r" / "mesh.ply").exists()
-    p = run(["-m", "warpnerf.cli", "train", "sdf", "--out", "r", "--resume", "--iters", "5",
-             "--quiet"], tmp_path)  # fmt: skip
-    assert last_json(p.stdout)["step"] == 5
+    # the resume in-process (the command's subprocess ran above)
+    out = cli_ok(["train", "sdf", "--out", "r", "--resume", "--iters", "5", "--quiet"], tmp_path,
+                 monkeypatch, capsys)  # fmt: skip
+    assert last_json(out)["step"] == 5
     p = run(["-m", "warpnerf.cli", "mesh", "r", "--resolution", "16", "--out", "m.ply",
              "--no-screenshot"], tmp_path)  # fmt: skip
     res = last_json(p.stdout)
@@ -461,19 +508,21 @@ def test_cli_train_sdf_resume_and_mesh(tmp_path):
 
 
 @pytest.mark.slow
-def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path):
+def test_cli_resume_refuses_changed_flags_and_wrong_run_kinds(tmp_path, monkeypatch, capsys):
+    """In-process (the refusals are the command's, not the process's: test_bad_input.py and
+    test_cli_user_errors_exit_2_without_traceback check exit 2 through the interpreter)."""
     args = ["train", "sdf", "--points", "builtin", "--out", "s", "--iters", "2", "--batch", "32"]
     args += ["--layers", "2", "--width", "32", "--pos-freqs", "2", "--resolution", "8", "--quiet"]
-    run(["-m", "warpnerf.cli", *args], tmp_path)
-    p = run(["-m", "warpnerf.cli", "train", "sdf", "--out", "s", "--resume", "--iters", "4",
-             "--lr", "0.5"], tmp_path, check=False)  # fmt: skip
-    assert p.returncode == 2 and "drop --lr" in p.stderr
+    cli_ok(args, tmp_path, monkeypatch, capsys)
+    rc, err = cli_error(["train", "sdf", "--out", "s", "--resume", "--iters", "4", "--lr", "0.5"],
+                        tmp_path, monkeypatch, capsys)  # fmt: skip
+    assert rc == 2 and "drop --lr" in err
     for cmd in (["eval", "s"], ["render", "s"]):
-        p = run(["-m", "warpnerf.cli", *cmd], tmp_path, check=False)
-        assert p.returncode == 2 and "neural-SDF run" in p.stderr and "Traceback" not in p.stderr
-    p = run(["-m", "warpnerf.cli", "train", "volsdf", "--data", "builtin", "--out", "v",
-             "--field", "mlp"], tmp_path, check=False)  # fmt: skip
-    assert p.returncode == 2 and "volsdf" in p.stderr
+        rc, err = cli_error(cmd, tmp_path, monkeypatch, capsys)
+        assert rc == 2 and "neural-SDF run" in err and "Traceback" not in err
+    rc, err = cli_error(["train", "volsdf", "--data", "builtin", "--out", "v", "--field", "mlp"],
+                        tmp_path, monkeypatch, capsys)  # fmt: skip
+    assert rc == 2 and "volsdf" in err
 
 
 @pytest.mark.parametrize(
@@ -495,7 +544,7 @@ def test_cli_sdf_user_errors(tmp_path, monkeypatch, capsys, args, needle):
 
 
 @pytest.mark.slow
-def test_demo_08_neural_sdf_tiny(tmp_path):
+def test_demo_08_neural_sdf_tiny(tmp_path, monkeypatch, capsys):
     p = run([str(ROOT / "demos" / "08_neural_sdf.py"), "--out", "o", "--iters", "5", "--batch",
              "128", "--width", "48", "--resolution", "24", "--frames", "2", "--size", "16"],
             tmp_path)  # fmt: skip
@@ -506,10 +555,11 @@ def test_demo_08_neural_sdf_tiny(tmp_path):
     (tmp_path / "o" / "run" / "notes.txt").write_text("mine")
     (tmp_path / "o" / "run" / "sub").mkdir()
     (tmp_path / "o" / "run" / "sub" / "data.bin").write_bytes(b"x")
-    p = run([str(ROOT / "demos" / "08_neural_sdf.py"), "--out", "o", "--iters", "3", "--batch",
-             "128", "--width", "48", "--resolution", "24", "--frames", "1", "--size", "16"],
-            tmp_path)  # fmt: skip
-    assert last_json(p.stdout)["iters"] == 3  # a fresh run (a resume would refuse iters 3 < 5)
+    # (the second run in-process: the first ran the script)
+    out = demo_ok("08_neural_sdf.py", ["--out", "o", "--iters", "3", "--batch", "128", "--width",
+                  "48", "--resolution", "24", "--frames", "1", "--size", "16"], tmp_path,
+                  monkeypatch, capsys)  # fmt: skip
+    assert last_json(out)["iters"] == 3  # a fresh run (a resume would refuse iters 3 < 5)
     assert (tmp_path / "o" / "run" / "notes.txt").read_text() == "mine"
     assert (tmp_path / "o" / "run" / "sub" / "data.bin").read_bytes() == b"x"
 
@@ -519,18 +569,24 @@ def test_cli_train_volsdf_render_mesh_and_demo_09(tmp_path):
     args = ["train", "volsdf", "--data", "builtin", "--out", "r", "--iters", "3", "--quiet"]
     args += ["--builtin-size", "8", "--layers", "2", "--width", "48", "--samples", "8"]
     args += ["--fine-samples", "8", "--batch", "64", "--val-every", "3"]
-    assert last_json(run(["-m", "warpnerf.cli", *args], tmp_path).stdout)["step"] == 3
-    cfg = json.loads((tmp_path / "r" / "config.json").read_text())
-    assert cfg["field"] == "volsdf" and cfg["n_fine"] == 8 and cfg["pos_freqs"] == 6
-    run(["-m", "warpnerf.cli", "render", "r", "--frames", "2", "--size", "8x8"], tmp_path)
-    assert (tmp_path / "r" / "render_spiral" / "geometry.gif").exists()
-    p = run(["-m", "warpnerf.cli", "mesh", "r", "--resolution", "16", "--out", "m.ply",
-             "--no-screenshot"], tmp_path, check=False)  # fmt: skip
-    assert p.returncode in (0, 2) and "Traceback" not in p.stderr  # 2: no surface yet
-    p = run([str(ROOT / "demos" / "09_volsdf.py"), "--out", "o", "--iters", "2", "--batch", "32",
-             "--samples", "4", "--layers", "2", "--width", "48", "--builtin-size", "8",
-             "--frames", "1", "--eval-images", "1"], tmp_path)  # fmt: skip
-    res = last_json(p.stdout)
+    # demo 09 runs beside the commands
+    demo = start([str(ROOT / "demos" / "09_volsdf.py"), "--out", "o", "--iters", "2", "--batch",
+                  "32", "--samples", "4", "--layers", "2", "--width", "48", "--builtin-size", "8",
+                  "--frames", "1", "--eval-images", "1"], tmp_path)  # fmt: skip
+    try:
+        assert last_json(run(["-m", "warpnerf.cli", *args], tmp_path).stdout)["step"] == 3
+        cfg = json.loads((tmp_path / "r" / "config.json").read_text())
+        assert cfg["field"] == "volsdf" and cfg["n_fine"] == 8 and cfg["pos_freqs"] == 6
+        run(["-m", "warpnerf.cli", "render", "r", "--frames", "2", "--size", "8x8"], tmp_path)
+        assert (tmp_path / "r" / "render_spiral" / "geometry.gif").exists()
+        p = run(["-m", "warpnerf.cli", "mesh", "r", "--resolution", "16", "--out", "m.ply",
+                 "--no-screenshot"], tmp_path, check=False)  # fmt: skip
+        assert p.returncode in (0, 2) and "Traceback" not in p.stderr  # 2: no surface yet
+        res = last_json(finish(demo).stdout)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait()
     assert res["iters"] == 2 and res["beta"] > 0 and res["val_psnr"] > 0
 
 

@@ -117,16 +117,21 @@ def test_two_rank_run_resumes_on_one(tmp_path):
 
 @pytest.mark.parametrize("command", ["train sdf", "train box", "eval", "render", "mesh"])
 @pytest.mark.slow
-def test_other_commands_refuse_torchrun(tmp_path, command):
-    env = dict(os.environ, WORLD_SIZE="2")
-    argv = [sys.executable, "-m", "warpnerf.cli", *command.split(), str(tmp_path / "r")]
+def test_other_commands_refuse_torchrun(tmp_path, monkeypatch, capsys, command):
+    """In-process with torchrun's WORLD_SIZE (the command reads it from its environment; the
+    exit status through the interpreter: test_cli_demos.py, test_bad_input.py)."""
+    from warpnerf.cli import main
+
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    argv = [*command.split(), str(tmp_path / "r")]
     if command.startswith("train"):
         argv.insert(-1, "--out")
     elif command == "mesh":
         argv += ["--out", str(tmp_path / "m.ply")]
-    res = subprocess.run(argv, capture_output=True, text=True, env=env)
-    assert res.returncode == 2 and "runs in one process" in res.stderr, res.stderr
-    assert "Traceback" not in res.stderr and not (tmp_path / "r").exists()
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2 and "runs in one process" in err, err
+    assert "Traceback" not in err and not (tmp_path / "r").exists()
 
 
 @pytest.mark.slow

@@ -12,6 +12,7 @@ import json
 import os
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -28,13 +29,35 @@ TINY = ["--data", "builtin", "--field", "hash", "--builtin-size", "12", "--batch
         "--grid-res", "8", "--val-images", "1", "--quiet", "--no-tensorboard"]  # fmt: skip
 
 
-def _run(args, cwd, timeout=600) -> str:
+def _start(args, cwd) -> subprocess.Popen:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
-    p = subprocess.run([sys.executable, *map(str, args)], cwd=cwd, env=env, capture_output=True,
-                       text=True, timeout=timeout)  # fmt: skip
-    assert p.returncode == 0, f"{args[0]}:\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}"
-    assert "Traceback" not in p.stderr, p.stderr[-3000:]
-    return p.stdout
+    return subprocess.Popen([sys.executable, *map(str, args)], cwd=cwd, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+
+
+def _finish(p: subprocess.Popen, timeout=600) -> str:
+    """The stdout of the process ``p`` (of ``_start``) once it ended with status 0, no traceback."""
+    try:
+        out, err = p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert p.returncode == 0, f"{p.args[1]}:\n{out[-2000:]}\n{err[-3000:]}"
+    assert "Traceback" not in err, err[-3000:]
+    return out
+
+
+def _run(args, cwd, timeout=600) -> str:
+    return _finish(_start(args, cwd), timeout)
+
+
+def _side_by_side(*chains) -> None:
+    """Runs the callables ``chains`` (each its tool runs in turn) two at a time, in threads: the
+    tools' processes use both cores (the suite's torch uses one); re-raises the first failure."""
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for f in [pool.submit(c) for c in chains]:
+            f.result()
 
 
 @pytest.fixture(scope="module")
@@ -46,13 +69,27 @@ def run(tmp_path_factory):
     return d / "r"
 
 
-@pytest.mark.parametrize("script", [SCRIPTS / "dp_scaling.py", SCRIPTS / "sync_sites.py",
-                                    SCRIPTS / "dp_profile.py", SCRIPTS / "materials_geometry.py",
-                                    SCRIPTS / "peers/run_peer.py", SCRIPTS / "peers/peer_runner.py",
-                                    EXPERIMENTS / "memory/images_memory.py"],
-                         ids=lambda p: p.name)  # fmt: skip
-def test_gpu_tools_start(script, tmp_path):
-    assert "usage" in _run([script, "--help"], tmp_path).lower()
+GPU_TOOLS = [SCRIPTS / "dp_scaling.py", SCRIPTS / "sync_sites.py", SCRIPTS / "dp_profile.py",
+             SCRIPTS / "materials_geometry.py", SCRIPTS / "peers/run_peer.py",
+             SCRIPTS / "peers/peer_runner.py", EXPERIMENTS / "memory/images_memory.py"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def helps(tmp_path_factory):
+    """``TOOL --help`` of each of GPU_TOOLS, the processes started side by side at the first test
+    that asks (their imports of torch and Warp dominate); each test waits for its own."""
+    d = tmp_path_factory.mktemp("help")
+    procs = {script: _start([script, "--help"], d) for script in GPU_TOOLS}
+    yield procs
+    for p in procs.values():
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
+@pytest.mark.parametrize("script", GPU_TOOLS, ids=lambda p: p.name)
+def test_gpu_tools_start(script, helps):
+    assert "usage" in _finish(helps[script]).lower()
 
 
 def test_exp_bias_on_the_cpu(tmp_path):
@@ -112,31 +149,51 @@ def test_step_profile(tmp_path):
 
 
 def test_tools_on_a_run(tmp_path, run):
-    _run([SCRIPTS / "render_profile.py", run, "--rounds", "0,4"], tmp_path)
-    out = _run([SCRIPTS / "bench_frame.py", run, "--images", "1", "--repeat", "1", "--json",
-                "f.json"], tmp_path)  # fmt: skip
-    res = json.loads((tmp_path / "f.json").read_text())
-    assert json.loads(out.splitlines()[-1])["views"] == 1
-    assert min(res["psnr_vs_rounds_min"].values()) > 50  # the tracer: the rounds path's image
-    _run([SCRIPTS / "speed_vs_error.py", "sweep", run, "s.json", "--images", "1", "--divisors",
-          "64,128"], tmp_path)  # fmt: skip
-    _run([SCRIPTS / "speed_vs_error.py", "plot", "s.json", "--png", "s.png"], tmp_path)
-    assert (tmp_path / "s.png").is_file()
-    _run([SCRIPTS / "time_to_quality.py", "eval", run, "t.json", "--images", "1"], tmp_path)
-    _run([SCRIPTS / "time_to_quality.py", "plot", "t.json", "--png", "t.png"], tmp_path)
-    assert json.loads((tmp_path / "t.json").read_text()) and (tmp_path / "t.png").is_file()
+    """The tools only read the run: they run side by side (each writes its own files)."""
+
+    def profile():
+        _run([SCRIPTS / "render_profile.py", run, "--rounds", "0,4"], tmp_path)
+
+    def frame():
+        out = _run([SCRIPTS / "bench_frame.py", run, "--images", "1", "--repeat", "1", "--json",
+                    "f.json"], tmp_path)  # fmt: skip
+        res = json.loads((tmp_path / "f.json").read_text())
+        assert json.loads(out.splitlines()[-1])["views"] == 1
+        assert min(res["psnr_vs_rounds_min"].values()) > 50  # the tracer: the rounds path's image
+
+    def speed():
+        _run([SCRIPTS / "speed_vs_error.py", "sweep", run, "s.json", "--images", "1",
+              "--divisors", "64,128"], tmp_path)  # fmt: skip
+        _run([SCRIPTS / "speed_vs_error.py", "plot", "s.json", "--png", "s.png"], tmp_path)
+        assert (tmp_path / "s.png").is_file()
+
+    def quality():
+        _run([SCRIPTS / "time_to_quality.py", "eval", run, "t.json", "--images", "1"], tmp_path)
+        _run([SCRIPTS / "time_to_quality.py", "plot", "t.json", "--png", "t.png"], tmp_path)
+        assert json.loads((tmp_path / "t.json").read_text()) and (tmp_path / "t.png").is_file()
+
+    _side_by_side(speed, quality, frame, profile)
 
 
 def test_studies_that_train(tmp_path):
-    """The studies that train several runs themselves, at three steps each."""
-    _run([EXPERIMENTS / "recipe/distortion_effect.py", "--weights", "0,0.01", "--json", "d.json",
-          "--", "train", "nerf", *TINY, "--iters", "3"], tmp_path)  # fmt: skip
-    assert len(json.loads((tmp_path / "d.json").read_text())) >= 2
-    _run([EXPERIMENTS / "recipe/pose_refine_effect.py", "--iters", "3", "--json", "p.json", "--",
-          "train", "nerf", *TINY], tmp_path)  # fmt: skip
-    assert json.loads((tmp_path / "p.json").read_text())
-    _run([EXPERIMENTS / "overheads/watch_overhead.py", "--repeats", "1", "--", *TINY, "--iters",
-          "3"], tmp_path)  # fmt: skip
+    """The studies that train several runs themselves, at three steps each (side by side: each
+    trains in a folder of its own)."""
+
+    def distortion():
+        _run([EXPERIMENTS / "recipe/distortion_effect.py", "--weights", "0,0.01", "--json",
+              "d.json", "--", "train", "nerf", *TINY, "--iters", "3"], tmp_path)  # fmt: skip
+        assert len(json.loads((tmp_path / "d.json").read_text())) >= 2
+
+    def pose_refine():
+        _run([EXPERIMENTS / "recipe/pose_refine_effect.py", "--iters", "3", "--json", "p.json",
+              "--", "train", "nerf", *TINY], tmp_path)  # fmt: skip
+        assert json.loads((tmp_path / "p.json").read_text())
+
+    def watch():
+        _run([EXPERIMENTS / "overheads/watch_overhead.py", "--repeats", "1", "--", *TINY,
+              "--iters", "3"], tmp_path)  # fmt: skip
+
+    _side_by_side(distortion, pose_refine, watch)
 
 
 def test_surface_renderers_on_an_sdf_run(tmp_path):
