@@ -31,9 +31,15 @@ from warpnerf.train.nerf_run import (
 from warpnerf.train.recipe import LEGACY
 
 from .test_ema import FLAGS
-from .test_graph_step import _params, _task, _train
+from .test_graph_step import _task, _train
 from .test_hostile_runs import _one_line
-from .test_step_loss import FORCE, _Keep, _pair
+from .test_step_loss import (
+    FORCE,
+    _pair,
+    assert_same_gradients,
+    assert_static_trains_as_eager,
+    step_both,
+)
 
 
 def trained(tmp_path_factory, name: str, *flags) -> Path:
@@ -282,12 +288,7 @@ def test_static_step_draws_the_eager_steps_rays_and_gradients(monkeypatch, kw):
     eager step's rays (the same pixel points, bit for bit) and gives its loss and gradients."""
     eager, static = _pair(dict(pixel_jitter=True, **kw))
     spy = _Rays(monkeypatch)
-    params_e, params_s = eager.parameters(), static.parameters()
-    loss_e, _ = eager.loss(1)
-    _Keep(params_e).zero_grad()
-    loss_e.backward()
-    loss_s, _, flags = static.train_step(1, _Keep(params_s), params_s)
-    assert not flags.any()
+    loss_e, _, loss_s, _ = step_both(eager, static)
     (cam_e, px_e, py_e), (cam_s, px_s, py_s) = spy.rays
     n = cam_e.shape[0]
     assert torch.equal(cam_s[:n], cam_e)
@@ -296,26 +297,13 @@ def test_static_step_draws_the_eager_steps_rays_and_gradients(monkeypatch, kw):
     (shape,) = static.graph.shapes.values()
     assert shape.pix is not None
     assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
-    for pe, ps in zip(params_e, params_s):
-        ge = torch.zeros_like(pe) if pe.grad is None else pe.grad
-        gs = torch.zeros_like(ps) if ps.grad is None else ps.grad
-        scale = float(ge.abs().max()) + 1e-12
-        assert float((ge - gs).abs().max()) <= 1e-5 * scale, tuple(pe.shape)
+    assert_same_gradients(eager, static)
 
 
 def test_static_step_trains_as_the_eager_step_with_pixel_jitter():
-    """Six steps (the first eager on both, it sizes the buffers): the static-shape step with
-    --pixel-jitter gives the eager step's losses and parameters, batch for batch."""
-    eager, static = _task("cpu", pixel_jitter=True), _task("cpu", pixel_jitter=True)
-    la, ha, _ = _train(eager, 6)
-    lb, hb, _ = _train(static, 6, static=True, force=FORCE)
-    assert static.graph.shapes and ha["batch"] == hb["batch"]
-    assert hb["dropped_samples"] == [0] * 6
-    assert lb == pytest.approx(la, rel=1e-5)
-    assert (_params(eager) - _params(static)).abs().max() < 1e-6
-    plain = _task("cpu")  # (the option changes the training)
-    lc, _, _ = _train(plain, 1)
-    assert lc[0] != pytest.approx(la[0], rel=1e-6)
+    """Six steps: the static-shape step with --pixel-jitter gives the eager step's losses and
+    parameters, batch for batch."""
+    assert_static_trains_as_eager(6, pixel_jitter=True)
 
 
 def test_static_step_without_pixel_jitter_has_no_pixel_buffer():

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from tests.test_graph_step import _task, _train
+from tests.test_graph_step import _params, _task, _train
 from warpnerf.train.graph_step import GraphStep, unsupported
 from warpnerf.train.step_loss import LossSettings, step_loss, unsupported_terms
 
@@ -61,15 +61,49 @@ def _pair(kw, force=FORCE):
     return tasks
 
 
-@pytest.mark.parametrize("name", list(CASES))
-def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
-    eager, static = _pair(CASES[name], FORCES.get(name, FORCE))
+def step_both(eager, static) -> tuple:
+    """Step 1 of a :func:`_pair`: the eager step's loss and its backward, then the static
+    body's whole step (no flag raised, no sample dropped). Returns (loss_e, terms_e, loss_s,
+    terms_s); the gradients stay on the tasks' parameters (:func:`assert_same_gradients`)."""
     params_e, params_s = eager.parameters(), static.parameters()
     loss_e, terms_e = eager.loss(1)
     _Keep(params_e).zero_grad()
     loss_e.backward()
     loss_s, terms_s, flags = static.train_step(1, _Keep(params_s), params_s)
     assert not flags.any() and int(terms_s["dropped_samples"]) == 0
+    return loss_e, terms_e, loss_s, terms_s
+
+
+def assert_same_gradients(eager, static, what="") -> None:
+    """Each parameter's gradient of the two tasks within 1e-5 of the eager one's largest entry
+    (no gradient: zeros)."""
+    for pe, ps in zip(eager.parameters(), static.parameters()):
+        ge = torch.zeros_like(pe) if pe.grad is None else pe.grad
+        gs = torch.zeros_like(ps) if ps.grad is None else ps.grad
+        scale = float(ge.abs().max()) + 1e-12
+        assert float((ge - gs).abs().max()) <= 1e-5 * scale, (what, tuple(pe.shape))
+
+
+def assert_static_trains_as_eager(steps: int, force=FORCE, **kw) -> None:
+    """``steps`` steps of two tasks with the config changes ``kw`` (the first eager on both, it
+    sizes the buffers): the static-shape step gives the eager step's batches, losses and
+    parameters, dropping no sample; and ``kw`` changes the training (a plain task's first loss
+    differs)."""
+    eager, static = _task("cpu", **kw), _task("cpu", **kw)
+    la, ha, _ = _train(eager, steps)
+    lb, hb, _ = _train(static, steps, static=True, force=force)
+    assert static.graph.shapes and ha["batch"] == hb["batch"]
+    assert hb["dropped_samples"] == [0] * steps
+    assert lb == pytest.approx(la, rel=1e-5)
+    assert (_params(eager) - _params(static)).abs().max() < 1e-6
+    lc, _, _ = _train(_task("cpu"), 1)
+    assert lc[0] != pytest.approx(la[0], rel=1e-6)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
+    eager, static = _pair(CASES[name], FORCES.get(name, FORCE))
+    loss_e, terms_e, loss_s, terms_s = step_both(eager, static)
     # (the static body's masked means sum in another order: float32 round-off)
     assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
     want = TERMS & set(terms_e)
@@ -79,11 +113,7 @@ def test_eager_and_static_step_have_the_same_loss_terms_and_gradients(name):
         assert float(terms_s[k]) == pytest.approx(float(terms_e[k]), rel=1e-6), k
     assert terms_s["batch"] == terms_e["batch"]
     assert float(terms_s["samples_per_ray"]) == pytest.approx(terms_e["samples_per_ray"])
-    for pe, ps in zip(params_e, params_s):
-        ge = torch.zeros_like(pe) if pe.grad is None else pe.grad
-        gs = torch.zeros_like(ps) if ps.grad is None else ps.grad
-        scale = float(ge.abs().max()) + 1e-12
-        assert float((ge - gs).abs().max()) <= 1e-5 * scale, (name, tuple(pe.shape))
+    assert_same_gradients(eager, static, name)
 
 
 def test_terms_the_captured_step_cannot_compute_are_named_and_refused():

@@ -24,10 +24,16 @@ from warpnerf.train.supersample import PER_RAY, expand_rows, pixel_means, sub_of
 
 from .test_datasets import make_blender, make_nerfstudio
 from .test_ema import FLAGS
-from .test_graph_step import _params, _task, _train
+from .test_graph_step import _task
 from .test_hostile_runs import _one_line
 from .test_pixel_jitter import _Rays, trained
-from .test_step_loss import SPP_FORCE, _Keep, _pair
+from .test_step_loss import (
+    SPP_FORCE,
+    _pair,
+    assert_same_gradients,
+    assert_static_trains_as_eager,
+    step_both,
+)
 
 
 @pytest.fixture(scope="module")
@@ -341,12 +347,7 @@ def test_static_step_renders_the_eager_steps_sub_rays_and_gradients(monkeypatch,
     eager step's sub-rays (bit for bit) and gives its loss and gradients."""
     eager, static = _pair(dict(train_spp=4, **kw), force=SPP_FORCE)
     spy = _Rays(monkeypatch)
-    params_e, params_s = eager.parameters(), static.parameters()
-    loss_e, terms_e = eager.loss(1)
-    _Keep(params_e).zero_grad()
-    loss_e.backward()
-    loss_s, terms_s, flags = static.train_step(1, _Keep(params_s), params_s)
-    assert not flags.any() and int(terms_s["dropped_samples"]) == 0
+    loss_e, terms_e, loss_s, terms_s = step_both(eager, static)
     (cam_e, px_e, py_e), (cam_s, px_s, py_s) = spy.rays
     m = cam_e.shape[0]
     assert m == 4 * terms_e["batch"] and terms_s["batch"] == terms_e["batch"]
@@ -357,26 +358,13 @@ def test_static_step_renders_the_eager_steps_sub_rays_and_gradients(monkeypatch,
     assert torch.equal(px_s[:m], px_e) and torch.equal(py_s[:m], py_e)
     assert loss_s.item() == pytest.approx(loss_e.item(), rel=1e-6)
     assert float(terms_s["samples_per_ray"]) == pytest.approx(float(terms_e["samples_per_ray"]))
-    for pe, ps in zip(params_e, params_s):
-        ge = torch.zeros_like(pe) if pe.grad is None else pe.grad
-        gs = torch.zeros_like(ps) if ps.grad is None else ps.grad
-        scale = float(ge.abs().max()) + 1e-12
-        assert float((ge - gs).abs().max()) <= 1e-5 * scale, tuple(pe.shape)
+    assert_same_gradients(eager, static)
 
 
 def test_static_step_trains_as_the_eager_step_with_train_spp():
-    """Five steps (the first eager on both, it sizes the buffers): the static-shape step with
-    --train-spp 4 gives the eager step's losses and parameters, batch for batch."""
-    eager, static = _task("cpu", train_spp=4), _task("cpu", train_spp=4)
-    la, ha, _ = _train(eager, 5)
-    lb, hb, _ = _train(static, 5, static=True, force=SPP_FORCE)
-    assert static.graph.shapes and ha["batch"] == hb["batch"]
-    assert hb["dropped_samples"] == [0] * 5
-    assert lb == pytest.approx(la, rel=1e-5)
-    assert (_params(eager) - _params(static)).abs().max() < 1e-6
-    plain = _task("cpu")  # (the option changes the training)
-    lc, _, _ = _train(plain, 1)
-    assert lc[0] != pytest.approx(la[0], rel=1e-6)
+    """Five steps: the static-shape step with --train-spp 4 gives the eager step's losses and
+    parameters, batch for batch."""
+    assert_static_trains_as_eager(5, SPP_FORCE, train_spp=4)
 
 
 # ---------------------------------------------------------------------------- validation

@@ -3,30 +3,7 @@
 # pixels and supersampled scoring; issue 49: lego hash_sdf re-measured; one H200), kept as the
 # record of how the design notes' figures of that session were measured. Run from the tree root
 # on the device with Warp unpacked in /tmp/site and the data carried in .gpu/data: bash THIS PHASE
-set -u
-R=$(pwd)
-ln -sfn "$R/kernels" "$R/warpnerf/kernels"
-export PYTHONPATH=/tmp/site:$R PYTHONUNBUFFERED=1
-FINAL=${OUT:-/tmp/out}; OUT=/root/res/$1; rm -rf "$OUT"; mkdir -p "$OUT" "$FINAL"
-trap 'tar czf $FINAL/$1.tgz -C /root/res $1 2>/dev/null' EXIT
-S=/root/stage; Q=/root/q; mkdir -p $S $Q
-DEADLINE=$(( $(date +%s) + ${LIMIT:-560} ))
-left() { echo $(( DEADLINE - $(date +%s) - ${1:-0} )); }
-pin() { OMP_NUM_THREADS=8 MKL_NUM_THREADS=8 taskset -c 0-15 "$@"; }
-step() {  # name seconds-wanted command...: runs it under the deadline, logs to $OUT/name.log
-  local name=$1 want=$2; shift 2
-  local l; l=$(left 5)
-  if [ "$l" -lt "$want" ]; then echo "$name skipped (left $l s < $want s)" >> $OUT/fail.txt; return; fi
-  local t0; t0=$(date +%s)
-  pin timeout "$l" "$@" > "$OUT/$name.log" 2>&1 || echo "$name failed rc=$?" >> $OUT/fail.txt
-  echo "$name wall $(( $(date +%s) - t0 )) s" >> $OUT/walls.txt
-}
-ttq() {  # name want ttq-args...: scripts/time_to_quality.py run into $Q/name, its JSON kept
-  local name=$1 want=$2; shift 2
-  rm -rf "${Q:?}/$name"; mkdir -p "$Q/$name"
-  step "$name" "$want" python3 scripts/time_to_quality.py run "$Q/$name" "$@"
-  cp "$Q/$name/ttq.json" "$OUT/$name.ttq.json" 2>/dev/null
-}
+. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
 F="--quiet --no-tensorboard --val-images 0"
 LEGO="train nerf --data $S/lego --device cuda --iters 40000 $F"  # the plain command (40,000 steps)
 case $1 in
