@@ -44,7 +44,7 @@ def snapshots(run) -> list:
 def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(None,)):
     """Each snapshot scored on the val split; ``spp``: rays a pixel of each scoring (`eval
     --spp`; None: the run's), the first gives ``psnr``/``ssim`` (and ``spp``), each other N adds
-    ``psnr_sppN``/``ssim_sppN``."""
+    ``psnr_sppN``/``ssim_sppN``/``render_ms_median_sppN``."""
     from warpnerf.train.nerf import load_run
     from warpnerf.train.nerf_eval import evaluate_geometry, evaluate_run
 
@@ -63,7 +63,9 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(Non
                 row.update(psnr=m["psnr"], ssim=m["ssim"], images=m["n_images"], spp=m["spp"],
                            render_ms_median=m["render_ms_median"])  # fmt: skip
             else:
-                row.update({f"psnr_spp{m['spp']}": m["psnr"], f"ssim_spp{m['spp']}": m["ssim"]})
+                ns = m["spp"]
+                row.update({f"psnr_spp{ns}": m["psnr"], f"ssim_spp{ns}": m["ssim"],
+                            f"render_ms_median_spp{ns}": m["render_ms_median"]})  # fmt: skip
         if geometry:
             g = evaluate_geometry(run, geometry, mesh_resolution, snapshot=s)
             row.update({k: g[k] for k in g if k not in ("run", "reference")})
