@@ -34,7 +34,7 @@ from .recipe import RecipeConfig
 __all__ = [
     "NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL", "DataConfig", "SceneConfig",
     "SamplingConfig", "ProposalConfig", "CaptureConfig", "ValidationConfig", "RecipeConfig",
-    "SECTIONS", "GRID",
+    "SECTIONS", "GRID", "BLENDER_AABB",
 ]  # fmt: skip
 
 
@@ -43,6 +43,7 @@ FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine netw
 DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
+BLENDER_AABB = 1.5  # a Blender-format scene's box (NeRF synthetic): larger where its alpha asks
 
 
 # a NeRF run's sections, in the order its --help shows them (the fields' own: fields/settings.py)
@@ -164,7 +165,7 @@ class NeRFConfig(*reversed(SECTIONS)):
 
                 self.aabb = BOUND
             else:
-                self.aabb = 1.5
+                self.aabb = BLENDER_AABB
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
         if contracted and self.march_cone <= 0:

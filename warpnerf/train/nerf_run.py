@@ -16,7 +16,7 @@ from ..errors import UserError, check_device
 from ..fields.model import RadianceModel, build_model
 from ..outputs import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
-from .nerf_config import MODEL, NeRFConfig, scene_settings
+from .nerf_config import BLENDER_AABB, MODEL, NeRFConfig, scene_settings
 from .recipe import default_train_spp, wants_alpha
 
 __all__ = [
@@ -24,7 +24,7 @@ __all__ = [
     "images_stay_on_host", "with_refined_poses", "dataset_rays", "render_rays_of",
     "distortion_coordinate", "near_zone", "surface_depth", "depth_scale", "render_dataset_image",
     "validate", "psnr_of_mse", "CHECKPOINT", "MAX_SPP", "pixel_points", "pixel_corners",
-    "run_spp",
+    "run_spp", "box_from_alpha", "BOX_MARGIN",
 ]  # fmt: skip
 
 CHECKPOINT = "checkpoint.pt"
@@ -56,6 +56,37 @@ def resolve_data(cfg: NeRFConfig) -> NeRFConfig:
     return _with_data(cfg).validate()
 
 
+BOX_MARGIN = 1.05  # box_from_alpha: past the farthest reach the opaque pixels' rays ask for
+
+
+def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
+    """The scene box a new run of an RGBA Blender-format split needs when --aabb is not given:
+    where an opaque training pixel's ray passes outside the convention's box
+    (:data:`~warpnerf.train.nerf_config.BLENDER_AABB`), the object reaches past it (the
+    materials scene's ground disk), so the box grows to the largest such reach
+    (:func:`warpnerf.data.mask_box.opaque_reach`) times :data:`BOX_MARGIN`, rounded up to
+    1e-3; None (the box stays the default) when no ray asks for more, for captures, the built-in
+    scene, contracted runs, fields without a box and images without alpha."""
+    if (
+        cfg.aabb > 0
+        or cfg.data == "builtin"
+        or cfg.scene is not None
+        or train.alpha is None
+        or train.format != "blender"
+        or cfg.contract == "on"
+        or not cfg.traits.in_box
+    ):
+        return None
+    from ..data.mask_box import opaque_reach
+
+    near = 2.0 if cfg.near is None else float(cfg.near)
+    far = 6.0 if cfg.far is None else float(cfg.far)
+    reach = opaque_reach(train.c2w, train.intrinsics, train.alpha, near, far, BLENDER_AABB)
+    if reach <= BLENDER_AABB:
+        return None
+    return math.ceil(reach * BOX_MARGIN * 1000.0) / 1000.0
+
+
 def settle_new_run(cfg: NeRFConfig) -> tuple:
     """(config, training split) of a new run, in one pass: what the data decides
     (:func:`_with_data`), the device and the values' bounds checked, the training images read
@@ -69,6 +100,9 @@ def settle_new_run(cfg: NeRFConfig) -> tuple:
     draft.check_values()  # the bounds before any file or scene is built from them (untrusted
     # sizes such as --builtin-size past the kernels' limits: one line, no run folder)
     train = load_data(draft, "train", draft.images_on, uint8=True, alpha=True)
+    box = box_from_alpha(draft, train)
+    if box is not None:
+        draft = dataclasses.replace(draft, aabb=box)
     cfg = draft.validate(train_images=len(train))
     if train.alpha is not None and not wants_alpha(cfg):
         train = dataclasses.replace(train, alpha=None)
