@@ -258,7 +258,12 @@ def test_the_plain_command_on_cuda_trains_the_measured_gpu_recipe(monkeypatch):
                      monkeypatch, True)  # fmt: skip
     assert (mlp.field, mlp.batch, mlp.ema) == ("mlp", 1024, 0.0)
     vol = _config_of(["volsdf", "--data", "builtin", "--device", "cuda"], monkeypatch, True)
-    assert vol.field == "volsdf"
+    assert vol.field == "volsdf" and vol.chunk == 8192
+    sdf = _config_of(["volsdf", "--data", "builtin", "--device", "cuda", "--field", "hash_sdf"],
+                     monkeypatch, True)  # fmt: skip
+    assert sdf.field == "hash_sdf" and sdf.chunk == 400_000  # (frames in few chunks, measured)
+    sdf_cpu = _config_of(["volsdf", "--data", "builtin", "--field", "hash_sdf"], monkeypatch, False)
+    assert sdf_cpu.chunk == 8192
     cpu_preset = _config_of(["nerf", "--data", "builtin", "--preset", "cpu", "--field", "hash"],
                             monkeypatch, False)  # fmt: skip
     assert (cpu_preset.batch, cpu_preset.ema, cpu_preset.grid_res) == (512, 0.0, 32)

@@ -106,6 +106,10 @@ NERF_PRESETS["gpu"] = {
         "iters": 40000,
         "chunk": 1 << 19,
     },
+    # the surface field's frames in large chunks too: 48 ms a 400x400 lego frame with `eval
+    # --chunk 400000` (H100, 2026-11-25, docs/design/surfaces.md "Issue 17, second round"),
+    # 155-176 ms in the configs' chunks (H200, 2026-12-02, surfaces.md "Issue 49, fourth round")
+    "hash_sdf": {"chunk": 400_000},
 }
 
 
