@@ -6,6 +6,7 @@ opaque pixels show (the materials scene's disk reaches 1.6, past the convention'
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -17,6 +18,7 @@ import torch
 from warpnerf.data import look_at
 from warpnerf.data.cameras import camera_rays
 from warpnerf.data.mask_box import opaque_reach, ray_reach
+from warpnerf.errors import UserError
 from warpnerf.train.nerf import NeRFConfig, load_data, settle_new_run
 from warpnerf.train.nerf_run import BOX_MARGIN, box_from_alpha
 
@@ -128,6 +130,11 @@ def test_a_new_runs_box_holds_its_opaque_pixels(tmp_path):
     assert box_from_alpha(NeRFConfig(data=str(big), field="hash", aabb=1.5), train) is None
     assert box_from_alpha(NeRFConfig(data="builtin", field="hash"), train) is None
     assert box_from_alpha(NeRFConfig(data=str(big), field="hash", far=8.0), train) == cfg.aabb
+    # cameras a million units out (bounded at load): one line naming the data, no box
+    far_away = dataclasses.replace(train, c2w=train.c2w.clone())
+    far_away.c2w[:, :3, 3] *= 9e5
+    with pytest.raises(UserError, match="scene box"):
+        box_from_alpha(NeRFConfig(data=str(big), field="hash", far=8.0), far_away)
 
 
 @pytest.mark.skipif(not (SHARED / "materials").is_dir(), reason="needs ../shared/data")

@@ -28,6 +28,6 @@ h3)  # 44/49: lego hash_sdf with --train-spp 4, 300 s
   ttq sdf_tspp4 380 --budgets 60,300 --spp 1,4 --label "lego hash_sdf, --train-spp 4" -- $SDF --train-spp 4
   tail_out ;;
 h2)  # 44/49: lego hash_sdf as it is today (one ray a pixel), 300 s
-  ttq sdf_base 380 --budgets 60,300 --spp 1,4 --label "lego hash_sdf (today's command)" -- $SDF
+  ttq sdf_base 360 --budgets 60,300 --spp 1 --label "lego hash_sdf (today's command)" -- $SDF
   tail_out ;;
 esac

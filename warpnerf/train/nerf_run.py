@@ -77,6 +77,7 @@ def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
         or not cfg.traits.in_box
     ):
         return None
+    from ..data.cameras import MAX_CENTRE
     from ..data.mask_box import opaque_reach
 
     near = 2.0 if cfg.near is None else float(cfg.near)
@@ -84,7 +85,12 @@ def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
     reach = opaque_reach(train.c2w, train.intrinsics, train.alpha, near, far, BLENDER_AABB)
     if reach <= BLENDER_AABB:
         return None
-    return math.ceil(reach * BOX_MARGIN * 1000.0) / 1000.0
+    box = math.ceil(reach * BOX_MARGIN * 1000.0) / 1000.0
+    if not box <= MAX_CENTRE:  # (cameras a million units out: nothing a box can hold)
+        raise UserError(f"{cfg.data}: the training images' opaque pixels ask for a scene box of "
+                        f"half-size {box:g}, past the largest ({MAX_CENTRE:g}); check the "
+                        "cameras' transform_matrix, or give --aabb")  # fmt: skip
+    return box
 
 
 def settle_new_run(cfg: NeRFConfig) -> tuple:
