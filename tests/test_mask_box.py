@@ -129,6 +129,8 @@ def test_a_new_runs_box_holds_its_opaque_pixels(tmp_path):
     assert box_from_alpha(mlp, train) is None
     assert box_from_alpha(NeRFConfig(data=str(big), field="hash", aabb=1.5), train) is None
     assert box_from_alpha(NeRFConfig(data="builtin", field="hash"), train) is None
+    opaque = dataclasses.replace(train, alpha=torch.ones_like(train.alpha))  # (no silhouette)
+    assert box_from_alpha(NeRFConfig(data=str(big), field="hash", far=8.0), opaque) is None
     assert box_from_alpha(NeRFConfig(data=str(big), field="hash", far=8.0), train) == cfg.aabb
     # cameras a million units out (bounded at load): one line naming the data, no box
     far_away = dataclasses.replace(train, c2w=train.c2w.clone())

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["OPAQUE", "ray_reach", "opaque_reach"]
+__all__ = ["OPAQUE", "SILHOUETTE", "ray_reach", "opaque_reach", "shows_silhouette"]
 
 OPAQUE = 0.5  # alpha from which a pixel counts as showing the object
+SILHOUETTE = 0.01  # shows_silhouette: transparent pixels at least this fraction of a split's
 _ITERS = 60  # ternary-search steps (the interval shrinks by (2/3)^60 ~ 3e-11)
 
 
@@ -31,6 +32,15 @@ def ray_reach(o, d, near: float, far: float):
         left = f(m1) < f(m2)
         hi, lo = torch.where(left, m2, hi), torch.where(left, lo, m1)
     return f(0.5 * (lo + hi))
+
+
+def shows_silhouette(alpha) -> bool:
+    """Whether a split's alpha [N, H, W] outlines an object: at least :data:`SILHOUETTE` of its
+    pixels transparent (alpha < 1/2). Opaque images (a background rendered in, RGB saved as
+    RGBA) bound nothing: their box stays the convention's."""
+    scale = 255.0 if alpha.dtype == torch.uint8 else 1.0
+    clear = sum(int((a.float() < OPAQUE * scale).sum()) for a in alpha)
+    return clear >= SILHOUETTE * alpha.numel()
 
 
 def opaque_reach(c2w, intrinsics, alpha, near: float, far: float, box: float) -> float:

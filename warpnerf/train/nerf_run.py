@@ -66,7 +66,8 @@ def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
     materials scene's ground disk), so the box grows to the largest such reach
     (:func:`warpnerf.data.mask_box.opaque_reach`) times :data:`BOX_MARGIN`, rounded up to
     1e-3; None (the box stays the default) when no ray asks for more, for captures, the built-in
-    scene, contracted runs, fields without a box and images without alpha."""
+    scene, contracted runs, fields without a box and images without alpha or whose alpha
+    outlines nothing (:func:`~warpnerf.data.mask_box.shows_silhouette`)."""
     if (
         cfg.aabb > 0
         or cfg.data == "builtin"
@@ -78,7 +79,10 @@ def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
     ):
         return None
     from ..data.cameras import MAX_CENTRE
-    from ..data.mask_box import opaque_reach
+    from ..data.mask_box import opaque_reach, shows_silhouette
+
+    if not shows_silhouette(train.alpha):
+        return None
 
     near = 2.0 if cfg.near is None else float(cfg.near)
     far = 6.0 if cfg.far is None else float(cfg.far)
