@@ -30,4 +30,17 @@ h3)  # 44/49: lego hash_sdf with --train-spp 4, 300 s
 h2)  # 44/49: lego hash_sdf as it is today (one ray a pixel), 300 s
   ttq sdf_base 360 --budgets 60,300 --spp 1 --label "lego hash_sdf (today's command)" -- $SDF
   tail_out ;;
+# written for the next session, not run in this one (no device time left): n1 (44: materials
+# 300 s with the box its opaque pixels now ask for, 1.669, and its regions), n2 (47/49: the
+# hash_sdf frame in the GPU preset's 400,000-ray chunks, from the h2 run's folder if still there)
+n1)
+  cp -r .gpu/data/* $S/ 2>/dev/null
+  ttq mat_box 380 --budgets 60,300 --spp 1,4 --label "materials, the plain command (box 1.669)" -- train nerf --data $S/materials --device cuda --iters 40000 $F
+  step mat_box_eval 30 python3 -m warpnerf.cli eval $Q/mat_box/run --quiet --out $OUT/mat_box_eval
+  step mat_box_regions 30 python3 experiments/recipe/materials_regions.py $OUT/mat_box_eval --data $S/materials --json $OUT/mat_box_regions.json
+  tail_out ;;
+n2)
+  step sdf_frame 90 python3 -m warpnerf.cli eval $Q/sdf_base/run --chunk 400000 --quiet --out $Q/sdf_base/eval_chunk
+  cp $Q/sdf_base/eval_chunk/metrics.json $OUT/sdf_frame_chunk400k.json 2>/dev/null
+  tail_out ;;
 esac
