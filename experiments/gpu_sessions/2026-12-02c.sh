@@ -38,6 +38,11 @@ n1)
   ttq mat_box 380 --budgets 60,300 --spp 1,4 --label "materials, the plain command (box 1.669)" -- train nerf --data $S/materials --device cuda --iters 40000 $F
   step mat_box_eval 30 python3 -m warpnerf.cli eval $Q/mat_box/run --quiet --out $OUT/mat_box_eval
   step mat_box_regions 30 python3 experiments/recipe/materials_regions.py $OUT/mat_box_eval --data $S/materials --json $OUT/mat_box_regions.json
+  # what may act on the floaters past the rim and the glass: the recipe's options, 60 s each
+  for x in "--random-background on" "--view-cull" "--hash-max-res 512 --hash-log2-size 16"; do
+    n=mat_$(echo "$x" | tr -dc 'a-z0-9' | cut -c1-24)
+    ttq $n 100 --budgets 60 --spp 1,4 --label "materials (box 1.669) $x" -- train nerf --data $S/materials --device cuda --iters 40000 $F $x
+  done
   tail_out ;;
 n2)
   step sdf_frame 90 python3 -m warpnerf.cli eval $Q/sdf_base/run --chunk 400000 --quiet --out $Q/sdf_base/eval_chunk
