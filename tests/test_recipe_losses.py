@@ -264,6 +264,12 @@ def test_the_plain_command_on_cuda_trains_the_measured_gpu_recipe(monkeypatch):
     assert sdf.field == "hash_sdf" and sdf.chunk == 400_000  # (frames in few chunks, measured)
     sdf_cpu = _config_of(["volsdf", "--data", "builtin", "--field", "hash_sdf"], monkeypatch, False)
     assert sdf_cpu.chunk == 8192
+    # more samples a ray than the preset's chunk allows under int32 offsets: fewer rays at once
+    deep = _config_of(["volsdf", "--data", "builtin", "--device", "cuda", "--field", "hash_sdf",
+                       "--max-samples", "5400"], monkeypatch, True)  # fmt: skip
+    resolved = deep.resolve()
+    assert resolved.chunk == (2**31 - 1) // 5400 and resolved.chunk * 5400 <= 2**31 - 1
+    resolved.check_values()  # (no error naming a flag the command does not have)
     cpu_preset = _config_of(["nerf", "--data", "builtin", "--preset", "cpu", "--field", "hash"],
                             monkeypatch, False)  # fmt: skip
     assert (cpu_preset.batch, cpu_preset.ema, cpu_preset.grid_res) == (512, 0.0, 32)

@@ -5,7 +5,7 @@ Every opaque pixel (alpha >= 1/2) shows something its ray meets between near and
 must reach that ray: the smallest origin-centred cube a ray enters is min over t of
 |o + t d|_inf (convex in t), and the box the images ask for is the largest of these over the
 opaque pixels. A lower bound of the object's reach (the thing may lie deeper along the ray), with
-no guess where the cameras cannot carve (:func:`warpnerf.train.recipe.scene_box`)."""
+no guess where the cameras cannot carve (:func:`warpnerf.train.nerf_run.box_from_alpha`)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ __all__ = ["OPAQUE", "SILHOUETTE", "ray_reach", "opaque_reach", "shows_silhouett
 
 OPAQUE = 0.5  # alpha from which a pixel counts as showing the object
 SILHOUETTE = 0.01  # shows_silhouette: transparent pixels at least this fraction of a split's
+_CHUNK = 1 << 20  # opaque pixels' rays at once
 _ITERS = 60  # ternary-search steps (the interval shrinks by (2/3)^60 ~ 3e-11)
 
 
@@ -61,13 +62,15 @@ def opaque_reach(c2w, intrinsics, alpha, near: float, far: float, box: float) ->
         if ys.numel() == 0:
             continue
         dev = c2w.device
-        cam = torch.full(ys.shape, k, dtype=torch.int64, device=dev)
-        o, d = camera_rays(c2w, intrinsics, w, h, cam_idx=cam, px=xs.to(dev, torch.float32) + 0.5,
-                           py=ys.to(dev, torch.float32) + 0.5)  # fmt: skip
-        o, d = o.double(), d.double()
-        t = (-(o * d).sum(-1) / (d * d).sum(-1)).clamp(float(near), float(far))
-        bound = (o + t[:, None] * d).abs().amax(-1)  # (|o + t d|_inf at one t: >= the minimum)
-        ask = bound > reach
-        if ask.any():
-            reach = max(reach, float(ray_reach(o[ask], d[ask], near, far).max()))
+        for a in range(0, ys.numel(), _CHUNK):  # (bounded memory for large images)
+            y, x = ys[a : a + _CHUNK].to(dev), xs[a : a + _CHUNK].to(dev)
+            cam = torch.full(y.shape, k, dtype=torch.int64, device=dev)
+            o, d = camera_rays(c2w, intrinsics, w, h, cam_idx=cam, px=x.float() + 0.5,
+                               py=y.float() + 0.5)  # fmt: skip
+            o, d = o.double(), d.double()
+            t = (-(o * d).sum(-1) / (d * d).sum(-1)).clamp(float(near), float(far))
+            bound = (o + t[:, None] * d).abs().amax(-1)  # (|o + t d|_inf at one t: >= the min)
+            ask = bound > reach
+            if ask.any():
+                reach = max(reach, float(ray_reach(o[ask], d[ask], near, far).max()))
     return reach

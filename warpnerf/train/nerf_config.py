@@ -143,6 +143,9 @@ class NeRFConfig(*reversed(SECTIONS)):
             self.lr_final = self.lr / traits.lr_decay
         if self.grid_res is None:
             self.grid_res = DEFAULT_GRID_RES if traits.grid else 0
+        per_ray = self.max_samples if self.grid_res else self.n_coarse + (self.n_fine or 0)
+        if self.chunk * per_ray > INT32_MAX:  # (the rendering chunk, a preset's, no flag: fewer
+            self.chunk = max(1, INT32_MAX // per_ray)  # rays at once where each holds more)
         captures = traits.captures and bool(self.grid_res)  # (the features need the grid)
         if self.contract == "auto":  # inward-facing captures (not NDC): unbounded
             cap = self.scene is not None and self.scene["ndc"] is None

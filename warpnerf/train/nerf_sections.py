@@ -97,7 +97,8 @@ class SceneConfig:
     TITLE = "scene bounds"
 
     aabb: float = option(
-        0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, the "
+        0.0, "hash/volsdf field: half-size of the scene cube (0: 1.5 for datasets, larger "
+        "where an RGBA Blender-format split's opaque pixels show something past it; the "
         "built-in scene's own for builtin; with --contract on: of the inner cube, default the "
         "camera centres' extent)", check="nonnegative",
     )  # fmt: skip
