@@ -16,26 +16,34 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from worst_view_crops import read_panels  # noqa: E402  (the eval PNGs' panels, one reader)
 
 BACKGROUND = "background"
 RIM = "disk rim"  # the ground disk's outer band (hit radius > RIM_FROM): its edge seen edge-on
 RIM_FROM = 1.45
 
 
-def pixel_rays(c2w: np.ndarray, angle_x: float, width: int, height: int):
-    """Origins and unit directions [H * W, 3] through the pixels' centres (OpenGL camera: looks
-    down -Z, +Y up), rows first."""
+def pixel_rays(c2w, angle_x: float, width: int, height: int):
+    """Origins and unit directions [H * W, 3] (float64 numpy) through the pixels' centres, rows
+    first: the library's camera rays (:func:`warpnerf.data.cameras.camera_rays`) of a Blender
+    camera (focal from ``camera_angle_x``, principal point at the centre)."""
+    import torch
+
+    from warpnerf.data.cameras import camera_rays
+
     focal = 0.5 * width / math.tan(0.5 * angle_x)
-    j, i = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
-    cam = np.stack([(i - 0.5 * width) / focal, -(j - 0.5 * height) / focal,
-                    -np.ones_like(i)], -1).reshape(-1, 3)  # fmt: skip
-    d = cam @ np.asarray(c2w, dtype=np.float64)[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    o = np.broadcast_to(np.asarray(c2w, dtype=np.float64)[:3, 3], d.shape)
-    return o, d
+    intr = torch.tensor([[focal, focal, 0.5 * width, 0.5 * height]], dtype=torch.float32)
+    c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32)[None]
+    o, d = camera_rays(c2w, intr, width, height)
+    d = d.double()
+    d = d / d.norm(dim=-1, keepdim=True)
+    return o.double().numpy(), d.numpy()
 
 
 def pixel_labels(c2w, angle_x: float, width: int, height: int) -> np.ndarray:
@@ -63,15 +71,6 @@ def names() -> list:
     from warpnerf.data.materials_truth import MATERIALS_NAMES
 
     return [*MATERIALS_NAMES, RIM, BACKGROUND]
-
-
-def _panels(folder: Path, split: str, i: int):
-    """(truth, prediction) float [H, W, 3] of one eval PNG (three panels side by side)."""
-    import imageio.v3 as iio
-
-    img = iio.imread(folder / f"{split}_{i:03d}.png")[..., :3].astype(np.float64) / 255.0
-    w = img.shape[1] // 3
-    return img[:, :w], img[:, w : 2 * w]
 
 
 def noise_residual(img: np.ndarray, lab: np.ndarray):
@@ -103,7 +102,8 @@ def regions(eval_dir: Path, data: Path, split: str = "val") -> dict:
     for i, frame in enumerate(frames):
         if not (eval_dir / f"{split}_{i:03d}.png").exists():
             continue
-        gt, pred = _panels(eval_dir, split, i)
+        gt, pred = read_panels(eval_dir, i, split)
+        gt, pred = gt.astype(np.float64), pred.astype(np.float64)
         h, w = gt.shape[:2]
         lab = pixel_labels(frame["transform_matrix"], angle, w, h).reshape(-1)
         err = ((pred - gt) ** 2).mean(-1).reshape(-1)  # (the mean over RGB, as eval's PSNR)

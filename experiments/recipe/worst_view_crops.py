@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 
 
-def _panels(folder: Path, i: int):
+def read_panels(folder: Path, i: int, split: str = "val"):
     """(truth, prediction) float [H, W, 3] of one eval PNG (three panels side by side)."""
     import imageio.v3 as iio
 
-    img = iio.imread(folder / f"val_{i:03d}.png")[..., :3].astype(np.float32) / 255.0
+    img = iio.imread(folder / f"{split}_{i:03d}.png")[..., :3].astype(np.float32) / 255.0
     w = img.shape[1] // 3
     return img[:, :w], img[:, w : 2 * w]
 
@@ -48,8 +48,8 @@ def crops(before: Path, after: Path, views: int, window: int):
     out = []
     for r in sorted(have, key=lambda r: r["psnr"])[:views]:
         i = r["image"]
-        gt, pb = _panels(before, i)
-        _, pa = _panels(after, i)
+        gt, pb = read_panels(before, i)
+        _, pa = read_panels(after, i)
         ea, eb = np.abs(pa - gt).mean(-1), np.abs(pb - gt).mean(-1)
         y, x = worst_window(ea, window)
         win = (slice(y, y + window), slice(x, x + window))

@@ -35,12 +35,17 @@ def ray_reach(o, d, near: float, far: float):
     return f(0.5 * (lo + hi))
 
 
+def _opaque(alpha):
+    """bool mask of the opaque pixels (alpha >= :data:`OPAQUE`; uint8 alpha counts 255 as 1)."""
+    scale = 255.0 if alpha.dtype == torch.uint8 else 1.0
+    return alpha.float() >= OPAQUE * scale
+
+
 def shows_silhouette(alpha) -> bool:
     """Whether a split's alpha [N, H, W] outlines an object: at least :data:`SILHOUETTE` of its
     pixels transparent (alpha < 1/2). Opaque images (a background rendered in, RGB saved as
     RGBA) bound nothing: their box stays the convention's."""
-    scale = 255.0 if alpha.dtype == torch.uint8 else 1.0
-    clear = sum(int((a.float() < OPAQUE * scale).sum()) for a in alpha)
+    clear = sum(int((~_opaque(a)).sum()) for a in alpha)
     return clear >= SILHOUETTE * alpha.numel()
 
 
@@ -54,11 +59,10 @@ def opaque_reach(c2w, intrinsics, alpha, near: float, far: float, box: float) ->
 
     if alpha.dim() != 3 or not alpha.shape[0] == c2w.shape[0] == intrinsics.shape[0]:
         raise ValueError("alpha [N, H, W], c2w [N, 4, 4] and intrinsics [N, 4] must agree in N")
-    scale = 255.0 if alpha.dtype == torch.uint8 else 1.0
     h, w = alpha.shape[1:]
     reach = float(box)
     for k in range(alpha.shape[0]):
-        ys, xs = torch.nonzero(alpha[k].float() >= OPAQUE * scale, as_tuple=True)
+        ys, xs = torch.nonzero(_opaque(alpha[k]), as_tuple=True)
         if ys.numel() == 0:
             continue
         dev = c2w.device

@@ -34,7 +34,7 @@ from .recipe import RecipeConfig
 __all__ = [
     "NeRFConfig", "VolSDFConfig", "scene_settings", "MODEL", "DataConfig", "SceneConfig",
     "SamplingConfig", "ProposalConfig", "CaptureConfig", "ValidationConfig", "RecipeConfig",
-    "SECTIONS", "GRID", "BLENDER_AABB",
+    "SECTIONS", "GRID", "BLENDER_AABB", "DATASET_NEAR", "DATASET_FAR",
 ]  # fmt: skip
 
 
@@ -44,6 +44,7 @@ DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid 
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
 BLENDER_AABB = 1.5  # a Blender-format scene's box (NeRF synthetic): larger where its alpha asks
+DATASET_NEAR, DATASET_FAR = 2.0, 6.0  # a dataset's depth range when its format gives none
 
 
 # a NeRF run's sections, in the order its --help shows them (the fields' own: fields/settings.py)
@@ -179,7 +180,7 @@ class NeRFConfig(*reversed(SECTIONS)):
             elif self.data == "builtin":
                 from ..data.synthetic import FAR, NEAR
             else:
-                NEAR, FAR = 2.0, 6.0
+                NEAR, FAR = DATASET_NEAR, DATASET_FAR
             if contracted:  # steps grow with distance: a far plane far away costs little
                 FAR = max(FAR, CONTRACT_FAR * self.aabb)
             self.near = NEAR if self.near is None else self.near

@@ -16,7 +16,7 @@ from ..errors import UserError, check_device
 from ..fields.model import RadianceModel, build_model
 from ..outputs import build_for_weights, load_checkpoint
 from ..render import render_chunks, render_marched, render_nerf
-from .nerf_config import BLENDER_AABB, MODEL, NeRFConfig, scene_settings
+from .nerf_config import BLENDER_AABB, DATASET_FAR, DATASET_NEAR, MODEL, NeRFConfig, scene_settings
 from .recipe import default_train_spp, wants_alpha
 
 __all__ = [
@@ -84,8 +84,8 @@ def box_from_alpha(cfg: NeRFConfig, train) -> float | None:
     if not shows_silhouette(train.alpha):
         return None
 
-    near = 2.0 if cfg.near is None else float(cfg.near)
-    far = 6.0 if cfg.far is None else float(cfg.far)
+    near = DATASET_NEAR if cfg.near is None else float(cfg.near)  # (resolve's, for Blender data)
+    far = DATASET_FAR if cfg.far is None else float(cfg.far)
     reach = opaque_reach(train.c2w, train.intrinsics, train.alpha, near, far, BLENDER_AABB)
     if reach <= BLENDER_AABB:
         return None
