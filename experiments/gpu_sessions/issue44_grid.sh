@@ -17,11 +17,12 @@ declare -A CHANGES=(
   [no_ema]="--ema 0"                                # item 4, removed (NeRF's default has it)
   [ema]="--ema 0.95"                                # item 4, added (hash_sdf's default lacks it)
   [huber]="--photometric-loss huber"                # item 5
+  [reflect]="--color-direction reflect"             # hash_sdf only: Ref-NeRF's colour input
   [all]="--random-background on --view-cull --sparse-adam --mlp-weight-decay 1e-6 --ema 0.95 --photometric-loss huber"
 )
 if [ "$1" = list ]; then
   for s in lego materials; do for f in nerf sdf; do for c in "${!CHANGES[@]}"; do
-    case $f-$c in nerf-ema|sdf-no_ema) continue ;; esac  # (the defaults: same as base)
+    case $f-$c in nerf-ema|sdf-no_ema|nerf-reflect) continue ;; esac  # (defaults; reflect: SDF only)
     echo "$s-$f-$c"; done; done; done
   exit 0
 fi
@@ -35,5 +36,6 @@ sdf)  CMD="train volsdf --data $S/$scene --field hash_sdf --device cuda --tf32 -
 *) echo "unknown field $field"; exit 2 ;;
 esac
 GEO=""; [ "$field-$scene" = sdf-materials ] && GEO="--geometry materials --mesh-resolution 384"
-ttq "$1" 400 --budgets 60,300 --spp 1,4 $GEO --label "issue 44 grid: $scene $field ${CHANGES[$change]:-(as it is)}" -- $CMD ${CHANGES[$change]}
+SPP="1,4"; [ "$field" = sdf ] && SPP=1  # hash_sdf trains one ray a pixel; its 4-ray eval costs minutes
+ttq "$1" 400 --budgets ${BUDGETS:-60,300} --spp $SPP $GEO --label "issue 44 grid: $scene $field ${CHANGES[$change]:-(as it is)}" -- $CMD ${CHANGES[$change]}
 cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true
