@@ -197,7 +197,7 @@ PHASES: dict[str, tuple[str, str, str]] = {
 nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.sm,clocks.mem --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch, warp; print('torch', torch.__version__, 'warp', warp.__version__)" | tee -a "$OUT/gpu.txt"
 git log -1 --format='commit %H' 2>/dev/null | tee -a "$OUT/gpu.txt"
-python3 -m pytest tests -q -k "cuda" -p no:cacheprovider ${PYTEST_ARGS:-} 2>&1 | tail -25 | tee "$OUT/pytest_cuda.txt"
+python3 -m pytest -o addopts=-ra tests -q -k "cuda" -p no:cacheprovider ${PYTEST_ARGS:-} 2>&1 | tail -25 | tee "$OUT/pytest_cuda.txt"
 python3 -m warpnerf.cli bench composite --device cuda --json "$OUT/bench_cuda.json" 2>&1 | tee "$OUT/bench_cuda.md"
 """,
     ),
@@ -206,7 +206,7 @@ python3 -m warpnerf.cli bench composite --device cuda --json "$OUT/bench_cuda.js
         "the CUDA variants of every test",
         """
 git log -1 --format='commit %H' 2>/dev/null | tee "$OUT/commit.txt"
-python3 -m pytest tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
+python3 -m pytest -o addopts=-ra tests -q -k cuda -p no:cacheprovider > "$OUT/alltests.txt" 2>&1
 tail -25 "$OUT/alltests.txt"
 """,
     ),
@@ -214,7 +214,7 @@ tail -25 "$OUT/alltests.txt"
         "gpu_next.sh STAGE=tests",
         "the CUDA variants of TESTS (default: test_distortion, test_contraction)",
         """
-python3 -m pytest ${TESTS:-tests/test_distortion.py tests/test_contraction.py} -q -k cuda \\
+python3 -m pytest -o addopts=-ra ${TESTS:-tests/test_distortion.py tests/test_contraction.py} -q -k cuda \\
   -p no:cacheprovider 2>&1 | tail -8 | tee "$OUT/pytest_cuda_subset.txt"
 """,
     ),
@@ -254,7 +254,7 @@ python3 scripts/sync_sites.py --json "$OUT/sync_sites.json" -- train nerf --data
         "the CUDA-graph step's tests on CUDA",
         _GRAPH
         + """
-python3 -m pytest tests/test_graph_step.py tests/test_sync_budget.py tests/test_encoding.py \\
+python3 -m pytest -o addopts=-ra tests/test_graph_step.py tests/test_sync_budget.py tests/test_encoding.py \\
   -q -x -k cuda > "$OUT/tests.txt" 2>&1; tail -15 "$OUT/tests.txt"
 """,
     ),
@@ -595,7 +595,7 @@ gpu_line
         "CUDA tests of the surface code, demos 06/07/08 on cuda",
         _VOLSDF
         + """
-python3 -m pytest -q -p no:cacheprovider tests/test_sphere_trace.py tests/test_neural_sdf.py \\
+python3 -m pytest -o addopts=-ra -q -p no:cacheprovider tests/test_sphere_trace.py tests/test_neural_sdf.py \\
   tests/test_encoding.py tests/test_nerf.py -k cuda 2>&1 | tail -3 | tee -a "$OUT/log.txt"
 python3 demos/06_sphere_trace_torus.py --device cuda --out /tmp/d06 --size 400 | tail -1 | tee -a "$OUT/log.txt"
 python3 demos/07_sphere_trace_scene.py --device cuda --out /tmp/d07 --size 400 | tail -1 | tee -a "$OUT/log.txt"

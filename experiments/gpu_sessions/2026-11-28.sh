@@ -56,7 +56,7 @@ b2)  # issue 47 (the tracer's frames; CUDA tests of the new kernels) and 49 item
     echo "frames wall $(( $(date +%s) - t0 )) s" >> $OUT/walls.txt
     ttq 0 lego60_bf16 --budgets 60 --label "plain command, --mlp-precision bf16" -- train nerf --data $S/lego --device cuda --mlp-precision bf16 $F
     left=$(( DEADLINE - $(date +%s) - 10 ))
-    [ $left -gt 30 ] && CUDA_VISIBLE_DEVICES=0 timeout $left python3 -m pytest -x -q tests/test_tracer.py tests/test_step_ops.py tests/test_proposal.py > $OUT/cuda_tests.log 2>&1
+    [ $left -gt 30 ] && CUDA_VISIBLE_DEVICES=0 timeout $left python3 -m pytest -o addopts=-ra -x -q tests/test_tracer.py tests/test_step_ops.py tests/test_proposal.py > $OUT/cuda_tests.log 2>&1
     tail -3 $OUT/cuda_tests.log ) > $OUT/g0.txt 2>&1 &
   ( ttq 2 beer_grid --budgets 120,240 --label "beer, the capture defaults (occupancy grid)" -- train nerf --data $S/beer --device cuda $F ) > $OUT/g2.txt 2>&1 &
   ( ttq 3 beer_proposal --budgets 120,240 --label "beer, --sampler proposal" -- train nerf --data $S/beer --device cuda --sampler proposal $F ) > $OUT/g3.txt 2>&1 &

@@ -51,7 +51,7 @@ for r in worst:
         except OSError as e:
             print(e)
 EOF
-  l=$(left 5); [ "$l" -gt 30 ] && timeout "$l" python3 -m pytest -q -k cuda -p no:cacheprovider \
+  l=$(left 5); [ "$l" -gt 30 ] && timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
     tests/test_tracer.py tests/test_step_ops.py tests/test_proposal.py tests/test_proposal_sampling.py \
     tests/test_composite.py tests/test_graph_step.py > $OUT/cuda_tests.log 2>&1
   tail -3 $OUT/cuda_tests.log
@@ -61,7 +61,7 @@ r2a)  # after the merges: the NeRF step (regression check of the merged march), 
   cp -r .gpu/data/* $S/ 2>/dev/null; ls $S
   step prof_fp32 60 python3 scripts/profile_train_step.py --warm 1500 --steps 50 --cprofile 0 \
     --json $OUT/prof_fp32.json -- train nerf --data $S/lego --device cuda
-  step cuda_composite 40 python3 -m pytest -q -x -k cuda -p no:cacheprovider tests/test_composite.py tests/test_composite_tiled.py
+  step cuda_composite 40 python3 -m pytest -o addopts=-ra -q -x -k cuda -p no:cacheprovider tests/test_composite.py tests/test_composite_tiled.py
   SDF="--field hash_sdf --device cuda --tf32 --batch 4096 --target-samples 262144 --aabb 1.7 --fixed-beta --beta 0.01"
   ttq msdf 200 --budgets 120 --geometry materials --mesh-resolution 384 --label "materials hash_sdf, issue 49's command (defaults: mask 0.1, weight cull)" -- train volsdf --data $S/materials $SDF $F
   M=$Q/msdf/run
@@ -69,7 +69,7 @@ r2a)  # after the merges: the NeRF step (regression check of the merged march), 
   step geo_rendered 50 python3 -m warpnerf.cli eval $M --geometry materials --mesh-resolution 384 --level rendered --quiet --out $Q/msdf/geo_rendered
   cp $Q/msdf/geo_rendered/*.json $OUT/ 2>/dev/null; ls $Q/msdf/geo_rendered >> $OUT/walls.txt 2>&1
   step bench_composite 45 python3 -m warpnerf.cli bench composite --device cuda --rays 1048576 --samples 128 --json $OUT/bench_composite.json
-  l=$(left 5); [ "$l" -gt 30 ] && timeout "$l" python3 -m pytest -q -k cuda -p no:cacheprovider \
+  l=$(left 5); [ "$l" -gt 30 ] && timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
     tests/test_composite_hard.py tests/test_graph_step.py tests/test_tracer.py tests/test_occupancy.py tests/test_contraction.py \
     tests/test_encoding.py tests/test_step_ops.py tests/test_composite.py tests/test_near_weight.py \
     tests/test_sphere_trace.py tests/test_composite_tiled.py > $OUT/cuda_tests.log 2>&1

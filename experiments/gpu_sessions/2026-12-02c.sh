@@ -13,7 +13,7 @@ case $1 in
 setup)  # the import, then the CUDA variants of the tests this round's code touches
   python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
   cat "$R/.commit" 2>/dev/null; nproc; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
-  l=$(left 5); timeout "$l" python3 -m pytest -q -k cuda -p no:cacheprovider tests/test_train_spp.py \
+  l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider tests/test_train_spp.py \
     tests/test_pixel_jitter.py tests/test_step_loss.py tests/test_graph_step.py tests/test_composite.py \
     tests/test_composite_tiled.py > $OUT/cuda_tests.log 2>&1; echo "pytest rc=$?" >> $OUT/cuda_tests.log
   tail -15 $OUT/cuda_tests.log; tail_out ;;

@@ -5,6 +5,7 @@
 # over several sessions). Written 2026-12-02 (tree of 2d88866), not run yet. Run from the tree
 # root on the device with Warp unpacked in /tmp/site and the data carried in .gpu/data:
 #     LIMIT=560 bash experiments/gpu_sessions/issue44_grid.sh SCENE-FIELD-CHANGE
+# (BUDGETS=60 WANT=80 LIMIT=120 for a 60 s row alone)
 # SCENE: lego | materials; FIELD: nerf | sdf; CHANGE: one of the keys of CHANGES below
 # (e.g. `materials-nerf-huber`); `list` prints every phase.
 . "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
@@ -18,6 +19,7 @@ declare -A CHANGES=(
   [ema]="--ema 0.95"                                # item 4, added (hash_sdf's default lacks it)
   [huber]="--photometric-loss huber"                # item 5
   [reflect]="--color-direction reflect"             # hash_sdf only: Ref-NeRF's colour input
+  [small_hash]="--hash-max-res 512 --hash-log2-size 16"  # materials' capacity (third round)
   [all]="--random-background on --view-cull --sparse-adam --mlp-weight-decay 1e-6 --ema 0.95 --photometric-loss huber"
 )
 if [ "$1" = list ]; then
@@ -37,5 +39,5 @@ sdf)  CMD="train volsdf --data $S/$scene --field hash_sdf --device cuda --tf32 -
 esac
 GEO=""; [ "$field-$scene" = sdf-materials ] && GEO="--geometry materials --mesh-resolution 384"
 SPP="1,4"; [ "$field" = sdf ] && SPP=1  # hash_sdf trains one ray a pixel; its 4-ray eval costs minutes
-ttq "$1" 400 --budgets ${BUDGETS:-60,300} --spp $SPP $GEO --label "issue 44 grid: $scene $field ${CHANGES[$change]:-(as it is)}" -- $CMD ${CHANGES[$change]}
+ttq "$1" "${WANT:-400}" --budgets ${BUDGETS:-60,300} --spp $SPP $GEO --label "issue 44 grid: $scene $field ${CHANGES[$change]:-(as it is)}" -- $CMD ${CHANGES[$change]}
 cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true

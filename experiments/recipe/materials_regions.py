@@ -32,16 +32,20 @@ RIM_FROM = 1.45
 def pixel_rays(c2w, angle_x: float, width: int, height: int):
     """Origins and unit directions [H * W, 3] (float64 numpy) through the pixels' centres, rows
     first: the library's camera rays (:func:`warpnerf.data.cameras.camera_rays`) of a Blender
-    camera (focal from ``camera_angle_x``, principal point at the centre)."""
+    camera (focal from ``camera_angle_x``, principal point at the centre). The kernel runs on
+    the GPU where there is one (the GPU machines' Warp ships without its CPU compiler)."""
     import torch
 
     from warpnerf.data.cameras import camera_rays
 
+    dev = "cuda" if torch.cuda.is_available() else "cpu"
     focal = 0.5 * width / math.tan(0.5 * angle_x)
-    intr = torch.tensor([[focal, focal, 0.5 * width, 0.5 * height]], dtype=torch.float32)
-    c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32)[None]
+    intr = torch.tensor(
+        [[focal, focal, 0.5 * width, 0.5 * height]], dtype=torch.float32, device=dev
+    )
+    c2w = torch.as_tensor(np.asarray(c2w), dtype=torch.float32, device=dev)[None]
     o, d = camera_rays(c2w, intr, width, height)
-    d = d.double()
+    o, d = o.cpu(), d.cpu().double()
     d = d / d.norm(dim=-1, keepdim=True)
     return o.double().numpy(), d.numpy()
 
