@@ -269,6 +269,39 @@ class MarchGrid:
     contracted: int
     a: float  # contracted: the inner cube's half-size
     cone: float  # contracted: the step's growth
+    occ: wp.array(dtype=wp.int32)  # bounded: [6] the occupied cells' index box [lo, hi), or [0]
+
+
+@wp.func
+def clip_to_occupied(grid: MarchGrid, o: wp.vec3, d: wp.vec3, t0: float, t1: float, k: int):
+    """(k, t1) of a bounded ray cut to the occupied cells (``grid.occ``, the index box of every
+    occupied cell, grown by one cell against rounding): the ray's first lattice index k moves up
+    to two intervals before the grown box's entry, its end t1 down to one step past its exit,
+    -1 when the ray misses it. Exact: an interval the march emits has its midpoint in an
+    occupied cell, so inside the box, hence at index >= the new k and ending before the new t1
+    (the interval cut by the new t1 starts past the exit: its midpoint tests empty as before)."""
+    occ = grid.occ
+    if occ[0] >= occ[3] or occ[1] >= occ[4] or occ[2] >= occ[5]:
+        return int(-1), t1  # no occupied cell
+    te = float(-wp.inf)
+    tx = float(wp.inf)
+    for i in range(3):
+        lo = grid.lo[i] + float(occ[i] - 1) * grid.cell_size[i]
+        hi = grid.lo[i] + float(occ[i + 3] + 1) * grid.cell_size[i]
+        if d[i] == 0.0:
+            if o[i] < lo or o[i] > hi:
+                te = float(wp.inf)
+        else:
+            ta = (lo - o[i]) / d[i]
+            tb = (hi - o[i]) / d[i]
+            te = wp.max(te, wp.min(ta, tb))
+            tx = wp.min(tx, wp.max(ta, tb))
+    t1 = wp.min(t1, tx + grid.dt)
+    if not (te < t1) or not (t1 > t0):
+        return int(-1), t1
+    if te > t0:  # (and te < t1: the index fits the lattice's span, checked by the caller)
+        k = wp.max(k, int(wp.floor((te - t0) / grid.dt)) - 2)
+    return k, t1
 
 
 @wp.func
@@ -331,6 +364,8 @@ def march(
         limit = int(counts[r])  # the count pass's own, or fewer (a fixed-capacity buffer)
     if k < 0 or (grid.contracted == 0 and not (t1 > t0)):
         k = -1
+    if k >= 0 and grid.contracted == 0 and grid.occ.shape[0] == 6:
+        k, t1 = clip_to_occupied(grid, o, d, t0, t1, k)
     while k >= 0 and n < limit:
         found, s, e = next_occupied(grid, o, d, t0, t1, j, k)
         if found < 0:

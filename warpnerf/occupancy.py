@@ -89,12 +89,21 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))
         # --view-cull: the cells some training camera sees (all of them unless cull() ran)
         self.register_buffer("seen", torch.ones(n, dtype=torch.bool))
+        # the occupied cells' index box, kept with the bits (marching cuts rays to it); derived,
+        # so not saved: recomputed wherever the bits change
+        self.register_buffer("occupied", ops.occupied_cells(self.bits, self.res), persistent=False)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # a grid saved before view culling existed has no mask: every cell counts as seen
         if prefix + "bits" in state_dict and prefix + "seen" not in state_dict:
             state_dict[prefix + "seen"] = torch.ones_like(self.seen)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        self._bits_changed()
+
+    def _bits_changed(self) -> None:
+        """Refreshes what is derived from the bits (in place: a captured step reads the same
+        buffer; no host sync)."""
+        self.occupied.copy_(ops.occupied_cells(self.bits, self.res))
 
     @property
     def n_cells(self) -> int:
@@ -126,6 +135,7 @@ class OccupancyGrid(nn.Module):
         self.seen &= seen
         self.density.mul_(self.seen)
         self.bits &= ops.grid_pack_bits(self.seen.float(), 0.5)
+        self._bits_changed()
         return 1.0 - float(self.seen.float().mean())
 
     def _cells(self, generator):
@@ -156,6 +166,7 @@ class OccupancyGrid(nn.Module):
         ops.grid_ema_update(self.density, cells, values, self.decay)
         self.density.mul_(self.seen)  # culled cells stay empty (in place: no host sync)
         self.bits.copy_(ops.grid_pack_bits(self.density, self.threshold()))
+        self._bits_changed()
         self.n_updates += 1
 
     def march(self, origins, directions, near, far, *, jitter=None, k_begin=None, max_samples=1024,
@@ -182,6 +193,7 @@ class OccupancyGrid(nn.Module):
             k_begin=k_begin,
             max_samples=max_samples,
             capacity=capacity,
+            occupied=self.occupied,
         )
 
 

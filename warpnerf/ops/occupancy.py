@@ -21,6 +21,7 @@ __all__ = [
     "grid_cell_points",
     "grid_ema_update",
     "grid_pack_bits",
+    "occupied_cells",
     "live_samples",
     "live_samples_fixed",
     "sample_points",
@@ -57,10 +58,12 @@ def _cell_geometry(aabb, res: int):
     return wp.vec3(*box[:3].tolist()), wp.vec3(*size.tolist())
 
 
-def march_grid(bits: torch.Tensor, res: int, box, dt: float, contract=0.0, cone=0.0):
+def march_grid(bits: torch.Tensor, res: int, box, dt: float, contract=0.0, cone=0.0,
+               occupied: torch.Tensor | None = None):  # fmt: skip
     """The marching kernels' ``MarchGrid`` of a grid's ``bits`` [res^3 / 8] uint8: the bounded
     box ``box`` [6] float32, or with ``contract`` > 0 the contracted cube of that inner
-    half-size (``box`` then unread, the steps growing by ``cone``)."""
+    half-size (``box`` then unread, the steps growing by ``cone``). ``occupied``: the bounded
+    grid's :func:`occupied_cells` of these bits (rays are cut to them), or None."""
     from warpnerf.kernels import occupancy as K
 
     wp = bridge.load_warp()
@@ -70,7 +73,29 @@ def march_grid(bits: torch.Tensor, res: int, box, dt: float, contract=0.0, cone=
     g.a, g.cone = float(contract), float(cone)
     if not contract:
         g.lo, g.cell_size = _cell_geometry(box, res)
+    if occupied is None or contract:
+        g.occ = wp.from_torch(_empty_i(bits.device))
+    else:
+        if occupied.shape != (6,) or occupied.dtype != torch.int32:
+            raise ValueError("occupied must be occupied_cells(bits, res): [6] int32")
+        g.occ = wp.from_torch(occupied.to(bits.device))
     return g
+
+
+def occupied_cells(bits: torch.Tensor, res: int) -> torch.Tensor:
+    """The index box [lo_x, lo_y, lo_z, hi_x, hi_y, hi_z) (int32 [6], on the bits' device, no
+    host sync) of a res^3 grid's occupied cells (``bits`` [res^3 / 8] uint8, cell (ix * res +
+    iy) * res + iz); lo >= hi on every axis when none is. Marching reads it to cut each ray to
+    that box (:func:`march_rays`'s ``occupied``)."""
+    _check_res(res, bits.numel() * 8)
+    occ = unpack_bits(bits).reshape(res, res, res)
+    ar = torch.arange(res, device=bits.device, dtype=torch.int32)
+    lo, hi = [], []
+    for axes in ((1, 2), (0, 2), (0, 1)):
+        line = occ.any(dim=axes[1]).any(dim=axes[0])  # [res] bool along the remaining axis
+        lo.append(torch.where(line, ar, res).amin())
+        hi.append(torch.where(line, ar + 1, 0).amax())
+    return torch.stack(lo + hi).to(torch.int32)
 
 
 def _check_rays_and_bits(origins, directions, res, bits) -> tuple:
@@ -199,8 +224,12 @@ def march_rays(
     k_begin: torch.Tensor | None = None,  # [n_rays] int32: resume each ray at this index
     max_samples: int = 1024,
     capacity: int | None = None,
+    occupied: torch.Tensor | None = None,  # [6] int32: occupied_cells(bits, res)
 ):
     """Packed samples in the occupied cells along each ray (see kernels/occupancy.py).
+    ``occupied`` (:func:`occupied_cells` of these bits; a grid keeps it with its bits) cuts
+    each ray to the occupied cells' box first: the same samples, less marching through the
+    empty space before and after them.
 
     A ray's lattice of step ``dt`` starts at ``t_lo = max(near, box entry)`` (shifted by
     ``jitter * dt``) and ends at ``t_hi = min(far, box exit)``; an interval is kept when the grid
@@ -241,7 +270,7 @@ def march_rays(
     t_lo, t_hi = t_lo.contiguous(), torch.where(bad, t_lo, t_hi).contiguous()
     a = bridge.arr
     head = [a(origins, wp.vec3), a(directions, wp.vec3), a(t_lo), a(t_hi), a(jit), a(kb),
-            march_grid(bits, res, box, dt), int(max_samples)]  # fmt: skip
+            march_grid(bits, res, box, dt, occupied=occupied), int(max_samples)]  # fmt: skip
 
     def refuse():
         raise_bad_rays(origins, directions, near, far, dt, jitter, k_begin)
