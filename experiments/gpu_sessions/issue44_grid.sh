@@ -20,6 +20,8 @@ declare -A CHANGES=(
   [huber]="--photometric-loss huber"                # item 5
   [reflect]="--color-direction reflect"             # hash_sdf only: Ref-NeRF's colour input
   [small_hash]="--hash-max-res 512 --hash-log2-size 16"  # materials' capacity (third round)
+  [hash256]="--hash-max-res 256 --hash-log2-size 15"    # smaller still (not run yet)
+  [hash1024]="--hash-max-res 1024 --hash-log2-size 17"  # between it and the default (not run yet)
   [all]="--random-background on --view-cull --sparse-adam --mlp-weight-decay 1e-6 --ema 0.95 --photometric-loss huber"
 )
 if [ "$1" = list ]; then
