@@ -300,22 +300,8 @@ def march_bytes(n_rays: int, n: int) -> int:
     """Fewest bytes of the two marching passes (no scratch, the default): each reads origins,
     directions, t_lo, t_hi (32 B/ray); the count pass writes counts and k_next (8 B/ray), the
     fill pass reads offsets (4 B/ray) and writes t_starts, t_ends, ray_indices (12 B/sample).
-    Bitfield reads are cached. (With the count pass's scratch the fill pass reads no rays but
-    8 B/ray of counts and offsets, and the scratch's 8 B/sample are written and read.)"""
+    Bitfield reads are cached (and the optional scratch's bytes not counted)."""
     return 2 * 32 * n_rays + 12 * n_rays + 12 * n
-
-
-def _time_with_scratch(fn, dev, repeats: int, per_ray: int) -> float:
-    """:func:`_time` of a march whose count pass keeps ``per_ray`` intervals a ray for the fill
-    pass to copy (``ops.occupancy.MARCH_SCRATCH``), against the default in the same run."""
-    from .ops import occupancy as O
-
-    keep = O.MARCH_SCRATCH
-    O.MARCH_SCRATCH = per_ray
-    try:
-        return _time(fn, dev, repeats)
-    finally:
-        O.MARCH_SCRATCH = keep
 
 
 def _march_case(size: int, radius: float, res: int, dev, repeats: int):
@@ -348,7 +334,6 @@ def _march_case(size: int, radius: float, res: int, dev, repeats: int):
         "samples_per_ray": n / n_rays,
         "n_samples": n,
         "warp_ms": 1e3 * _time(run(march_rays), dev, repeats),
-        "warp_ms_scratch16": 1e3 * _time_with_scratch(run(march_rays), dev, repeats, 16),
         "warp_ms_uncut": 1e3 * _time(run(uncut), dev, repeats),
     }
     twin_rays = 1 << 14  # the brute-force twin enumerates every lattice step (memory)
@@ -519,7 +504,6 @@ _TABLES = {
         ("occupancy", "{occupancy:.3f}"),
         ("samples/ray", "{samples_per_ray:.1f}"),
         ("warp ms (count+fill)", "{warp_ms:.3f}"),
-        ("same, scratch of 16", "{warp_ms_scratch16:.3f}"),
         ("same, rays not cut to the occupied box", "{warp_ms_uncut:.3f}"),
         ("torch brute force ms (scaled)", "{torch_ms_scaled:.1f}"),
         ("speedup", "{speedup:.0f}x"),
