@@ -23,10 +23,6 @@ are exactly the dense lattice intervals whose midpoint cell is occupied (tests c
 brute force). One kernel serves both passes: ``fill == 0`` counts a ray's samples (capped at
 ``max_samples``), ``fill == 1`` writes the first ``counts[r]`` of them at the ray's offset (the
 exclusive prefix sum of the counts; fewer than counted where a fixed-capacity buffer is full).
-With ``n_scratch`` > 0 the count pass also keeps each ray's first ``n_scratch`` intervals in a
-scratch buffer, and a ray whose write fits in it is copied from there by the fill pass instead
-of marched again (the same values, bit for bit: the march is deterministic); 0 (the default,
-ops.occupancy.MARCH_SCRATCH) marches every ray twice.
 ``k_next`` returns where the ray stopped, so rendering can march in rounds (-1: done). The
 same kernel marches the contracted grid of unbounded scenes (below): a ``MarchGrid`` says which
 lattice a launch walks, and ``next_occupied`` is the one rule per step that the marcher and the
@@ -334,18 +330,8 @@ def march(
     t_starts: wp.array(dtype=float),  # [n] out (fill pass)
     t_ends: wp.array(dtype=float),  # [n] out (fill pass)
     ray_indices: wp.array(dtype=wp.int32),  # [n] out (fill pass)
-    scratch_s: wp.array(dtype=float),  # [n_rays * n_scratch]: the count pass's first samples
-    scratch_e: wp.array(dtype=float),  # [n_rays * n_scratch]
-    n_scratch: int,  # samples a ray keeps in the scratch (0: none, the fill pass marches again)
 ):
     r = wp.tid()
-    if fill != 0 and int(counts[r]) <= n_scratch:  # the count pass kept all it must write
-        base0 = int(offsets[r])
-        for i in range(int(counts[r])):
-            t_starts[base0 + i] = scratch_s[r * n_scratch + i]
-            t_ends[base0 + i] = scratch_e[r * n_scratch + i]
-            ray_indices[base0 + i] = r
-        return
     o = origins[r]
     d = directions[r]
     t0 = t_lo[r]
@@ -375,9 +361,6 @@ def march(
             t_starts[base + n] = s
             t_ends[base + n] = e
             ray_indices[base + n] = r
-        elif n < n_scratch:
-            scratch_s[r * n_scratch + n] = s
-            scratch_e[r * n_scratch + n] = e
         n += 1
         k = found + 1
     if fill == 0:

@@ -297,10 +297,9 @@ def ball_bits(res: int, radius: float, dev):
 
 
 def march_bytes(n_rays: int, n: int) -> int:
-    """Fewest bytes of the two marching passes (no scratch, the default): each reads origins,
-    directions, t_lo, t_hi (32 B/ray); the count pass writes counts and k_next (8 B/ray), the
-    fill pass reads offsets (4 B/ray) and writes t_starts, t_ends, ray_indices (12 B/sample).
-    Bitfield reads are cached (and the optional scratch's bytes not counted)."""
+    """Fewest bytes of the two marching passes: each reads origins, directions, t_lo, t_hi
+    (32 B/ray); the count pass writes counts and k_next (8 B/ray), the fill pass reads offsets
+    (4 B/ray) and writes t_starts, t_ends, ray_indices (12 B/sample). Bitfield reads are cached."""
     return 2 * 32 * n_rays + 12 * n_rays + 12 * n
 
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Written 2026-12-02 (fourth session, after its device time was spent) for the next session's
-# H200, not run yet: the CUDA tests of the march's occupied-box cut and fill scratch, their GPU
+# H200, not run yet: the CUDA tests of the march's occupied-box cut, its GPU
 # timings (issue 47: the step's march was 1.57 ms of 8.67), the plain lego command against its
 # earlier steps/s and PSNR, and issue 44's materials capacity rows (issue44_grid.sh's keys).
 # Run from the tree root on the device with Warp unpacked in /tmp/site and the data carried in
@@ -16,7 +16,7 @@ setup)  # the import, then the CUDA variants of the tests this session's code to
     tests/test_march_work.py tests/test_occupancy.py tests/test_contraction.py tests/test_tracer.py \
     tests/test_graph_step.py tests/test_view_cull.py > $OUT/cuda_tests.log 2>&1
   echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
-b1)  # 47: the march cut and uncut (and the fill's scratch) on the GPU (set ops.occupancy.MARCH_SCRATCH=16 in a python -c to time the scratch); the step's profile
+b1)  # 47: the march cut and uncut on the GPU; the step's profile
   step bench_march 90 python3 -m warpnerf.cli bench march --device cuda --json $OUT/bench_march.json
   step prof_step 90 python3 scripts/profile_train_step.py --warm 1500 --steps 50 --cprofile 0 \
     --json $OUT/prof_step.json -- train nerf --data $S/lego --device cuda

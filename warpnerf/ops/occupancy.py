@@ -300,43 +300,18 @@ def lattice_bounds(origins, directions, near, far, aabb, dt: float) -> tuple:
     return t_lo, t_hi, bad, near, far
 
 
-# Intervals a ray keeps from the count pass for the fill pass to copy. Off (0) until a GPU says
-# it pays: on a CPU the fill pass is about 1/8 of a march (it stops at a ray's last sample, the
-# count pass walks on to the box's exit) and the copy saved nothing (docs/design/training.md,
-# "Issue 47, third round"; set it to time it).
-MARCH_SCRATCH = 0
-MARCH_SCRATCH_SLOTS = 1 << 25  # at most this many scratch intervals a launch (256 MiB)
-
-
-def march_scratch(n_rays: int, per_ray: int | None = None) -> int:
-    """Intervals a ray of a launch of ``n_rays`` keeps in the count pass's scratch: ``per_ray``
-    (default :data:`MARCH_SCRATCH`), fewer where the launch would pass
-    :data:`MARCH_SCRATCH_SLOTS` (which also keeps ``ray * S`` within int32); 0: no scratch, the
-    fill pass marches every ray again."""
-    s = MARCH_SCRATCH if per_ray is None else int(per_ray)
-    s = max(0, min(s, MARCH_SCRATCH_SLOTS // max(n_rays, 1)))
-    return s
-
-
-def _march_passes(kernel, head: list, n_rays: int, bad, capacity, dev, refuse,
-                  scratch: int | None = None) -> tuple:  # fmt: skip
-    """A marcher's launches of ``kernel`` on its inputs ``head``: the count pass (keeping each
-    ray's first ``scratch`` intervals, default :func:`march_scratch`), then with ``capacity``
-    the fill into static slots (:func:`_fill_fixed`), else the one host sync (the sample total
-    and whether any ray was refused: then ``refuse()`` raises) and the packed fill. Returns
-    ``march_rays``'s result."""
+def _march_passes(kernel, head: list, n_rays: int, bad, capacity, dev, refuse) -> tuple:
+    """A marcher's launches of ``kernel`` on its inputs ``head``: the count pass, then with
+    ``capacity`` the fill into static slots (:func:`_fill_fixed`), else the one host sync (the
+    sample total and whether any ray was refused: then ``refuse()`` raises) and the packed fill.
+    Returns ``march_rays``'s result."""
     a = bridge.arr
     counts = torch.empty(n_rays, device=dev, dtype=torch.int32)
     k_next = torch.empty(n_rays, device=dev, dtype=torch.int32)
     no_f, no_i = a(_empty_f(dev)), a(_empty_i(dev))
-    s = march_scratch(n_rays, scratch)
-    scr_s = torch.empty(n_rays * s, device=dev, dtype=torch.float32)
-    scr_e = torch.empty(n_rays * s, device=dev, dtype=torch.float32)
-    tail = [a(scr_s), a(scr_e), s]
-    count = [0, no_i, a(counts), a(k_next), no_f, no_f, no_i]
-    bridge.launch(kernel, n_rays, head + count + tail, dev)
+    bridge.launch(kernel, n_rays, head + [0, no_i, a(counts), a(k_next), no_f, no_f, no_i], dev)
     if capacity is not None:
-        return _fill_fixed(kernel, head, counts, k_next, bad, capacity, dev, tail)
+        return _fill_fixed(kernel, head, counts, k_next, bad, capacity, dev)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     total = csum[-1:] if n_rays else torch.zeros(1, device=dev, dtype=torch.int64)
     # the one host sync: the sample total and whether any ray was refused
@@ -346,15 +321,14 @@ def _march_passes(kernel, head: list, n_rays: int, bad, capacity, dev, refuse,
     offsets, t_starts, t_ends, ray_indices = _packed_outputs(total, csum, counts, dev)
     if total:
         fill = [1, a(offsets), a(counts), a(k_next), a(t_starts), a(t_ends), a(ray_indices)]
-        bridge.launch(kernel, n_rays, head + fill + tail, dev)
+        bridge.launch(kernel, n_rays, head + fill, dev)
     packed_info = torch.stack([offsets, counts], -1)
     return Samples(t_starts, t_ends, ray_indices, packed_info), k_next
 
 
-def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev, tail) -> tuple:
+def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev) -> tuple:
     """The fill pass into ``capacity`` slots, with no host sync (see ``march_rays``'s
-    ``capacity``): each ray keeps ``clamp(capacity - offset, 0, count)`` of its samples
-    (``tail``: the count pass's scratch arguments)."""
+    ``capacity``): each ray keeps ``clamp(capacity - offset, 0, count)`` of its samples."""
     capacity = bridge.check_int("capacity", capacity, lo=1)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)
     offsets64 = csum - counts
@@ -366,7 +340,7 @@ def _fill_fixed(kernel, head: list, counts, k_next, bad, capacity: int, dev, tai
     ray_indices = torch.zeros(capacity, device=dev, dtype=torch.int32)
     a = bridge.arr
     fill = [1, a(offsets), a(kept), a(k_next), a(t_starts), a(t_ends), a(ray_indices)]
-    bridge.launch(kernel, counts.shape[0], head + fill + tail, dev)
+    bridge.launch(kernel, counts.shape[0], head + fill, dev)
     total = csum[-1] if counts.numel() else torch.zeros((), device=dev, dtype=torch.int64)
     stats = torch.stack([total, (total - capacity).clamp_min(0), bad.sum()])
     packed_info = torch.stack([offsets, kept], -1)
