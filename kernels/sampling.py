@@ -41,6 +41,8 @@ from typing import Any
 
 import warp as wp
 
+from .composite import ray_range
+
 
 @wp.kernel(enable_backward=False)
 def stratified_fwd(
@@ -56,11 +58,10 @@ def stratified_fwd(
     ray_indices: wp.array(dtype=wp.int64),  # [n] out, or [0] for dense
 ):
     r = wp.tid()
-    start = r * n_samples
-    count = n_samples
+    n_dense = n_samples
     if packed_info.shape[0] > 0:
-        start = int(packed_info[r, 0])
-        count = int(packed_info[r, 1])
+        n_dense = 0
+    start, count = ray_range(r, n_dense, packed_info)
     if count == 0:
         return
     lo = near[r]
@@ -130,12 +131,9 @@ def importance_fwd(
     out_ray_indices: wp.array(dtype=wp.int64),  # [m] out, or [0] for dense
 ):
     r = wp.tid()
-    start = r * n_dense
-    count = n_dense
+    start, count = ray_range(r, n_dense, packed_info)
     o = r * (n_dense + n_fine)
     if n_dense == 0:
-        start = int(packed_info[r, 0])
-        count = int(packed_info[r, 1])
         o = int(out_info[r, 0])
     if count == 0:
         return

@@ -262,8 +262,10 @@ def test_the_plain_command_on_cuda_trains_the_measured_gpu_recipe(monkeypatch):
     sdf = _config_of(["volsdf", "--data", "builtin", "--device", "cuda", "--field", "hash_sdf"],
                      monkeypatch, True)  # fmt: skip
     assert sdf.field == "hash_sdf" and sdf.chunk == 400_000  # (frames in few chunks, measured)
+    # the measured surface recipe: 2^18 samples a step, the weight average (issue 49, sixth round)
+    assert (sdf.batch, sdf.target_samples, sdf.ema) == (4096, 1 << 18, 0.95)
     sdf_cpu = _config_of(["volsdf", "--data", "builtin", "--field", "hash_sdf"], monkeypatch, False)
-    assert sdf_cpu.chunk == 8192
+    assert (sdf_cpu.chunk, sdf_cpu.batch, sdf_cpu.ema) == (8192, 1024, 0.0)
     # more samples a ray than the preset's chunk allows under int32 offsets: fewer rays at once
     deep = _config_of(["volsdf", "--data", "builtin", "--device", "cuda", "--field", "hash_sdf",
                        "--max-samples", "5400"], monkeypatch, True)  # fmt: skip

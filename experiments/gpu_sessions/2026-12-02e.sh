@@ -14,7 +14,7 @@ setup)  # the import, then the CUDA variants of the tests this session's code to
   cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
   l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
     tests/test_march_work.py tests/test_occupancy.py tests/test_contraction.py tests/test_tracer.py \
-    tests/test_graph_step.py tests/test_view_cull.py > $OUT/cuda_tests.log 2>&1
+    tests/test_graph_step.py tests/test_view_cull.py tests/test_sampling.py tests/test_importance.py > $OUT/cuda_tests.log 2>&1
   echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
 b1)  # 47: the march cut and uncut on the GPU; the step's profile
   step bench_march 90 python3 -m warpnerf.cli bench march --device cuda --json $OUT/bench_march.json
