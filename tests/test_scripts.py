@@ -146,6 +146,11 @@ def test_step_profile(tmp_path):
     _run([SCRIPTS / "profile_train_step.py", "--warm", "1", "--steps", "2", "--cprofile", "0",
           "--json", "p.json", "--", "train", "nerf", *TINY, "--out", "x"], tmp_path)  # fmt: skip
     assert json.loads((tmp_path / "p.json").read_text())["step_ms_median"] > 0
+    # issue 47's A/B of the occupied-box cut: the same profile with the grid's march uncut
+    _run([EXPERIMENTS / "overheads" / "march_cut_ab.py", "uncut", "--warm", "1", "--steps", "2",
+          "--cprofile", "0", "--json", "u.json", "--", "train", "nerf", *TINY, "--out", "y"],
+         tmp_path)  # fmt: skip
+    assert json.loads((tmp_path / "u.json").read_text())["step_ms_median"] > 0
 
 
 def test_tools_on_a_run(tmp_path, run):
