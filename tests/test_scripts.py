@@ -208,3 +208,17 @@ def test_surface_renderers_on_an_sdf_run(tmp_path):
     out = _run([SCRIPTS / "surface_renderers.py", "v", "--images", "1", "--repeats", "1"],
                tmp_path)  # fmt: skip
     assert json.loads(out.strip().splitlines()[-1])
+
+
+def test_silhouette_bias_study():
+    """experiments/surfaces/silhouette_bias.py: the Laplace density's outline of a sphere lies
+    m(r, beta) outside its zero level (closed form), and the logistic one's farther."""
+    sys.path.insert(0, str(EXPERIMENTS / "surfaces"))
+    try:
+        from silhouette_bias import table
+    finally:
+        sys.path.pop(0)
+    (row,) = table(0.32, betas=(0.01,))
+    assert abs(row["laplace_shift"] - row["laplace_closed_form"]) < 1e-3
+    assert 0.022 < row["laplace_shift"] < 0.025 < row["logistic_shift"]
+    assert 0 < row["laplace_head_on_depth"] < 0.005

@@ -25,6 +25,14 @@ s2)  # 49: materials hash_sdf with the average at 300 s (the mesh target 0.016; 
     --label "materials hash_sdf, the GPU preset (ema)" -- train volsdf --data $S/materials \
     --field hash_sdf --device cuda --aabb 1.7 --fixed-beta --beta 0.01 $F
   tail_out ;;
+s3)  # 49: the spheres' shrink is the density's tail at the outlines (surfaces.md "Issue 49,
+     # seventh round": 0.0237 at beta 0.01, 0.0088 at 0.003): beta annealed to 0.003 with a
+     # march step below it (lapB's recipe, issue 17, went to 0.005), materials, mesh at 300 s
+  ttq materials_sdf_beta003 360 --budgets 60,300 --spp 1 --geometry materials --mesh-resolution 384 \
+    --label "materials hash_sdf, beta 0.01 -> 0.003, march step 0.0025" -- train volsdf \
+    --data $S/materials --field hash_sdf --device cuda --aabb 1.7 --beta 0.01 --beta-final 0.003 \
+    --beta-anneal-steps 6000 --march-step 0.0025 --max-samples 2048 $F
+  tail_out ;;
 m1)  # 44: the materials winner's second seed, 300 s (33.95 dB with seed 0)
   ttq materials_hash256_seed1 330 --budgets 60,300 --spp 1,4 --label "materials hash256 seed 1" \
     -- train nerf --data $S/materials --device cuda --iters 40000 --seed 1 \
@@ -37,4 +45,5 @@ a1)  # 47: the step with and without the occupied-box cut, one lease, both order
   done
   grep -h '"step_ms_median"\|march_' $OUT/prof_*.log | head -20; tail_out ;;
 esac
-# Budget: setup ~1 min, s1 ~6, s2 ~6.5, m1 ~6, a1 ~2.5 (about 22 minutes with the starts).
+# Budget: setup ~1 min, s1 ~6, s2 ~6.5, s3 ~6.5, m1 ~6, a1 ~2.5: more than one session's 30
+# minutes; in order of what they settle: s3, s2 (issue 49's mesh target), s1, a1, m1.
