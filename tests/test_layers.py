@@ -27,6 +27,7 @@ LAYERS = {
     "safe_open": 2,
     "ply": 2,
     "metrics": 2,
+    "field_protocol": 2,  # (what renderers call on a field; imports torch only)
     "data": 3,
     "fields": 4,
     "occupancy": 4,

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import torch
 
+from .field_protocol import density as field_density
+from .field_protocol import needs_directions
 from .ops import render_packed
 from .ops.bridge import check_int
 from .ops.tracer import COLOR_WEIGHT_EPS
@@ -125,31 +127,34 @@ def render_marched(
     ri = smp.ray_indices
     positions = origins[ri] + directions[ri] * smp.midpoints().unsqueeze(-1)
     with torch.no_grad():
-        enc, sigmas = _first_pass(field, positions)
+        enc, sigmas = _first_pass(field, positions, lambda: directions[ri])
     keep, n_live = live_samples(smp, sigmas, t_threshold, check=False)
     idx = torch.nonzero(keep).squeeze(1)
     counts = n_live.to(torch.int64)
     info = torch.stack([torch.cumsum(counts, 0) - counts, counts], -1).to(torch.int32)
     kept = Samples(smp.t_starts[idx], smp.t_ends[idx], ri[idx], info)
-    sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx])
+    sigmas, feats = _second_pass(field, positions[idx], None if enc is None else enc[idx],
+                                 lambda: directions[kept.ray_indices])  # fmt: skip
     out = _shade_kept(field, directions, kept, sigmas, feats, background, t_threshold,
                       ray_images, distortion_s, near_t=near_t)  # fmt: skip
     out.update(n_marched=int(smp.t_starts.shape[0]), n_kept=int(idx.shape[0]))
     return out
 
 
-def _first_pass(field, positions):
+def _first_pass(field, positions, directions):
     """(encoding or None, sigmas) of a marcher's first, gradient-free pass: a field that can
-    hand over its encoding (``encode``) keeps it for the second pass."""
+    hand over its encoding (``encode``) keeps it for the second pass. ``directions``: a callable
+    giving the samples' directions, called only for a field whose density needs them."""
     if getattr(field, "encode", None) is None:
-        return None, field.density(positions)[0]
+        return None, field_density(field, positions, directions)[0]
     enc = field.encode(positions)
-    return enc, field.density(positions, encoded=enc)[0]
+    return enc, field_density(field, positions, directions, encoded=enc)[0]
 
 
-def _second_pass(field, positions, enc):
+def _second_pass(field, positions, enc, directions):
     """(sigmas, features) of the kept samples, with gradients (the encoding reused)."""
-    return field.density(positions) if enc is None else field.density(positions, encoded=enc)
+    kw = {} if enc is None else {"encoded": enc}
+    return field_density(field, positions, directions, **kw)
 
 
 def render_marched_fixed(
@@ -197,13 +202,14 @@ def render_marched_fixed(
     else:
         positions = sample_points(smp, origins, directions)
     with torch.no_grad():
-        enc, sigmas = _first_pass(field, positions)
+        enc, sigmas = _first_pass(field, positions, lambda: directions[smp.ray_indices])
     gather = {} if rays_grad else {"positions": positions, "directions": directions}
     live, src, live_stats, live_pos, dirs = live_samples_fixed(smp, sigmas.float(), t_threshold,
                                                                kept, **gather)  # fmt: skip
     if rays_grad:
         live_pos = positions[src]
-    sigmas, feats = _second_pass(field, live_pos, None if enc is None else enc[src])
+    live_dirs = (lambda: directions[live.ray_indices]) if dirs is None else dirs
+    sigmas, feats = _second_pass(field, live_pos, None if enc is None else enc[src], live_dirs)
     color_kw = None
     if getattr(field, "kind", "density") == "sdf":  # its eikonal term: the live slots only
         n_live = live_stats[0].clamp_max(kept)
@@ -321,12 +327,14 @@ def _render_rounds(
         ri = smp.ray_indices
         n_marched += smp.t_starts.shape[0]
         pos = oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1)
+        sd = da[ri] if needs_directions(field) else None  # (NeuS: the samples' directions)
         n = pos.shape[0]
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
             if n <= sample_budget:  # one call; the colour head reuses its features
-                sig, feats = field.density(pos)
+                sig, feats = field_density(field, pos, sd)
             else:  # bounded memory: densities in slices, features recomputed where needed
-                sig = torch.cat([field.density(pos[s : s + sample_budget])[0]
+                sig = torch.cat([field_density(field, pos[s : s + sample_budget],
+                                               None if sd is None else sd[s : s + sample_budget])[0]
                                  for s in range(0, n, sample_budget)])  # fmt: skip
                 feats = None
         sig = sig.to(dt)
@@ -354,7 +362,7 @@ def _render_rounds(
                 col = field.color(feats[seen], da[rs])
             else:
                 col = torch.cat([
-                    field.color(field.density(pos[sl])[1], da[ri[sl]])
+                    field.color(field_density(field, pos[sl], da[ri[sl]])[1], da[ri[sl]])
                     for sl in seen.split(sample_budget)
                 ])  # fmt: skip
         c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))

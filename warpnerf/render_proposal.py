@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from .field_protocol import density as field_density
 from .ops import render_packed
 from .ops.distortion import distortion_loss
 from .ops.proposal import interlevel_loss, proposal_resample
@@ -102,7 +103,7 @@ def render_proposal(
         u = None if jitter is None else jitter[:, i + 1]
         s = proposal_resample(s, w, n_next, jitter=u, anneal=sampler.anneal.to(dt), check=False)
     t0, t1, ri, info, pos = _intervals(sampler, s, origins, directions)
-    sig, feats = field.density(pos)
+    sig, feats = field_density(field, pos, lambda: directions[ri])
     kw = {} if ray_images is None else {"image_ids": ray_images[ri]}
     rgbs = field.color(feats, directions[ri], **kw)
     rgb, depth, opacity, w = render_packed(

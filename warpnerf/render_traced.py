@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from .field_protocol import density as field_density
 from .ops.tracer import COLOR_WEIGHT_EPS, MAX_STEPS, MIN_STEPS, trace_rays
 
 __all__ = ["render_traced", "TRACE_COLORS", "SAMPLE_BUDGET"]
@@ -73,15 +74,16 @@ def render_traced(
         n = pos.shape[0]
         with torch.no_grad(), autocast():
             if n <= sample_budget:  # one call; the colour head reuses its features
-                sig, feats = field.density(pos)
+                sig, feats = field_density(field, pos, dirs)
                 rgbs = field.color(feats, dirs) if color_all else None
                 return sig, (pos, dirs, feats, rgbs)
             sigs, rgbs = [], []
             for s in range(0, n, sample_budget):  # bounded memory
-                sig, feats = field.density(pos[s : s + sample_budget])
+                sl = slice(s, s + sample_budget)
+                sig, feats = field_density(field, pos[sl], dirs[sl])
                 sigs.append(sig)
                 if color_all:
-                    rgbs.append(field.color(feats, dirs[s : s + sample_budget]))
+                    rgbs.append(field.color(feats, dirs[sl]))
         return torch.cat(sigs), (pos, dirs, None, torch.cat(rgbs) if color_all else None)
 
     def color_fn(ctx, idx):
@@ -91,7 +93,7 @@ def render_traced(
         with torch.no_grad(), autocast():
             if feats is not None:
                 return field.color(feats[idx], dirs[idx])
-            return torch.cat([field.color(field.density(pos[sl])[1], dirs[sl])
+            return torch.cat([field.color(field_density(field, pos[sl], dirs[sl])[1], dirs[sl])
                               for sl in idx.split(sample_budget)])  # fmt: skip
 
     out = trace_rays(

@@ -13,6 +13,7 @@ setup)  # the import, the data, the CUDA variants of the tests the session's cod
   cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
   l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
     tests/test_recipe_losses.py tests/test_ema.py tests/test_hash_sdf.py tests/test_sampling.py \
+    tests/test_neus_density.py tests/test_graph_step.py \
     > $OUT/cuda_tests.log 2>&1
   echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
 s1)  # 49: the plain hash_sdf command (the GPU preset: --batch 4096 --target-samples 262144
@@ -33,6 +34,13 @@ s3)  # 49: the spheres' shrink is the density's tail at the outlines (surfaces.m
     --data $S/materials --field hash_sdf --device cuda --aabb 1.7 --beta 0.01 --beta-final 0.003 \
     --beta-anneal-steps 6000 --march-step 0.0025 --max-samples 2048 $F
   tail_out ;;
+s4)  # 49: NeuS's unbiased density (--sdf-density neus, built 2026-12-03: outlines at the zero
+     # level), materials at fixed beta 0.01, mesh at 300 s (the Laplace runs erode the spheres
+     # by 0.020-0.025); the step is slower (the gradient in both passes): steps/s in the JSON
+  ttq materials_sdf_neus 360 --budgets 60,300 --spp 1 --geometry materials --mesh-resolution 384 \
+    --label "materials hash_sdf, --sdf-density neus" -- train volsdf --data $S/materials \
+    --field hash_sdf --device cuda --aabb 1.7 --fixed-beta --beta 0.01 --sdf-density neus $F
+  tail_out ;;
 m1)  # 44: the materials winner's second seed, 300 s (33.95 dB with seed 0)
   ttq materials_hash256_seed1 330 --budgets 60,300 --spp 1,4 --label "materials hash256 seed 1" \
     -- train nerf --data $S/materials --device cuda --iters 40000 --seed 1 \
@@ -45,5 +53,6 @@ a1)  # 47: the step with and without the occupied-box cut, one lease, both order
   done
   grep -h '"step_ms_median"\|march_' $OUT/prof_*.log | head -20; tail_out ;;
 esac
-# Budget: setup ~1 min, s1 ~6, s2 ~6.5, s3 ~6.5, m1 ~6, a1 ~2.5: more than one session's 30
-# minutes; in order of what they settle: s3, s2 (issue 49's mesh target), s1, a1, m1.
+# Budget: setup ~1 min, s1 ~6, s2 ~6.5, s3 ~6.5, s4 ~6.5, m1 ~6, a1 ~2.5: more than one
+# session's 30 minutes; in order of what they settle: s4, s3 (issue 49's mesh target: the
+# spheres' erosion), s2, s1, a1, m1.

@@ -65,11 +65,12 @@ __all__ = [
     "DENSITIES",
     "COLOR_DIRECTIONS",
     "logistic_density",
+    "neus_density",
     "sdf_density",
     "reflect",
 ]
 
-DENSITIES = ("laplace", "logistic")
+DENSITIES = ("laplace", "logistic", "neus")
 COLOR_DIRECTIONS = ("view", "reflect")
 
 
@@ -86,9 +87,24 @@ def logistic_density(d: torch.Tensor, beta) -> torch.Tensor:
     return torch.sigmoid(-d / beta) / beta
 
 
+def neus_density(d: torch.Tensor, grad: torch.Tensor, directions: torch.Tensor, beta):
+    """NeuS's unbiased density (Wang et al. 2021, eq. 13): rho = max(-dPhi_s(d)/dt, 0) /
+    Phi_s(d) along the ray, which for d's directional derivative c = grad . v is
+    max(-c, 0) * s * sigmoid(-s d), s = 1 / beta: the logistic density scaled by how fast the
+    ray approaches the surface, and zero where it leaves it. A ray that passes a surface at
+    distance m keeps transmittance sigmoid(s m) (its outline is the zero level's), where the
+    density "along the normal" renders it ~3 beta too wide (experiments/surfaces/
+    silhouette_bias.py). ``directions`` [n, 3] need not be unit (normalised here)."""
+    v = torch.nn.functional.normalize(directions.to(grad.dtype), dim=-1)
+    approach = torch.relu(-(grad * v).sum(-1)).to(d.dtype)
+    return approach * logistic_density(d, beta)
+
+
 def sdf_density(kind: str, d: torch.Tensor, beta) -> torch.Tensor:
-    """sigma(d) of the conversion ``kind`` (:data:`DENSITIES`) with scale ``beta``."""
-    if kind == "logistic":
+    """sigma(d) of the conversion ``kind`` (:data:`DENSITIES`) with scale ``beta``; for
+    ``neus``, which also needs the gradient and the direction (:func:`neus_density`), its bound
+    for a 1-Lipschitz SDF: the logistic density."""
+    if kind in ("logistic", "neus"):
         return logistic_density(d, beta)
     return laplace_cdf(-d, beta) / beta
 
@@ -130,6 +146,9 @@ class HashSDFField(nn.Module):
             raise ValueError("an annealed beta needs beta_min <= beta_final <= beta and "
                              "anneal_steps >= 1")  # fmt: skip
         self.density_kind = density
+        # NeuS's density depends on the ray's direction: the renderers pass each sample's
+        # (warpnerf.field_protocol.density), and the features carry the gradient to color()
+        self.density_needs_directions = density == "neus"
         self.beta_start, self.beta_final = float(beta), float(beta_final)
         self.anneal_steps = int(anneal_steps)
         learn_beta = learn_beta and beta_final <= 0  # a schedule replaces learning
@@ -250,11 +269,22 @@ class HashSDFField(nn.Module):
 
     # ------------------------------------------------------------------------- rendering
 
-    def density(self, positions: torch.Tensor):
-        """sigmas [n] and the colour head's input [n, 3 + F] (positions, features)."""
+    def density(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
+        """sigmas [n] and the colour head's input [n, 3 + F] (positions, features); with the
+        ``neus`` density the samples' ``directions`` [n, 3] are needed and the input is
+        [n, 6 + F] (positions, the SDF's gradient, features): the gradient the density used is
+        the one the colour head and the eikonal term get."""
         d, feat = self._geometry(positions)
-        sigma = sdf_density(self.density_kind, d, self.beta.to(d.dtype))
-        return sigma, torch.cat([positions.detach().to(feat.dtype), feat], -1)
+        beta = self.beta.to(d.dtype)
+        x = positions.detach().to(feat.dtype)
+        if not self.density_needs_directions:
+            return sdf_density(self.density_kind, d, beta), torch.cat([x, feat], -1)
+        if directions is None:
+            raise ValueError("the neus density needs each sample's direction: "
+                             "density(positions, directions)")  # fmt: skip
+        g = self.gradient(positions)
+        sigma = neus_density(d, g, directions, beta)
+        return sigma, torch.cat([x, g.to(feat.dtype), feat], -1)
 
     def grid_density(self, positions: torch.Tensor, radius: float) -> torch.Tensor:
         """The largest density within ``radius`` of each position (the SDF is 1-Lipschitz):
@@ -267,7 +297,10 @@ class HashSDFField(nn.Module):
         the eikonal term of these samples when gradients are enabled. ``valid`` [n] bool: only
         those rows are samples (a fixed-capacity buffer's unused slots are not): the term is
         their mean, and recorded with ``aux_count`` (a device tensor) instead of a host count."""
-        g = self.gradient(h[:, :3])
+        if self.density_needs_directions:  # (density() computed it: [positions, grad, feat])
+            g, feat = h[:, 3:6], h[:, 6:]
+        else:
+            g, feat = self.gradient(h[:, :3]), h[:, 3:]
         if torch.is_grad_enabled() and valid is not None:
             w = valid.to(g.dtype)
             count = w.sum()
@@ -277,7 +310,7 @@ class HashSDFField(nn.Module):
             self._aux = {"eikonal": ((g.norm(dim=-1) - 1.0) ** 2).mean()} if len(g) else {}
             self._aux_n = {"eikonal": int(g.shape[0])}  # (its sample count: data parallelism)
         n = torch.nn.functional.normalize(g, dim=-1).to(h.dtype)
-        parts = [n, h[:, 3:]]
+        parts = [n, feat]
         if self.view_dependence:
             if directions is None:
                 raise ValueError("a view-dependent field needs directions")
@@ -295,7 +328,10 @@ class HashSDFField(nn.Module):
         return aux
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
-        sigma, h = self.density(positions)
+        if self.density_needs_directions:
+            sigma, h = self.density(positions, directions)
+        else:
+            sigma, h = self.density(positions)
         return sigma, self.color(h, directions)
 
     def n_parameters(self) -> int:

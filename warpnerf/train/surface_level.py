@@ -6,11 +6,11 @@ The rule: a fixed, seeded subset of the training pixels (:data:`LEVEL_RAYS` draw
 and a pixel centre, seed :data:`LEVEL_SEED`; every pixel of a smaller split) is rendered with
 the run's own renderer; on the rays whose opacity exceeds 0.5, f is the SDF at the expected
 depth (depth / opacity); the level is the median of f, clamped to +-:data:`LEVEL_BOUND` beta.
-Both densities (Laplace, logistic) are sigma = Psi(-f / beta) / beta, so one bound in units of
-beta serves both: along a ray that meets a plane head-on where |grad f| = g, f at the rendered
-depth is beta times a function of g (docs/design/surfaces.md, "Issue 49, third round"), beyond 5
-beta only for g below about 0.01 or above about 5: a field that far from a distance is not one a
-level can correct.
+The densities (Laplace, logistic; neus is the logistic one head-on) are sigma = Psi(-f / beta)
+/ beta, so one bound in units of beta serves them all: along a ray that meets a plane head-on
+where |grad f| = g, f at the rendered depth is beta times a function of g (docs/design/
+surfaces.md, "Issue 49, third round"), beyond 5 beta only for g below about 0.01 or above about
+5: a field that far from a distance is not one a level can correct.
 """
 
 from __future__ import annotations

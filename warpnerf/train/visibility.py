@@ -78,6 +78,8 @@ def sample_weights(model, cfg, origins, directions):
 
 
 def _marched(model, cfg, o, d):
+    from ..field_protocol import density as field_density
+    from ..field_protocol import needs_directions
     from ..ops import render_packed
     from ..render import SAMPLE_BUDGET
 
@@ -98,7 +100,9 @@ def _marched(model, cfg, o, d):
                                  max_samples=per_ray)  # fmt: skip
         ri = smp.ray_indices
         pos = oa[ri] + da[ri] * smp.midpoints().unsqueeze(-1)
-        sig = torch.cat([field.density(pos[s : s + SAMPLE_BUDGET])[0].to(dt)
+        sd = da[ri] if needs_directions(field) else None  # (NeuS: the samples' directions)
+        sig = torch.cat([field_density(field, pos[s : s + SAMPLE_BUDGET],
+                                       None if sd is None else sd[s : s + SAMPLE_BUDGET])[0].to(dt)
                          for s in range(0, max(pos.shape[0], 1), SAMPLE_BUDGET)])  # fmt: skip
         _, _, op, w = render_packed(
             smp.t_starts, smp.t_ends, ri, sig, sig.new_zeros(1, 3).expand(sig.shape[0], 3),
