@@ -222,3 +222,29 @@ def test_silhouette_bias_study():
     assert abs(row["laplace_shift"] - row["laplace_closed_form"]) < 1e-3
     assert 0.022 < row["laplace_shift"] < 0.025 < row["logistic_shift"]
     assert 0 < row["laplace_head_on_depth"] < 0.005
+
+
+def test_neus_ab_study_scores_the_true_surface_as_exact():
+    """experiments/surfaces/neus_builtin_ab.py: the built-in scene's own surface points score
+    signed medians and Chamfer near 0, and a sphere grown by 0.05 scores +0.05 on the sphere."""
+    sys.path.insert(0, str(EXPERIMENTS / "surfaces"))
+    try:
+        from neus_builtin_ab import shape_errors
+    finally:
+        sys.path.pop(0)
+    import torch
+
+    from warpnerf.data.synthetic import GlossyScene
+
+    s = GlossyScene()
+    g = torch.Generator().manual_seed(1)
+    dirs = torch.nn.functional.normalize(torch.randn(3000, 3, generator=g), dim=-1)
+    u = torch.rand(3000, 3, generator=g) - 0.5
+    u[torch.arange(3000), torch.randint(0, 3, (3000,), generator=g)] = torch.randint(
+        0, 2, (3000,), generator=g).float() - 0.5  # fmt: skip
+    exact = torch.cat([s.sph_c + s.sph_r * dirs, s.box_c + u * s.box_s]).numpy()
+    e = shape_errors(exact)
+    assert abs(e["sphere"]["signed_median"]) < 1e-5 and abs(e["box"]["signed_median"]) < 1e-5
+    assert e["chamfer"] < 0.02
+    grown = torch.cat([s.sph_c + (s.sph_r + 0.05) * dirs, s.box_c + u * s.box_s]).numpy()
+    assert shape_errors(grown)["sphere"]["signed_median"] == pytest.approx(0.05, abs=1e-4)
