@@ -28,17 +28,8 @@ def scene_sdf(p) -> torch.Tensor:
 
 
 def surface_points(n: int = 4000) -> torch.Tensor:
-    """About n points spread by area over the scene's surface (the box's faces and the sphere;
-    the two do not touch)."""
-    g = torch.Generator().manual_seed(0)
-    s = SCENE
-    a_sph, a_box = 4 * np.pi * s.sph_r**2, 6 * float(s.box_s[0]) ** 2
-    k = round(n * a_sph / (a_sph + a_box))
-    sph = s.sph_c + s.sph_r * torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1)
-    u = torch.rand(n - k, 3, generator=g) - 0.5
-    axis = torch.randint(0, 3, (n - k,), generator=g)
-    u[torch.arange(n - k), axis] = torch.randint(0, 2, (n - k,), generator=g) - 0.5
-    pts = torch.cat([sph, s.box_c + u * s.box_s])
+    """About n points spread by area over the scene's surface (the box's faces and the sphere)."""
+    pts = SCENE.surface_points(n)
     assert scene_sdf(pts).abs().max() < 1e-4
     return pts
 

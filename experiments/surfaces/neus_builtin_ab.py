@@ -45,15 +45,8 @@ def shape_errors(v: np.ndarray) -> dict:
         dm = d[mine]
         out[name] = {"vertices": int(mine.sum()), "signed_median": float(dm.median()),
                      "mean_abs": float(dm.abs().mean())}  # fmt: skip
-    g = torch.Generator().manual_seed(0)  # Chamfer against points spread by area
-    a_sph, a_box = 4 * np.pi * s.sph_r**2, 6 * float(s.box_s[0]) ** 2
-    n = 4000
-    k = round(n * a_sph / (a_sph + a_box))
-    sph = s.sph_c + s.sph_r * torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1)
-    u = torch.rand(n - k, 3, generator=g) - 0.5
-    axis = torch.randint(0, 3, (n - k,), generator=g)
-    u[torch.arange(n - k), axis] = torch.randint(0, 2, (n - k,), generator=g) - 0.5
-    ref = torch.cat([sph, s.box_c + u * s.box_s])
+    ref = s.surface_points(4000)  # Chamfer against points spread by area
+    n = ref.shape[0]
     near = torch.cat([torch.cdist(ref[i : i + 1000], p).min(1).values for i in range(0, n, 1000)])
     acc = float(torch.minimum(d_box, d_sph).abs().mean())
     out["accuracy"], out["completeness"] = acc, float(near.mean())

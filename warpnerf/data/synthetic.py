@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import math
 import sys
 from pathlib import Path
 
@@ -40,6 +41,19 @@ class GlossyScene(nn.Module):
         self.box_c, self.box_s = torch.tensor([-0.4, -0.1, 0.0]), torch.tensor([0.55, 0.55, 0.55])
         self.sph_c, self.sph_r = torch.tensor([0.4, 0.15, 0.05]), 0.38
         self.light = torch.nn.functional.normalize(torch.tensor([0.6, -0.8, 1.2]), dim=0)
+
+    def surface_points(self, n: int = 4000, seed: int = 0) -> torch.Tensor:
+        """About n points [n, 3] spread by area over the scene's analytic surface (the box's
+        faces and the sphere; the two do not touch): the reference a mesh of it is scored by."""
+        g = torch.Generator().manual_seed(seed)
+        a_sph, a_box = 4 * math.pi * self.sph_r**2, 6 * float(self.box_s[0]) ** 2
+        k = round(n * a_sph / (a_sph + a_box))
+        unit = torch.nn.functional.normalize(torch.randn(k, 3, generator=g), dim=-1)
+        sph = self.sph_c + self.sph_r * unit
+        u = torch.rand(n - k, 3, generator=g) - 0.5
+        axis = torch.randint(0, 3, (n - k,), generator=g)
+        u[torch.arange(n - k), axis] = torch.randint(0, 2, (n - k,), generator=g) - 0.5
+        return torch.cat([sph, self.box_c + u * self.box_s])
 
     def forward(self, p: torch.Tensor, d: torch.Tensor):  # [n, 3], [n, 3] -> [n], [n, 3]
         dev = p.device
