@@ -5,6 +5,7 @@ checks, data parallel), registered at the end of this module as an outside metho
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 from functools import partial
 
@@ -364,7 +365,13 @@ def cmd_train_nerf(args) -> int:
     if dist is not None:  # (every rank finished: they leave the group together)
         dist.close()
     if not main:
-        return 0
+        # A rank other than 0 has written nothing and has nothing left to do: it leaves at once,
+        # without the interpreter's teardown, in which gloo's threads were seen to abort a rank
+        # after a finished run (SIGABRT, "terminate called without an active exception": 2 of 5
+        # CI runs on 2026-12-03, both times rank 1, after destroy_process_group).
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     last = {
         "step": hist["step"][-1] if hist["step"] else 0,
         "train_psnr": hist["psnr"][-1] if hist["psnr"] else None,
