@@ -328,10 +328,7 @@ class HashSDFField(nn.Module):
         return aux
 
     def forward(self, positions: torch.Tensor, directions: torch.Tensor | None = None):
-        if self.density_needs_directions:
-            sigma, h = self.density(positions, directions)
-        else:
-            sigma, h = self.density(positions)
+        sigma, h = self.density(positions, directions)  # (directions: used by neus only)
         return sigma, self.color(h, directions)
 
     def n_parameters(self) -> int:
