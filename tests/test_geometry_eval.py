@@ -84,6 +84,30 @@ def test_depth_error_of_a_sphere(sphere_model):
     assert none["depth_pixels"] == 0 and none["depth_error_mean"] is None
 
 
+def test_depth_error_by_shape(sphere_model):
+    """Per shape: the pixels of each shape add up to all of them, and a reference sphere 0.1
+    larger than the field's puts the rendered surface about 0.1 behind it (signed median > 0)
+    on the shape that holds the hits, the other shape named has none."""
+    import numpy as np
+
+    cfg, model, ds, r = sphere_model
+    ref = lambda o, d: sphere_depth(o, d, [[0, 0, 0]], r + 0.1)  # noqa: E731
+
+    def ids(p):  # upper half: shape 0, lower: shape 1; "none" never
+        return np.where(p[:, 2] >= 0, 0, 1)
+
+    res = depth_error(model, cfg, ds, ref, views=0, shapes=(("upper", "lower", "none"), ids))
+    per = res["depth_by_shape"]
+    assert set(per) <= {"upper", "lower"} and per
+    assert sum(v["pixels"] for v in per.values()) == res["depth_pixels"]
+    for v in per.values():
+        assert 0.05 < v["signed_median"] < 0.2 and v["median"] == pytest.approx(
+            abs(v["signed_median"]), abs=0.05)
+    plain = depth_error(model, cfg, ds, ref, views=0)
+    assert "depth_by_shape" not in plain
+    assert plain["depth_error_mean"] == pytest.approx(res["depth_error_mean"])
+
+
 def test_materials_visibility_and_shapes():
     """The analytic observation mask: a sphere's top and the open disk are seen from above, the
     contact point under a sphere and a sphere's underside are not, points outside the image are

@@ -32,7 +32,7 @@ s3)  # 49: the spheres' shrink is the density's tail at the outlines (surfaces.m
   ttq materials_sdf_beta003 360 --budgets 60,300 --spp 1 --geometry materials --mesh-resolution 384 \
     --label "materials hash_sdf, beta 0.01 -> 0.003, march step 0.0025" -- train volsdf \
     --data $S/materials --field hash_sdf --device cuda --aabb 1.7 --beta 0.01 --beta-final 0.003 \
-    --beta-anneal-steps 6000 --march-step 0.0025 --max-samples 2048 $F
+    --beta-anneal-steps 6000 --march-step 0.0025 --max-samples 4096 $F
   tail_out ;;
 s4)  # 49: NeuS's unbiased density (--sdf-density neus, built 2026-12-03: outlines at the zero
      # level), materials at fixed beta 0.01, mesh at 300 s (the Laplace runs erode the spheres

@@ -63,23 +63,45 @@ def rendered_depths(model, cfg, ds, depth_fn, views: int = 10, min_opacity: floa
     return {**out, "views": n}
 
 
-def depth_error(model, cfg, ds, depth_fn, views: int = 10, min_opacity: float = 0.5) -> dict:
+def depth_error(model, cfg, ds, depth_fn, views: int = 10, min_opacity: float = 0.5,
+                shapes=None) -> dict:  # fmt: skip
     """Mean and median |rendered depth - true depth| over the pixels of
     :func:`rendered_depths` (the first ``views`` images of ``ds``, 0: all, that the reference
     hits and the run renders opaque).
 
+    ``shapes`` (optional): (names, ids_fn) with ``ids_fn(points [m, 3] numpy) -> [m]`` the index
+    into ``names`` of the shape each true hit point lies on; the figures are then also given per
+    shape under "depth_by_shape", with the signed median of rendered - true depth (positive: the
+    rendered surface lies behind the true one, seen from the camera).
+
     Returns:
         {"depth_error_mean", "depth_error_median" (None without such pixels), "depth_pixels",
-        "depth_views"}.
+        "depth_views"} (+ "depth_by_shape": {name: {"pixels", "mean", "median",
+        "signed_median"}} for the shapes with pixels).
     """
     r = rendered_depths(model, cfg, ds, depth_fn, views, min_opacity)
-    e = (r["rendered"] - r["true"]).abs()
-    return {
+    s = r["rendered"] - r["true"]
+    e = s.abs()
+    out = {
         "depth_error_mean": float(e.mean()) if e.numel() else None,
         "depth_error_median": float(e.median()) if e.numel() else None,
         "depth_pixels": int(e.numel()),
         "depth_views": r["views"],
     }
+    if shapes is not None:
+        names, ids_fn = shapes
+        hits = r["origins"] + r["true"].unsqueeze(-1) * r["directions"]
+        ids = torch.as_tensor(ids_fn(hits.numpy()), dtype=torch.long) if len(hits) else None
+        per = {}
+        for k, name in enumerate(names):
+            sel = ids == k if ids is not None else None
+            if sel is None or not bool(sel.any()):
+                continue
+            per[name] = {"pixels": int(sel.sum()), "mean": float(e[sel].mean()),
+                         "median": float(e[sel].median()),
+                         "signed_median": float(s[sel].median())}  # fmt: skip
+        out["depth_by_shape"] = per
+    return out
 
 
 def _surface_distances(v, f, ref, points, cfg, below=None) -> dict:
@@ -359,7 +381,11 @@ def _geometry_depth(model, cfg, views: int) -> dict:
     if cfg.ndc_camera() is not None or cfg.scene is not None:
         return {**_NO_DEPTH, "depth_note": "the run's rays are in a normalised capture frame, "
                 "not the analytic scene's: no depth error"}  # fmt: skip
-    res = depth_error(model, cfg, load_data(cfg, "val"), materials_depth, views)
-    res["depth_note"] = ("|expected depth / opacity - analytic first hit| on val pixels the "
-                         "reference hits with opacity > 0.5")  # fmt: skip
+    res = depth_error(model, cfg, load_data(cfg, "val"), materials_depth, views,
+                      shapes=(MATERIALS_NAMES, materials_shape_ids))  # fmt: skip
+    res["depth_note"] = (
+        "|expected depth / opacity - analytic first hit| on val pixels the reference hits with "
+        "opacity > 0.5; depth_by_shape: by the shape hit, signed_median of rendered - true "
+        "(> 0: behind the true surface)"
+    )
     return res
