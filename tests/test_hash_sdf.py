@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from warpnerf.data.materials_truth import MATERIALS_NAMES
 from warpnerf.fields.hash_sdf import HashSDFField
 from warpnerf.fields.sdf_volume import laplace_cdf
 from warpnerf.mesh import read_ply, vertex_colors, write_ply
@@ -309,10 +310,14 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
     mat = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert mat["depth_views"] == 4 and mat["depth_pixels"] > 0  # (its sphere vs materials')
     assert 0 < mat["depth_error_mean"] < 3.0 and 0 < mat["depth_error_median"] < 3.0
+    by_shape = mat["depth_by_shape"]  # (by the shape each true ray hits, pixels add up)
+    assert set(by_shape) <= set(MATERIALS_NAMES) and by_shape
+    assert sum(v["pixels"] for v in by_shape.values()) == mat["depth_pixels"]
     # the figures of the mesh as delivered (culled by the training cameras, cleaned) and of the
     # raw level set with every face counted (the main figures leave out what lies under the disk)
     raw, dl = mat["raw_every_face"], mat["delivered"]
     assert dl["culled_by_views"] is True and dl["clean"] == 0.01
+    assert set(dl["disk_top_by_radius"]) == {"0-0.4", "0.4-0.8", "0.8-1.2", "1.2-1.45", "1.45-1.6"}
     # and first by the training rays' weights (issue 49), or a note saying why not
     assert dl["culled_by_weights"] is ("weight_grid" in dl) is ("weights_note" not in dl)
     assert dl["mesh_faces"] <= raw["mesh_faces"] and raw["surface_points"] >= mat["surface_points"]

@@ -243,7 +243,7 @@ def test_signed_medians_of_a_known_offset():
         MATERIALS_SPHERES,
     )
     from warpnerf.mesh import extract_mesh
-    from warpnerf.train.geometry_eval import shape_signed_medians
+    from warpnerf.train.geometry_eval import disk_top_profile, shape_signed_medians
 
     c = torch.tensor(MATERIALS_SPHERES)
 
@@ -257,6 +257,10 @@ def test_signed_medians_of_a_known_offset():
     assert list(sm) == list(MATERIALS_NAMES)
     for name, m in sm.items():
         assert m == pytest.approx(-0.01 if name == "disk" else -0.03, abs=0.003), (name, m)
+    prof = disk_top_profile(v, f, 40_000)
+    assert list(prof) == ["0-0.4", "0.4-0.8", "0.8-1.2", "1.2-1.45", "1.45-1.6"]
+    for ring in prof.values():  # (the slab's top, -0.01, in every ring)
+        assert ring["points"] > 100 and ring["median_z"] == pytest.approx(-0.01, abs=0.003)
 
 
 def test_level_offset_script_smoke(tiny_run, tmp_path):

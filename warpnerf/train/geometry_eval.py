@@ -20,7 +20,7 @@ from .nerf import load_data, load_run, render_dataset_image, with_refined_poses
 from .surface_level import check_level
 
 __all__ = ["evaluate_geometry", "surface_figures", "mesh_culling", "shape_signed_medians",
-           "depth_error", "rendered_depths", "sdf_field_names"]  # fmt: skip
+           "depth_error", "rendered_depths", "sdf_field_names", "disk_top_profile"]  # fmt: skip
 
 
 def sdf_field_names() -> str:
@@ -200,6 +200,33 @@ def shape_signed_medians(v, f, points: int) -> dict:
     return out
 
 
+DISK_RINGS = (0.0, 0.4, 0.8, 1.2, 1.45, 1.6)
+
+
+def disk_top_profile(v, f, points: int, rings=DISK_RINGS) -> dict:
+    """Where a materials mesh puts the ground disk's top, ring by ring: {"r0-r1": {"points",
+    "median_z"}} over the points sampled on it (by area, seed 0) nearest the disk, within its rim
+    and on faces facing up (as :func:`shape_signed_medians`' "disk"), grouped by their distance
+    from the disk's centre in the rings ``rings`` (edges, world units). Tells a uniform offset of
+    the floor from one at its rim (an outline against the background) or under the spheres."""
+    import numpy as np
+
+    from ..data.materials_truth import MATERIALS_DISK
+    from ..mesh import sample_surface
+
+    m, face = sample_surface(v, f, points, seed=0, return_faces=True)
+    t = v[f[face]]
+    up = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])[:, 2] > 0
+    rho = np.linalg.norm(m[:, :2], axis=1)
+    disk = (materials_shape_ids(m) == len(MATERIALS_NAMES) - 1) & up & (rho <= MATERIALS_DISK)
+    out = {}
+    for a, b in zip(rings[:-1], rings[1:]):
+        sel = disk & (rho >= a) & (rho < b)
+        z = float(np.median(m[sel, 2])) if sel.any() else None
+        out[f"{a:g}-{b:g}"] = {"points": int(sel.sum()), "median_z": z}
+    return out
+
+
 def evaluate_geometry(run, reference, resolution: int = 256, points: int = 50_000, device=None,
                       clean: float | None = None, views: int = 10,
                       snapshot: float | None = None, progress: bool = False,
@@ -362,6 +389,7 @@ def _delivered_figures(v, f, ref, points, cfg, below, cull) -> dict:
         }
         if below is not None:
             d["signed_median"] = shape_signed_medians(vd, fd, points)
+            d["disk_top_by_radius"] = disk_top_profile(vd, fd, points)
     out["delivered"] = {**d, **info}
     return out
 
