@@ -330,16 +330,42 @@ def test_eval_geometry_against_a_reference(tmp_path, capsys):
 
 
 def test_annealed_beta_below_the_march_step_warns(tmp_path, capsys):
-    """--beta-final below the grid's marching step trains, with a warning naming the fix."""
+    """--beta-final below a given marching step trains, with a warning naming the fix."""
     from warpnerf.cli.parser import main
 
     assert main(["train", "volsdf", "--data", "builtin", "--field", "hash_sdf", "--out",
                  str(tmp_path / "r"), "--iters", "1", "--batch", "32", "--grid-res", "8",
                  "--builtin-size", "8", "--hash-levels", "2", "--hash-log2-size", "8",
                  "--hash-max-res", "16", "--val-images", "0", "--quiet", "--beta-final", "0.001",
-                 "--beta-anneal-steps", "1"]) == 0  # fmt: skip
+                 "--beta-anneal-steps", "1", "--march-step", "0.01",
+                 "--max-samples", "1024"]) == 0  # fmt: skip
     out = capsys.readouterr()
     assert "below the marching step" in out.out + out.err and "--march-step" in out.out + out.err
+
+
+def test_annealed_beta_sets_the_default_march_step():
+    """Without --march-step, an annealed beta's final value bounds the grid's step (5/6 of it:
+    0.0025 at 0.003, the measured materials recipe) and --max-samples grows to the steps across
+    the box's diagonal; a given step, a final beta above the default step, no anneal, and a
+    NeRF field keep the default rules."""
+    import math
+
+    from warpnerf.train.nerf_config import NeRFConfig
+
+    def cfg(**kw):
+        base = dict(field="hash_sdf", data="builtin", aabb=1.7, beta=0.01, learn_beta=False)
+        return NeRFConfig(**{**base, **kw}).validate()
+
+    default = 2 * 1.7 * math.sqrt(3) / 1024
+    c = cfg(beta_final=0.003, beta_anneal_steps=6000)
+    assert c.march_step == pytest.approx(0.0025) and c.max_samples == 2356
+    c = cfg(beta_final=0.003, max_samples=4096)
+    assert c.march_step == pytest.approx(0.0025) and c.max_samples == 4096
+    assert cfg(beta_final=0.003, march_step=0.004, max_samples=2048).march_step == 0.004
+    assert cfg(beta_final=0.008).march_step == pytest.approx(default)  # (0.0067 > the default)
+    assert cfg().march_step == pytest.approx(default) and cfg().max_samples == 1024
+    nerf = NeRFConfig(field="hash", data="builtin", aabb=1.7).validate()
+    assert nerf.march_step == pytest.approx(default) and nerf.max_samples == 1024
 
 
 def test_color_direction_flag(tmp_path, capsys):

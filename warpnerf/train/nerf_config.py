@@ -40,6 +40,8 @@ __all__ = [
 
 FIELDS = FIELD_REGISTRY  # --field: the registered fields (fields/model.py), mlp, hash, volsdf...
 FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine network on
+# with --beta-final and no --march-step, the grid's step is at most this fraction of the final beta
+BETA_FINAL_STEP = 5.0 / 6.0
 DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
@@ -172,6 +174,13 @@ class NeRFConfig(*reversed(SECTIONS)):
                 self.aabb = BLENDER_AABB
         if self.grid_res and self.march_step <= 0:
             self.march_step = 2.0 * self.aabb * math.sqrt(3.0) / 1024
+            fine = self.beta_final * BETA_FINAL_STEP
+            if traits.geometry == "sdf" and traits.beta_schedule and 0 < fine < self.march_step:
+                # an annealed beta below the step aliases (materials: 25.6 dB); the measured
+                # recipe steps 0.0025 at beta 0.003 (docs/design/surfaces.md, eighth round)
+                self.march_step = fine
+                need = math.ceil(2 * math.sqrt(3) * self.aabb / fine * (1 - 1e-6))
+                self.max_samples = max(self.max_samples, need)
         if contracted and self.march_cone <= 0:
             self.march_cone = 1.0 / 256  # instant-ngp's for large scenes
         if self.near is None or self.far is None:
