@@ -5,7 +5,7 @@ images (the same image: >= ~50 dB). Runs on the CPU too (its smoke test); timing
 
 python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [--repeat 3]
     [--variants rounds,traced,traced-all] [--min-steps 8] [--max-steps 128] [--chunk N] [--half]
-    [--json F]
+    [--json F] [--profile N]
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -48,6 +48,43 @@ def renderer(name, model, cfg, a):
     )  # fmt: skip
 
 
+def profile_frames(fn, cfg, ds, n: int, sync) -> dict:
+    """``n`` renders of the first view under torch.profiler: the device (CUDA) or host (CPU)
+    time a frame of the 15 costliest operators, their sum over the kernels alone (the device's
+    busy time a frame), launches a frame, and the samples the frame composited."""
+    from torch.autograd import DeviceType
+    from torch.profiler import ProfilerActivity, profile
+
+    cuda = cfg.device.startswith("cuda")
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+    with torch.no_grad():
+        o, d = dataset_rays(cfg, ds, image=0)
+        out = render_chunks(o.shape[0], cfg.chunk, lambda sl: fn(o, d, sl))
+        sync()
+        with profile(activities=acts) as prof:
+            for _ in range(n):
+                render_chunks(o.shape[0], cfg.chunk, lambda sl: fn(o, d, sl))
+            sync()
+    ka = prof.key_averages()
+    key = "self_device_time_total" if cuda else "self_cpu_time_total"
+    top = sorted(ka, key=lambda k: -getattr(k, key, 0.0))[:15]
+    kernels = [k for k in ka if k.device_type == DeviceType.CUDA]
+    counters = {k: int(v) for k, v in out.items() if k.startswith("n_")
+                and (isinstance(v, int) or (torch.is_tensor(v) and v.dim() == 0))}  # fmt: skip
+    busy = sum(k.self_device_time_total for k in kernels) / 1e3 / n if cuda else None
+    launches = sum(k.count for k in ka if k.key in ("cudaLaunchKernel", "cuLaunchKernel"))
+    sync_keys = ("aten::_local_scalar_dense", "cudaStreamSynchronize", "cudaDeviceSynchronize")
+    syncs = sum(k.count for k in ka if k.key in sync_keys)
+    return {
+        "frames": n,
+        "device_busy_ms_per_frame": busy,
+        "launches_per_frame": launches / n,
+        "host_syncs_per_frame": syncs / n,
+        "counters": counters,  # (the renderer's: samples marched and kept, rounds)
+        "top_ms_per_frame": {k.key: getattr(k, key) / 1e3 / n for k in top},
+    }
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run")
@@ -64,6 +101,9 @@ def main():
     p.add_argument("--chunk", type=int, default=None, help="rays at once (default: the run's)")
     p.add_argument("--half", action="store_true", help="float16 MLPs (CUDA)")
     p.add_argument("--json", default=None, help="also write the results here")
+    p.add_argument("--profile", type=int, default=0, help="then N frames of the first view "
+                   "with the first variant under torch.profiler: device time a frame by kernel, "
+                   "and the samples a frame (the run's own rendering)")  # fmt: skip
     a = p.parse_args()
     names = a.variants.split(",")
     if not set(names) <= set(VARIANTS) or "rounds" not in names:
@@ -117,6 +157,8 @@ def main():
     }  # fmt: skip
     if cfg.device.startswith("cuda"):
         res["gpu"] = torch.cuda.get_device_name()
+    if a.profile > 0:
+        res["profile"] = profile_frames(fns[names[0]], cfg, ds, a.profile, sync)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(res, f, indent=1)

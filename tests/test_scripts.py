@@ -161,10 +161,13 @@ def test_tools_on_a_run(tmp_path, run):
 
     def frame():
         out = _run([SCRIPTS / "bench_frame.py", run, "--images", "1", "--repeat", "1", "--json",
-                    "f.json"], tmp_path)  # fmt: skip
+                    "f.json", "--profile", "1"], tmp_path)  # fmt: skip
         res = json.loads((tmp_path / "f.json").read_text())
         assert json.loads(out.splitlines()[-1])["views"] == 1
         assert min(res["psnr_vs_rounds_min"].values()) > 50  # the tracer: the rounds path's image
+        prof = res["profile"]  # (the first variant's frame under the profiler; host times here)
+        assert prof["frames"] == 1 and prof["top_ms_per_frame"] and prof["launches_per_frame"] >= 0
+        assert prof["counters"]["n_marched"] >= prof["counters"]["n_kept"] > 0
 
     def speed():
         _run([SCRIPTS / "speed_vs_error.py", "sweep", run, "s.json", "--images", "1",
