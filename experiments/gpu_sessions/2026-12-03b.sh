@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# Written 2026-12-03 (second session of the day, after its device time was spent) for the next
+# session's H200, not run yet: what the day's measurements left open (docs/design/surfaces.md
+# "Issue 49, eighth round", training.md "Issue 47, fourth round", nerf.md "Issue 44, eighth
+# round"). Run from the tree root on the device with Warp unpacked in /tmp/site and the data
+# carried in .gpu/data: LIMIT=... bash THIS PHASE
+. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
+F="--quiet --no-tensorboard --val-images 0"
+MAT="--data $S/materials --field hash_sdf --device cuda --aabb 1.7"
+tail_out() { cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true; }
+frame() {  # name run data: the run's frame (rounds path and tracer) with a profile of 5 frames
+  step "frame_$1" 90 python3 scripts/bench_frame.py "$2" --data "$3" --device cuda --images 0 \
+    --repeat 3 --variants rounds,traced --profile 5 --json "$OUT/frame_$1.json"
+}
+case $1 in
+setup)  # the import, the data, the CUDA variants of the tests the session's code touches
+  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
+  cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
+  l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
+    tests/test_hash_sdf.py tests/test_neus_density.py tests/test_graph_step.py \
+    > $OUT/cuda_tests.log 2>&1
+  echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
+p1)  # 49: the spheres' erosion follows the final beta (0.0216 at 0.01, 0.0095 at 0.003, as the
+     # seventh round predicted): 0.0015 predicts 0.005; the march step follows it by default now
+     # (5/6 of it: 0.00125, --max-samples 4712)
+  ttq materials_sdf_beta0015 360 --budgets 60,300 --spp 1 --geometry materials --mesh-resolution 384 \
+    --label "materials hash_sdf, beta 0.01 -> 0.0015 (default step 0.00125)" -- train volsdf $MAT \
+    --beta 0.01 --beta-final 0.0015 --beta-anneal-steps 6000 $F
+  tail_out ;;
+p2)  # 49: the best mesh's recipe (0.0219) with a second seed, and the new diagnostics: the
+     # disk's top ring by ring (delivered.disk_top_by_radius) and the depth error by shape with
+     # its sign (depth_by_shape): where the floor's +0.010 comes from
+  ttq materials_sdf_beta003_seed1 360 --budgets 60,300 --spp 1 --geometry materials \
+    --mesh-resolution 384 --label "materials hash_sdf, beta 0.01 -> 0.003, seed 1" -- \
+    train volsdf $MAT --beta 0.01 --beta-final 0.003 --beta-anneal-steps 6000 \
+    --max-samples 4096 --seed 1 $F
+  tail_out ;;
+p3)  # 49 / 44: does the anneal keep lego's 33.13 dB (learned beta ends near 0.003 there)?
+     # Then the surface frame's profile (target 25 ms; 39.8 ms)
+  ttq lego_sdf_beta003 330 --budgets 60,300 --spp 1 --label "lego hash_sdf, beta 0.01 -> 0.003" \
+    -- train volsdf --data $S/lego --field hash_sdf --device cuda --beta 0.01 --beta-final 0.003 \
+    --beta-anneal-steps 6000 $F
+  frame lego_sdf_beta003 $Q/lego_sdf_beta003/run $S/lego
+  tail_out ;;
+p4)  # 47: lego NeRF's frame with a profile (target 4 ms; the rounds path 10.7 ms, the tracer
+     # 16.7 in one chunk): where a frame's time goes, after a 60 s plain run
+  ttq lego_nerf_60 100 --budgets 60 --spp 1 --label "lego, the plain command, 60 s" -- \
+    train nerf --data $S/lego --device cuda --iters 40000 $F
+  frame lego_nerf_60 $Q/lego_nerf_60/run $S/lego
+  tail_out ;;
+p5)  # 49 / 44: the plain hash_sdf command (GPU preset) on its own 20,000-step schedule, lego
+  ttq lego_sdf_plain 330 --budgets 60,300 --spp 1 --label "the plain hash_sdf command" -- \
+    train volsdf --data $S/lego --field hash_sdf --device cuda --iters 20000 $F
+  tail_out ;;
+p6)  # 44: the materials winner's second seed, 300 s (33.95 dB with seed 0)
+  ttq materials_hash256_seed1 330 --budgets 60,300 --spp 1,4 --label "materials hash256 seed 1" \
+    -- train nerf --data $S/materials --device cuda --iters 40000 --seed 1 \
+    --hash-max-res 256 --hash-log2-size 15 $F
+  tail_out ;;
+p7)  # 48: beer with today's capture defaults (the weight average among them), held-out images
+  ttq beer_defaults 340 --budgets 120,300 --spp 1 --label "beer, today's capture defaults" -- \
+    train nerf --data $S/beer --device cuda $F
+  tail_out ;;
+esac
+# Budget: setup ~1 min, p1-p3 ~6.5 each (p3 with its frame ~8), p4 ~3.5, p5 ~6, p6 ~6, p7 ~6.5:
+# more than one session's 30 minutes; in order of what they settle: p1, p2, p3, p4, p5, p6, p7.
+# Carry: .gpu/data with lego and materials (32 MB); beer (8 MB) for p7.
