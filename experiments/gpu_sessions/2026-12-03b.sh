@@ -49,14 +49,10 @@ p4)  # 47: lego NeRF's frame with a profile (target 4 ms; the rounds path 10.7 m
   frame lego_nerf_60 $Q/lego_nerf_60/run $S/lego
   tail_out ;;
 p5)  # 49 / 44: the plain hash_sdf command (GPU preset) on its own 20,000-step schedule, lego
-  ttq lego_sdf_plain 330 --budgets 60,300 --spp 1 --label "the plain hash_sdf command" -- \
-    train volsdf --data $S/lego --field hash_sdf --device cuda --iters 20000 $F
-  tail_out ;;
-p6)  # 44: the materials winner's second seed, 300 s (33.95 dB with seed 0)
-  ttq materials_hash256_seed1 330 --budgets 60,300 --spp 1,4 --label "materials hash256 seed 1" \
-    -- train nerf --data $S/materials --device cuda --iters 40000 --seed 1 \
-    --hash-max-res 256 --hash-log2-size 15 $F
-  tail_out ;;
+     # (2026-12-03.sh s1, not run there; its archive is s1.tgz)
+  trap - EXIT; OUT=$FINAL exec bash "$(dirname "$0")/2026-12-03.sh" s1 ;;
+p6)  # 44: the materials winner's second seed, 300 s (33.95 dB with seed 0): 2026-12-03.sh m1
+  trap - EXIT; OUT=$FINAL exec bash "$(dirname "$0")/2026-12-03.sh" m1 ;;
 p7)  # 48: beer with today's capture defaults (the weight average among them), held-out images
   ttq beer_defaults 340 --budgets 120,300 --spp 1 --label "beer, today's capture defaults" -- \
     train nerf --data $S/beer --device cuda $F
