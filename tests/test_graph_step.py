@@ -78,14 +78,19 @@ def test_static_step_trains_as_the_eager_step_on_cpu():
     assert static.graph.shapes  # the static step did run (step 0 is eager: it sizes the buffers)
 
 
-@pytest.mark.parametrize("density", ["laplace", "neus"])
-def test_static_step_trains_the_surface_field_as_the_eager_step_on_cpu(density):
+SDF_VARIANTS = [("laplace", "central"), ("neus", "central"), ("laplace", "forward"),
+                ("neus", "forward")]  # fmt: skip
+
+
+@pytest.mark.parametrize("density,gradient", SDF_VARIANTS)
+def test_static_step_trains_the_surface_field_as_the_eager_step_on_cpu(density, gradient):
     """hash_sdf (an SDF field: eikonal term on the live samples, masked to the used slots, and
     on box points drawn as the eager step draws them; annealed beta; NeuS's density, which
-    needs each sample's direction in both passes): the static-shape step gives the eager step's
-    losses and parameters."""
+    needs each sample's direction in both passes; forward differences, whose features carry
+    the samples' SDF values): the static-shape step gives the eager step's losses and
+    parameters."""
     sdf = dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=8,
-               sdf_density=density)  # fmt: skip
+               sdf_density=density, sdf_gradient=gradient)  # fmt: skip
     eager, static = _task("cpu", **sdf), _task("cpu", **sdf)
     la, ha, _ = _train(eager, 10)
     lb, hb, _ = _train(static, 10, static=True, force=(4096, 1 << 16, 1 << 15))
@@ -182,13 +187,13 @@ def test_graph_step_has_no_host_sync_cuda():
     assert sum(sites.values()) <= 1, sites
 
 
-@pytest.mark.parametrize("density", ["laplace", "neus"])
-def test_graph_step_trains_the_surface_field_as_the_eager_step_cuda(density):
+@pytest.mark.parametrize("density,gradient", SDF_VARIANTS[:3])
+def test_graph_step_trains_the_surface_field_as_the_eager_step_cuda(density, gradient):
     """hash_sdf captured on CUDA (eikonal terms and an annealed beta inside the graph; NeuS's
     density with the samples' directions) gives the eager step's losses and parameters."""
     _cuda()
     sdf = dict(field="hash_sdf", target_samples=0, beta_final=0.02, beta_anneal_steps=20,
-               sdf_density=density)  # fmt: skip
+               sdf_density=density, sdf_gradient=gradient)  # fmt: skip
     graph, eager = _task("cuda", **sdf), _task("cuda", cuda_graph="off", **sdf)
     lg, hg, _ = _train(graph, 20, force=(4096, 1 << 16, 1 << 15))
     le, he, _ = _train(eager, 20)

@@ -141,16 +141,19 @@ def test_the_field_needs_directions_and_hands_its_gradient_on():
     assert torch.equal(density(plain, x, lambda: 1 / 0)[0], plain.density(x)[0])  # not called
 
 
+@pytest.mark.parametrize("density,gradient", [("neus", "central"), ("neus", "forward"),
+                                              ("laplace", "forward")])  # fmt: skip
 @pytest.mark.parametrize("device", ["cpu", "cuda"])
-def test_renderers_give_the_same_image(device):
+def test_renderers_give_the_same_image(device, density, gradient):
     """The marcher's paths (gradients, fixed capacity, rounds, tracer) render a neus field alike
-    on a few rays (each passes the samples' directions)."""
+    on a few rays (each passes the samples' directions), and a field with forward differences
+    (its features carry the samples' SDF values)."""
     if device == "cuda" and not torch.cuda.is_available():
         pytest.skip("CUDA not available (torch.cuda.is_available() is False): cuda variant skipped")
     from warpnerf.occupancy import OccupancyGrid
     from warpnerf.render import render_marched, render_marched_fixed
 
-    f = field(density="neus", beta=0.05).to(device)
+    f = field(density=density, beta=0.05, gradient=gradient).to(device)
     grid = OccupancyGrid(BOX, 8, dt=0.01).to(device)
     torch.manual_seed(3)
     o = torch.tensor([[0.0, 0.0, -3.0]]).expand(6, 3).contiguous()

@@ -20,6 +20,30 @@ setup)  # the import, the data, the CUDA variants of the tests the session's cod
     tests/test_hash_sdf.py tests/test_neus_density.py tests/test_graph_step.py \
     > $OUT/cuda_tests.log 2>&1
   echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
+f0)  # 49 / 47: the surface frame's profile, small enough for a session's last minutes: a 45 s
+     # materials hash_sdf run (the GPU preset), then its val frames with and without fp16 MLPs
+     # (data: MATDIR, default $S/materials)
+  D=${MATDIR:-$S/materials}
+  step f0_train 60 python3 -m warpnerf.cli train volsdf --data $D --field hash_sdf --device cuda \
+    --aabb 1.7 --fixed-beta --beta 0.01 --max-seconds 45 --iters 100000 --out $Q/f0 $F
+  step frame_f0 40 python3 scripts/bench_frame.py $Q/f0 --data $D --device cuda --images 5 \
+    --repeat 2 --variants rounds,traced --profile 5 --json $OUT/frame_f0.json
+  step frame_f0_half 30 python3 scripts/bench_frame.py $Q/f0 --data $D --device cuda --images 5 \
+    --repeat 2 --variants rounds --half --profile 5 --json $OUT/frame_f0_half.json
+  python3 - "$OUT" <<'PY'
+import json, sys
+for n in ("frame_f0", "frame_f0_half"):
+    try:
+        r = json.load(open(f"{sys.argv[1]}/{n}.json"))
+    except OSError:
+        continue
+    p = r["profile"]
+    print(n, r["frame_ms_median"], r["psnr_vs_gt"], "busy", p["device_busy_ms_per_frame"],
+          "launches", p["launches_per_frame"], "syncs", p["host_syncs_per_frame"], p["counters"])
+    for k, v in list(p["top_ms_per_frame"].items())[:12]:
+        print(f"  {v:8.3f}  {k[:90]}")
+PY
+  tail_out ;;
 p1)  # 49: the spheres' erosion follows the final beta (0.0216 at 0.01, 0.0095 at 0.003, as the
      # seventh round predicted): 0.0015 predicts 0.005; the march step follows it by default now
      # (5/6 of it: 0.00125, --max-samples 4712)

@@ -26,7 +26,10 @@ with the beta it was trained to.
 Normals and the eikonal term: the hash encoding gives no position gradient, so the SDF's gradient
 is a central finite difference (6 evaluations, second-order accurate; the 4-point tetrahedral
 scheme is cheaper but only first order, tests/test_hash_sdf.py):
-grad_i d(x) ~ (d(x + h e_i) - d(x - h e_i)) / (2 h).
+grad_i d(x) ~ (d(x + h e_i) - d(x - h e_i)) / (2 h);
+or (``gradient="forward"``) a forward difference from the sample's own value, which the density
+computed anyway: grad_i d(x) ~ (d(x + h e_i) - d(x)) / h, 3 evaluations, first order (an error of
+h/2 times the SDF's second derivative: about h / (2 r) of the normal on a sphere of radius r).
 The step h follows the coarse-to-fine schedule (Neuralangelo, Li et al. 2023): the hash levels
 open one by one (:meth:`set_step`: ``levels_start`` levels at step 0, one more every
 ``level_every`` steps) and h is the cell size of the finest open level, so early normals are
@@ -64,6 +67,7 @@ __all__ = [
     "HashSDFField",
     "DENSITIES",
     "COLOR_DIRECTIONS",
+    "GRADIENTS",
     "logistic_density",
     "neus_density",
     "sdf_density",
@@ -72,6 +76,7 @@ __all__ = [
 
 DENSITIES = ("laplace", "logistic", "neus")
 COLOR_DIRECTIONS = ("view", "reflect")
+GRADIENTS = ("central", "forward")
 
 
 def reflect(directions: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
@@ -132,8 +137,12 @@ class HashSDFField(nn.Module):
                  beta_min: float = 1e-4, learn_beta: bool = True, radius: float = 0.5,
                  levels_start: int = 4, level_every: int = 0, density: str = "laplace",
                  beta_final: float = 0.0, anneal_steps: int = 1,
-                 color_direction: str = "view"):  # fmt: skip
+                 color_direction: str = "view", gradient: str = "central"):  # fmt: skip
         super().__init__()
+        if gradient not in GRADIENTS:
+            raise ValueError(f"gradient must be one of {GRADIENTS}, got {gradient!r}")
+        # forward differences: the colour head's features carry the sample's SDF value
+        self.forward_differences = gradient == "forward"
         if color_direction not in COLOR_DIRECTIONS:
             raise ValueError(f"color_direction must be one of {COLOR_DIRECTIONS}, got "
                              f"{color_direction!r}")  # fmt: skip
@@ -259,6 +268,22 @@ class HashSDFField(nn.Module):
             d = self.sdf((x.unsqueeze(0) + v).reshape(-1, 3)).to(x.dtype).reshape(6, -1)
         return ((d[:3] - d[3:]) / (2.0 * h)).T
 
+    def forward_gradient(self, positions: torch.Tensor, d: torch.Tensor | None = None):
+        """The SDF's gradient [n, 3] by forward differences of step :attr:`fd_step`,
+        (d(x + h e_i) - d(x)) / h, from the SDF values ``d`` [n] at ``positions`` (computed here
+        when None or below float32: they must be this precision's values at exactly these
+        points); first order, 3 evaluations (4 without ``d``); differentiable in the
+        parameters, through ``d`` too. float32, or float64 for float64 positions."""
+        h = self.fd_step
+        x = positions.detach()
+        x = x if x.dtype == torch.float64 else x.float()
+        e = _axes(x.device, x.dtype) * h  # [3, 3]
+        with torch.autocast(x.device.type, enabled=False):
+            if d is None or d.dtype not in (torch.float32, torch.float64):
+                d = self.sdf(x)
+            dp = self.sdf((x.unsqueeze(0) + e.unsqueeze(1)).reshape(-1, 3)).to(x.dtype)
+        return ((dp.reshape(3, -1) - d.to(x.dtype).unsqueeze(0)) / h).T
+
     def eikonal(self, positions: torch.Tensor) -> torch.Tensor:
         """Mean (|grad d| - 1)^2 at positions [n, 3] (differentiable)."""
         return ((self.gradient(positions).norm(dim=-1) - 1.0) ** 2).mean()
@@ -278,11 +303,15 @@ class HashSDFField(nn.Module):
         beta = self.beta.to(d.dtype)
         x = positions.detach().to(feat.dtype)
         if not self.density_needs_directions:
-            return sdf_density(self.density_kind, d, beta), torch.cat([x, feat], -1)
+            sigma = sdf_density(self.density_kind, d, beta)
+            if self.forward_differences:  # (the value the colour head's differences start from)
+                return sigma, torch.cat([x, d.unsqueeze(-1).to(feat.dtype), feat], -1)
+            return sigma, torch.cat([x, feat], -1)
         if directions is None:
             raise ValueError("the neus density needs each sample's direction: "
                              "density(positions, directions)")  # fmt: skip
-        g = self.gradient(positions)
+        g = self.forward_gradient(positions, d) if self.forward_differences else (
+            self.gradient(positions))  # fmt: skip
         sigma = neus_density(d, g, directions, beta)
         return sigma, torch.cat([x, g.to(feat.dtype), feat], -1)
 
@@ -299,6 +328,8 @@ class HashSDFField(nn.Module):
         their mean, and recorded with ``aux_count`` (a device tensor) instead of a host count."""
         if self.density_needs_directions:  # (density() computed it: [positions, grad, feat])
             g, feat = h[:, 3:6], h[:, 6:]
+        elif self.forward_differences:  # [positions, sdf, feat]
+            g, feat = self.forward_gradient(h[:, :3], h[:, 3]), h[:, 4:]
         else:
             g, feat = self.gradient(h[:, :3]), h[:, 3:]
         if torch.is_grad_enabled() and valid is not None:
@@ -351,5 +382,6 @@ def _hash_sdf(cfg) -> RadianceModel:
         beta=cfg.beta, beta_min=cfg.beta_min, learn_beta=cfg.learn_beta,
         level_every=cfg.c2f_every, density=cfg.sdf_density, beta_final=cfg.beta_final,
         anneal_steps=cfg.beta_anneal_steps, color_direction=cfg.color_direction,
+        gradient=cfg.sdf_gradient,
     )  # fmt: skip
     return with_occupancy_grid(cfg, f, box)

@@ -102,6 +102,12 @@ class SDFDensityConfig:
         "reflect (it reflected about the SDF normal, plus n.v: Ref-NeRF's input for glossy "
         "surfaces; measured on materials: +1.4 dB renders, a coarser mesh)", groups=VOLSDF,
     )  # fmt: skip
+    sdf_gradient: str = option(
+        "central", "hash_sdf: the finite differences of the SDF's gradient (the colour head's "
+        "normal, the eikonal term, neus' density): central (second order: 7 SDF evaluations a "
+        "coloured training sample) or forward (first order, with the sample's own value: 4)",
+        groups=VOLSDF,
+    )  # fmt: skip
     eikonal_weight: float | None = option(
         None, "weight of (|grad d| - 1)^2 (samples + random points); default 0.1 (volsdf), "
         "0.01 (hash_sdf: measured +0.7 dB on lego, docs/design/surfaces.md)", check="finite",
@@ -122,7 +128,8 @@ class SDFDensityConfig:
                        f"{self.beta}] (or 0: off), got {self.beta_final}")  # fmt: skip
         check_at_least(self, fail, 1, "beta_anneal_steps")
         for name, allowed in (("sdf_density", ("laplace", "logistic", "neus")),
-                              ("color_direction", ("view", "reflect"))):  # fmt: skip
+                              ("color_direction", ("view", "reflect")),
+                              ("sdf_gradient", ("central", "forward"))):  # fmt: skip
             if (v := getattr(self, name)) not in allowed:
                 raise fail(name, f"must be one of {', '.join(allowed)}, got {v!r}")
         ew = self.eikonal_weight

@@ -275,9 +275,10 @@ class NeRFConfig(*reversed(SECTIONS)):
                        f"--field {self.field}")  # fmt: skip
         if traits.geometry == "sdf":
             if not traits.beta_schedule and (self.beta_final > 0 or self.sdf_density != "laplace"
-                                             or self.color_direction != "view"):  # fmt: skip
-                raise fail("field", "--beta-final, --sdf-density and --color-direction need "
-                           f"{_fields(beta_schedule=True)}")  # fmt: skip
+                                             or self.color_direction != "view"
+                                             or self.sdf_gradient != "central"):  # fmt: skip
+                raise fail("field", "--beta-final, --sdf-density, --color-direction and "
+                           f"--sdf-gradient need {_fields(beta_schedule=True)}")  # fmt: skip
             if self.color_direction == "reflect" and not self.view_dependence:
                 raise fail("color_direction", "reflect needs view dependence")
         if traits.options is not None:  # typed, no unknown names (the saved config: untrusted)
