@@ -368,7 +368,13 @@ def test_annealed_beta_sets_the_default_march_step():
     assert nerf.march_step == pytest.approx(default) and nerf.max_samples == 1024
 
 
-def test_color_direction_flag(tmp_path, capsys):
+@pytest.mark.parametrize("flag,value,key,on", [
+    ("--color-direction", "reflect", "color_direction", lambda f: f.reflect),
+    ("--sdf-gradient", "forward", "sdf_gradient", lambda f: f.forward_differences),
+])  # fmt: skip
+def test_hash_sdf_flags(tmp_path, capsys, flag, value, key, on):
+    """A hash_sdf-only flag trains, is saved and reaches the loaded field; another value and
+    another field are refused (exit 2, the flag named)."""
     from warpnerf.cli.parser import main
     from warpnerf.train.nerf import load_run
 
@@ -377,13 +383,16 @@ def test_color_direction_flag(tmp_path, capsys):
     hashed = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16",
               "--grid-res", "8"]  # fmt: skip
     run = tmp_path / "r"
-    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", "--color-direction",
-                 "reflect", "--out", str(run)]) == 0  # fmt: skip
+    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", flag, value,
+                 "--out", str(run)]) == 0  # fmt: skip
     cfg, model, _ = load_run(run)
-    assert cfg.color_direction == "reflect" and model.field.reflect
-    assert main(["train", "volsdf", *tiny, "--field", "volsdf", "--color-direction", "reflect",
+    assert getattr(cfg, key) == value and on(model.field)
+    assert main(["train", "volsdf", *tiny, "--field", "volsdf", flag, value,
                  "--out", str(tmp_path / "v")]) == 2  # fmt: skip
-    assert "--color-direction" in capsys.readouterr().err
+    assert flag in capsys.readouterr().err
+    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", flag, "bogus",
+                 "--out", str(tmp_path / "b")]) == 2  # fmt: skip
+    assert key in capsys.readouterr().err.replace("-", "_")
 
 
 def test_a_loaded_run_has_its_steps_schedule(tmp_path):

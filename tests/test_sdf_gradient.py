@@ -2,29 +2,15 @@
 gradient (d(x + h e_i) - d(x)) / h from the sample's own SDF value, which the density computed:
 exact on linear functions, first order on smooth ones, differentiable through both terms; the
 colour head's features carry that value, so density() then color() needs 3 more evaluations;
-a half-precision value is recomputed; the CLI flag trains, saves and is refused elsewhere."""
+a half-precision value is recomputed."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from warpnerf.fields.hash_sdf import HashSDFField
-from warpnerf.ops.encoding import HashGrid
-
-BOX = [-1.5, -1.5, -1.5, 1.5, 1.5, 1.5]
-
-
-def field(**kw) -> HashSDFField:
-    torch.manual_seed(0)
-    grid = HashGrid(n_levels=6, log2_size=10, base_res=4, max_res=64)
-    return HashSDFField(BOX, grid, hidden=16, **kw)
-
-
-def points(n=200, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    x = (torch.rand(n, 3, generator=g) * 2 - 1) * 1.4
-    return x[x.norm(dim=-1) > 0.3]
+from .test_hash_sdf import field
+from .test_hash_sdf import inside as points
 
 
 def smooth(p):
@@ -132,24 +118,7 @@ def test_neus_with_forward_differences_hard_cases(beta):
     assert torch.allclose(h[:, 3:6], f.forward_gradient(x, d), atol=1e-6)
 
 
-def test_the_flag_trains_saves_and_is_refused_elsewhere(tmp_path, capsys):
-    from warpnerf.cli.parser import main
-    from warpnerf.train.nerf import load_run
-
-    tiny = ["--data", "builtin", "--builtin-size", "16", "--batch", "64", "--val-images", "0",
-            "--quiet", "--iters", "2"]  # fmt: skip
-    hashed = ["--hash-levels", "3", "--hash-log2-size", "8", "--hash-max-res", "16",
-              "--grid-res", "8"]  # fmt: skip
-    run = tmp_path / "r"
-    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", "--sdf-gradient",
-                 "forward", "--out", str(run)]) == 0  # fmt: skip
-    cfg, model, _ = load_run(run)
-    assert cfg.sdf_gradient == "forward" and model.field.forward_differences
-    assert main(["train", "volsdf", *tiny, "--field", "volsdf", "--sdf-gradient", "forward",
-                 "--out", str(tmp_path / "v")]) == 2  # fmt: skip
-    assert "--sdf-gradient" in capsys.readouterr().err
-    assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", "--sdf-gradient",
-                 "backward", "--out", str(tmp_path / "b")]) == 2  # fmt: skip
-    assert "sdf_gradient" in capsys.readouterr().err.replace("-", "_")
+def test_an_unknown_scheme_is_refused():
+    """(The CLI flag: tests/test_hash_sdf.py::test_hash_sdf_flags.)"""
     with pytest.raises(ValueError, match="gradient"):
         field(gradient="tetrahedral")

@@ -44,6 +44,18 @@ for n in ("frame_f0", "frame_f0_half"):
         print(f"  {v:8.3f}  {k[:90]}")
 PY
   tail_out ;;
+s0)  # 47 / 49: the hash_sdf step with forward differences (4 SDF evaluations a coloured sample
+     # instead of 7; predicted: about 3/7 of the step's SDF work, ~9 of 17-20 ms, so 3.5-4 ms
+     # less), both orders in one lease, then lego at 300 s with it (33.13 dB with central)
+  for g in central forward forward central; do
+    step "prof_sdf_$g" 60 python3 scripts/profile_train_step.py --warm 600 --steps 50 \
+      --cprofile 0 --json "$OUT/prof_sdf_$g.json" -- train volsdf --data $S/lego \
+      --field hash_sdf --device cuda --sdf-gradient $g
+    grep -h '"step_ms_median"\|"device_busy' "$OUT/prof_sdf_$g.log"
+  done
+  ttq lego_sdf_forward 330 --budgets 60,300 --spp 1 --label "lego hash_sdf, --sdf-gradient forward" \
+    -- train volsdf --data $S/lego --field hash_sdf --device cuda --sdf-gradient forward $F
+  tail_out ;;
 p1)  # 49: the spheres' erosion follows the final beta (0.0216 at 0.01, 0.0095 at 0.003, as the
      # seventh round predicted): 0.0015 predicts 0.005; the march step follows it by default now
      # (5/6 of it: 0.00125, --max-samples 4712)
@@ -82,6 +94,8 @@ p7)  # 48: beer with today's capture defaults (the weight average among them), h
     train nerf --data $S/beer --device cuda $F
   tail_out ;;
 esac
-# Budget: setup ~1 min, p1-p3 ~6.5 each (p3 with its frame ~8), p4 ~3.5, p5 ~6, p6 ~6, p7 ~6.5:
-# more than one session's 30 minutes; in order of what they settle: p1, p2, p3, p4, p5, p6, p7.
+# Budget: setup ~1 min, s0 ~8.5, p1-p3 ~6.5 each (p3 with its frame ~8), p4 ~3.5, p5 ~6, p6 ~6, p7 ~6.5:
+# more than one session's 30 minutes; in order of what they settle: s0 (~8.5 min: the step A/B
+# ~2.5, lego 300 s ~6), p1, p2, p3, p4, p5, p6, p7; f0 (~2.5 min) where a session has only its
+# last minutes.
 # Carry: .gpu/data with lego and materials (32 MB); beer (8 MB) for p7.
