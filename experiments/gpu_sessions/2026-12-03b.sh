@@ -44,6 +44,14 @@ for n in ("frame_f0", "frame_f0_half"):
         print(f"  {v:8.3f}  {k[:90]}")
 PY
   tail_out ;;
+s0a)  # s0's step A/B alone, short (a session's last minutes): central, then forward
+  for g in central forward; do
+    step "prof_sdf_$g" 30 python3 scripts/profile_train_step.py --warm 400 --steps 40 \
+      --cprofile 0 --json "$OUT/prof_sdf_$g.json" -- train volsdf --data $S/lego \
+      --field hash_sdf --device cuda --sdf-gradient $g
+    grep -h '"step_ms_median"\|"device_busy\|"samples_per_ray\|"rays_per' "$OUT/prof_sdf_$g.log"
+  done
+  tail_out ;;
 s0)  # 47 / 49: the hash_sdf step with forward differences (4 SDF evaluations a coloured sample
      # instead of 7; predicted: about 3/7 of the step's SDF work, ~9 of 17-20 ms, so 3.5-4 ms
      # less), both orders in one lease, then lego at 300 s with it (33.13 dB with central)
