@@ -143,6 +143,20 @@ def test_opacity_term_is_the_clamped_cross_entropy_and_its_gradient_checks():
     m = (torch.arange(64) < 40).to(torch.float64)
     n = torch.tensor(40.0, dtype=torch.float64)
     assert opacity_term(o, a, m, n).item() == pytest.approx(opacity_term(o[:40], a[:40]).item())
+    # --mask-pixels background: the cross-entropy of the pixels with alpha below 0.5 alone, the
+    # mean over all rays; the object's rays get no push
+    bg = a < 0.5
+    want = torch.nn.functional.binary_cross_entropy(
+        o.clamp(OPACITY_EPS, 1 - OPACITY_EPS)[bg], a[bg], reduction="sum"
+    ) / len(a)
+    assert opacity_term(o, a, pixels="background").item() == pytest.approx(want.item(), rel=1e-12)
+    z = o.clone().requires_grad_(True)
+    opacity_term(z, a, pixels="background").backward()
+    live = bg & (o > 0.01) & (o < 0.99)  # (unclamped: pushed towards its alpha)
+    assert (z.grad[~bg] == 0).all() and torch.equal(z.grad[live].sign(), (o - a)[live].sign())
+    assert torch.autograd.gradcheck(lambda t: opacity_term(t, a[4:], pixels="background"), (x,))
+    with pytest.raises(ValueError, match="pixels"):
+        opacity_term(o, a, pixels="object")
 
 
 def test_the_built_in_scene_renders_its_alpha():
@@ -183,6 +197,9 @@ def test_mask_loss_defaults_and_its_absence_without_alpha():
         NeRFConfig(data="builtin", mask_loss=-1.0).validate()
     with pytest.raises(UserError, match="mask-loss"):
         NeRFConfig(data="builtin", mask_loss=float("nan")).validate()
+    assert v.mask_pixels == "all"
+    with pytest.raises(UserError, match="mask-pixels"):
+        NeRFConfig(data="builtin", mask_pixels="object").validate()
     from tests.test_graph_step import SMALL
     from warpnerf.train.nerf import build_model, load_data
 
@@ -197,7 +214,8 @@ def test_mask_loss_defaults_and_its_absence_without_alpha():
     assert any("no alpha" in s for s in lines)
 
 
-@pytest.mark.parametrize("kw", [dict(photometric_loss="huber"), HUBER_BG, MASK_BG])
+@pytest.mark.parametrize("kw", [dict(photometric_loss="huber"), HUBER_BG, MASK_BG,
+                                {**MASK_BG, "mask_pixels": "background"}])  # fmt: skip
 def test_static_step_trains_as_the_eager_step_with_the_recipes_terms(kw):
     """One definition of the loss: with Huber and random backgrounds over RGBA pixels (an alpha
     given to the built-in scene's pixels), the static-shape step (the body a CUDA graph holds)

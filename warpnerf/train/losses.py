@@ -64,14 +64,20 @@ def composite_target(pixels, alpha, background, dataset_background: float):
     return pixels + (1.0 - alpha).unsqueeze(-1) * (background - dataset_background)
 
 
-def opacity_term(opacity, alpha, mask=None, n=None) -> torch.Tensor:
+def opacity_term(opacity, alpha, mask=None, n=None, pixels: str = "all") -> torch.Tensor:
     """The rays' mean binary cross-entropy of the rendered opacity ``opacity`` [n] against the
     pixels' alpha ``alpha`` [n] (instant-nsr-pl's mask loss): ``-(a log o + (1 - a) log(1 - o))``
     with ``o`` clamped to [eps, 1 - eps] (:data:`OPACITY_EPS`), so a ray that is fully opaque or
-    empty where its alpha says otherwise has a finite loss and gradient (none once clamped)."""
+    empty where its alpha says otherwise has a finite loss and gradient (none once clamped).
+    ``pixels="background"``: only the rays of pixels with alpha below 0.5 count (the others add
+    0; the mean stays over all rays)."""
     o = opacity.clamp(OPACITY_EPS, 1.0 - OPACITY_EPS)
     a = alpha.to(o.dtype)
     bce = -(a * torch.log(o) + (1.0 - a) * torch.log1p(-o))
+    if pixels == "background":
+        bce = bce * (a < 0.5).to(bce.dtype)
+    elif pixels != "all":
+        raise ValueError(f"pixels must be 'all' or 'background', got {pixels!r}")
     return ray_mean(bce, mask, n)
 
 

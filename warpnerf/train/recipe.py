@@ -21,6 +21,7 @@ __all__ = [
 
 HUBER_DELTA = 0.1  # instant-ngp's Huber loss: quadratic below 0.1, linear above
 MASK_LOSS_MAX = 100.0  # --mask-loss: a weight this large would drown the photometric term
+MASK_PIXELS = ("all", "background")  # --mask-pixels: the pixels the opacity loss reads
 TRAIN_SPP_MAX = 16  # --train-spp: rays a training pixel at most
 EMA_MAX = 0.9999  # --ema above this would freeze the averaged weights for ~10^4+ steps
 PRECISION_NAMES = tuple(PRECISIONS)  # --mlp-precision's choices (fields/mlp.py)
@@ -34,6 +35,7 @@ LEGACY = {
     "ema": 0.0,
     "photometric_loss": "mse",
     "mask_loss": 0.0,
+    "mask_pixels": "all",
     "mlp_precision": "fp32",
     "pixel_jitter": False,
     "train_spp": 1,
@@ -78,6 +80,12 @@ class RecipeConfig:
         "opacity against its pixel's alpha (instant-nsr-pl: 0.1; `train volsdf`'s default); "
         "images without alpha: off (said in the log); 0: off",
         check="nonnegative",
+    )  # fmt: skip
+    mask_pixels: str = option(
+        "all", "the pixels of --mask-loss: all (the cross-entropy against every pixel's alpha), "
+        "or background (only pixels with alpha below 0.5, whose rendered opacity it pushes to "
+        "0; the object's own opacity is left to the colour loss)",
+        choices=MASK_PIXELS,
     )  # fmt: skip
     mlp_precision: str = option(
         "fp32", "--field hash: the MLPs' matrix products in training steps, fp32, or bf16 / "
@@ -126,6 +134,9 @@ class RecipeConfig:
         m = self.mask_loss
         if not (isinstance(m, (int, float)) and math.isfinite(m) and 0 <= m <= MASK_LOSS_MAX):
             raise fail("mask_loss", f"must be in [0, {MASK_LOSS_MAX:g}], got {m}")
+        if self.mask_pixels not in MASK_PIXELS:
+            raise fail("mask_pixels", f"must be one of {', '.join(MASK_PIXELS)}, got "
+                       f"{self.mask_pixels!r}")  # fmt: skip
 
 
 # --train-spp's default where it is measured to win: the hash NeRF on CUDA, on renders of an

@@ -40,6 +40,7 @@ class LossSettings:
 
     photometric: str = "mse"  # "mse" or "huber"
     mask_w: float = 0.0  # the opacity term's weight (0: none)
+    mask_pixels: str = "all"  # the opacity term's pixels: "all" or "background" (alpha < 0.5)
     distortion_w: float = 0.0  # the distortion loss's weight (0: none)
     near_w: float = 0.0  # the near-camera weight penalty's weight (0: none)
     interlevel_w: float = 0.0  # the proposal networks' interlevel loss weight (--sampler proposal)
@@ -56,6 +57,7 @@ class LossSettings:
         sdf = model.kind == "sdf"
         return cls(
             photometric=cfg.photometric_loss, mask_w=float(mask_w),
+            mask_pixels=getattr(cfg, "mask_pixels", "all"),
             distortion_w=float(cfg.distortion_loss), depth_w=float(cfg.depth_loss),
             near_w=float(cfg.near_loss),
             interlevel_w=float(cfg.interlevel_loss) if cfg.sampler == "proposal" else 0.0,
@@ -109,7 +111,7 @@ def step_loss(
     terms = {"psnr": scaled(mse)}
     loss = scaled(loss)
     if s.mask_w > 0:  # the rendered opacity against the pixels' alpha
-        mask_term = scaled(opacity_term(out["opacity"], alpha, mask, n))
+        mask_term = scaled(opacity_term(out["opacity"], alpha, mask, n, s.mask_pixels))
         terms["mask"] = mask_term.detach()
         loss = loss + s.mask_w * mask_term
     if "distortion" in out:  # mip-NeRF 360's distortion loss, the rays' mean
