@@ -64,6 +64,14 @@ s0)  # 47 / 49: the hash_sdf step with forward differences (4 SDF evaluations a 
   ttq lego_sdf_forward 330 --budgets 60,300 --spp 1 --label "lego hash_sdf, --sdf-gradient forward" \
     -- train volsdf --data $S/lego --field hash_sdf --device cuda --sdf-gradient forward $F
   tail_out ;;
+p0)  # 49: the floor's +0.010 (both Laplace runs of 2026-12-03): a CPU A/B at 50x50 put it on the
+     # opacity loss's push on the object's own rays (surfaces.md "Issue 49, ninth round"):
+     # the best recipe (beta 0.01 -> 0.003) with --mask-pixels background
+  ttq materials_sdf_beta003_maskbg 360 --budgets 60,300 --spp 1 --geometry materials \
+    --mesh-resolution 384 --label "materials hash_sdf, beta -> 0.003, --mask-pixels background" \
+    -- train volsdf $MAT --beta 0.01 --beta-final 0.003 --beta-anneal-steps 6000 \
+    --max-samples 4096 --mask-pixels background $F
+  tail_out ;;
 p1)  # 49: the spheres' erosion follows the final beta (0.0216 at 0.01, 0.0095 at 0.003, as the
      # seventh round predicted): 0.0015 predicts 0.005; the march step follows it by default now
      # (5/6 of it: 0.00125, --max-samples 4712)
@@ -103,7 +111,7 @@ p7)  # 48: beer with today's capture defaults (the weight average among them), h
   tail_out ;;
 esac
 # Budget: setup ~1 min, s0 ~8.5, p1-p3 ~6.5 each (p3 with its frame ~8), p4 ~3.5, p5 ~6, p6 ~6, p7 ~6.5:
-# more than one session's 30 minutes; in order of what they settle: s0 (~8.5 min: the step A/B
-# ~2.5, lego 300 s ~6), p1, p2, p3, p4, p5, p6, p7; f0 (~2.5 min) where a session has only its
+# more than one session's 30 minutes; in order of what they settle: p0 (~6.5), s0 (~8.5 min:
+# the step A/B ~2.5, lego 300 s ~6), p1, p2, p3, p4, p5, p6, p7; f0 (~2.5 min) where a session has only its
 # last minutes.
 # Carry: .gpu/data with lego and materials (32 MB); beer (8 MB) for p7.
