@@ -107,10 +107,12 @@ def test_nerf_config_is_its_sections_and_saves_the_old_flat_keys():
         # (+ render_tracer, issue 47: the no-grad renderer, auto for a run written before it;
         # issue 48's fog options, off or the old coordinate for a run written before them)
         fog = {"distortion_space", "near_loss", "near_loss_frac"}
-        new = {"model", "field_options", "render_tracer"} | recipe | proposal | fog
+        # (+ sdf_gradient, 2026-12-03: hash_sdf's finite differences, central before it)
+        new = {"model", "field_options", "render_tracer", "sdf_gradient"} | recipe | proposal | fog
         assert set(NeRFConfig().to_dict()) == set(old) | new
         loaded = NeRFConfig.from_dict(old, "config.json")
         assert (loaded.distortion_space, loaded.near_loss) == ("scene", 0.0)
+        assert loaded.sdf_gradient == "central"
         assert {k: getattr(loaded, k) for k in recipe} == RECIPE_LEGACY
         assert loaded.sampler == "grid"  # (proposal sampling, issue 48: an old run marched)
         assert loaded.render_tracer == "auto"
