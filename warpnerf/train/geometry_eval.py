@@ -177,20 +177,31 @@ SIGNED_NOTE = ("signed_median: of the mesh points nearest each shape, the median
                "disk: z of the points on faces facing up within its rim, its top)")  # fmt: skip
 
 
-def shape_signed_medians(v, f, points: int) -> dict:
-    """{name: median signed distance or None} of a materials mesh (in the scene's frame) to each
-    analytic shape (:data:`MATERIALS_NAMES`), over ``points`` points sampled on it (by area,
-    seed 0) grouped by their nearest shape: a sphere's |p - c| - r; the disk's top, z of the
-    points within its rim on faces whose outward normal (marching cubes' winding) points up."""
+def _mesh_sample(v, f, points: int):
+    """``points`` points sampled on a mesh (by area, seed 0) [m, 3], whether each one's face
+    faces up (marching cubes' winding) [m], and its nearest materials shape's index [m]."""
     import numpy as np
 
-    from ..data.materials_truth import MATERIALS_DISK, materials_signed_distances
     from ..mesh import sample_surface
 
     m, face = sample_surface(v, f, points, seed=0, return_faces=True)
     t = v[f[face]]
     up = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])[:, 2] > 0
-    sd, ids = materials_signed_distances(m), materials_shape_ids(m)
+    return m, up, materials_shape_ids(m)
+
+
+def shape_signed_medians(v, f, points: int, sample=None) -> dict:
+    """{name: median signed distance or None} of a materials mesh (in the scene's frame) to each
+    analytic shape (:data:`MATERIALS_NAMES`), over ``points`` points sampled on it (by area,
+    seed 0; or ``sample``, :func:`_mesh_sample`'s) grouped by their nearest shape: a sphere's
+    |p - c| - r; the disk's top, z of the points within its rim on faces whose outward normal
+    (marching cubes' winding) points up."""
+    import numpy as np
+
+    from ..data.materials_truth import MATERIALS_DISK, materials_signed_distances
+
+    m, up, ids = sample if sample is not None else _mesh_sample(v, f, points)
+    sd = materials_signed_distances(m)
     disk = len(MATERIALS_NAMES) - 1
     top = up & (np.linalg.norm(m[:, :2], axis=1) <= MATERIALS_DISK)
     out = {}
@@ -203,22 +214,19 @@ def shape_signed_medians(v, f, points: int) -> dict:
 DISK_RINGS = (0.0, 0.4, 0.8, 1.2, 1.45, 1.6)
 
 
-def disk_top_profile(v, f, points: int, rings=DISK_RINGS) -> dict:
+def disk_top_profile(v, f, points: int, rings=DISK_RINGS, sample=None) -> dict:
     """Where a materials mesh puts the ground disk's top, ring by ring: {"r0-r1": {"points",
-    "median_z"}} over the points sampled on it (by area, seed 0) nearest the disk, within its rim
-    and on faces facing up (as :func:`shape_signed_medians`' "disk"), grouped by their distance
-    from the disk's centre in the rings ``rings`` (edges, world units). Tells a uniform offset of
-    the floor from one at its rim (an outline against the background) or under the spheres."""
+    "median_z"}} over the points sampled on it (or ``sample``, :func:`_mesh_sample`'s) nearest
+    the disk, within its rim and on faces facing up (as :func:`shape_signed_medians`' "disk"),
+    grouped by their distance from the disk's centre in the rings ``rings`` (edges, world
+    units). Tells a uniform offset of the floor from one at its rim or under the spheres."""
     import numpy as np
 
     from ..data.materials_truth import MATERIALS_DISK
-    from ..mesh import sample_surface
 
-    m, face = sample_surface(v, f, points, seed=0, return_faces=True)
-    t = v[f[face]]
-    up = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])[:, 2] > 0
+    m, up, ids = sample if sample is not None else _mesh_sample(v, f, points)
     rho = np.linalg.norm(m[:, :2], axis=1)
-    disk = (materials_shape_ids(m) == len(MATERIALS_NAMES) - 1) & up & (rho <= MATERIALS_DISK)
+    disk = (ids == len(MATERIALS_NAMES) - 1) & up & (rho <= MATERIALS_DISK)
     out = {}
     for a, b in zip(rings[:-1], rings[1:]):
         sel = disk & (rho >= a) & (rho < b)
@@ -388,8 +396,9 @@ def _delivered_figures(v, f, ref, points, cfg, below, cull) -> dict:
             "bounds_max": vd.max(0).tolist(),
         }
         if below is not None:
-            d["signed_median"] = shape_signed_medians(vd, fd, points)
-            d["disk_top_by_radius"] = disk_top_profile(vd, fd, points)
+            sample = _mesh_sample(vd, fd, points)  # (once for both)
+            d["signed_median"] = shape_signed_medians(vd, fd, points, sample=sample)
+            d["disk_top_by_radius"] = disk_top_profile(vd, fd, points, sample=sample)
     out["delivered"] = {**d, **info}
     return out
 
