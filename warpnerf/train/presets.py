@@ -11,7 +11,8 @@ The ``cpu`` sizes train the built-in scene (``--data builtin`` / ``--points buil
 recognisable result in under a minute on 2 CPU cores once Warp's kernels are compiled (the first
 run compiles them, a few minutes once). Measured on the project's 2-core CPU, idle, whole command
 (wall): train nerf mlp 11 s, 20.7 dB val (the mean colour scores 9.6 dB); hash 22 s, 21.3 dB;
-train volsdf 20 s, 21.1 dB; hash_sdf 38 s, 23.2 dB; train sdf mlp 9 s, Chamfer 0.020; hash
+train volsdf 20 s, 21.1 dB; hash_sdf 38 s, 23.2 dB (43.5 s, 23.0 dB on 2026-12-03
+with forward differences, after the mask loss and the weight cull); train sdf mlp 9 s, Chamfer 0.020; hash
 14 s, Chamfer 0.0046. Under heavy sharing (load 15) the same runs took 15-30 minutes.
 """
 
@@ -75,7 +76,12 @@ NERF_PRESETS = {
             "lr": 5e-3,
             "lr_final": 5e-4,
         },
-        "hash_sdf": {  # (300 steps: 28.0 dB but 2.5x the time of the others; 150: 23.2 dB)
+        # (300 steps: 28.0 dB but 2.5x the time of the others; 150: 23.2 dB.) Forward
+        # differences: 4 SDF evaluations a coloured sample instead of 7, the same delivered mesh
+        # (Chamfer 0.0117) and val (23.00 against 22.94 dB) in 0.58x the training time (50.8 s
+        # against 87.2 s on 2 cores, one run each, 2026-12-03, docs/design/training.md "Issue 47,
+        # fifth round"); the GPU recipe keeps central differences until its val is measured
+        "hash_sdf": {
             **_NERF_CPU,
             "iters": 150,
             **_GRID_CPU,
@@ -83,6 +89,7 @@ NERF_PRESETS = {
             "hash_log2_size": 14,
             "hash_max_res": 128,
             "hidden": 32,
+            "sdf_gradient": "forward",
         },
     },
 }
@@ -167,7 +174,9 @@ def preset_help(table: dict) -> dict:
             vals = {}
             for field, values in fields.items():
                 if field_name in values:
-                    vals.setdefault(f"{values[field_name]:.4g}", []).append(field)
+                    v = values[field_name]
+                    text = v if isinstance(v, str) else f"{v:.4g}"
+                    vals.setdefault(text, []).append(field)
             text = ", ".join(
                 v if len(vals) == 1 and len(fs) == len(fields) else f"{v} ({'/'.join(fs)})"
                 for v, fs in vals.items()
