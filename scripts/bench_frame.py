@@ -4,8 +4,13 @@ gradients, :func:`warpnerf.render_traced.render_traced`) against the older round
 images (the same image: >= ~50 dB). Runs on the CPU too (its smoke test); timings are for the GPU.
 
 python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [--repeat 3]
-    [--variants rounds,traced,traced-all] [--min-steps 8] [--max-steps 128] [--chunk N] [--half]
-    [--json F] [--profile N]
+    [--variants rounds,traced,traced-all,rounds-N] [--min-steps 8] [--max-steps 128]
+    [--chunk N] [--half] [--json F] [--profile N]
+
+``rounds-N``: the rounds path marching N samples a live ray a round (more as rays finish), so
+that rays stop marching once opaque; ``samples_per_frame`` gives each variant's counters (samples
+marched, coloured) a frame. A ``+fwd`` suffix (``rounds+fwd``, ``rounds-16+fwd``; hash_sdf runs)
+renders the normals by forward differences whatever the run trained with.
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -32,14 +37,35 @@ from warpnerf.train.nerf import dataset_rays, load_data, load_run, with_refined_
 VARIANTS = ("rounds", "traced", "traced-all")
 
 
+def forward_differences(field, fn):
+    """``fn`` run with the surface field's normals by forward differences (``+fwd``: 3 more SDF
+    evaluations a coloured sample instead of central differences' 6), whatever the run trained
+    with; the field's own setting is restored after each call."""
+    if not hasattr(field, "forward_differences"):
+        raise SystemExit("+fwd: a hash_sdf run's variant (its field takes finite differences)")
+
+    def run(o, d, sl):
+        old, field.forward_differences = field.forward_differences, True
+        try:
+            return fn(o, d, sl)
+        finally:
+            field.forward_differences = old
+
+    return run
+
+
 def renderer(name, model, cfg, a):
     """render(o, d) -> dict for a variant: the rounds path with the run's settings, or the
-    tracer with --min-steps/--max-steps and its colour rule."""
+    tracer with --min-steps/--max-steps and its colour rule; a ``+fwd`` suffix renders a
+    surface field's normals by forward differences."""
+    if name.endswith("+fwd"):
+        return forward_differences(model.coarse, renderer(name[:-4], model, cfg, a))
     kw = dict(background=cfg.background, t_threshold=cfg.t_threshold, half=a.half)
-    if name == "rounds":
+    if name == "rounds" or name.startswith("rounds-"):  # rounds-N: N samples a live ray a round
+        rs = cfg.round_samples if name == "rounds" else int(name.split("-", 1)[1])
         return lambda o, d, sl: render_marched(
             model.grid, model.coarse, o[sl], d[sl], cfg.near, cfg.far, tracer="rounds",
-            max_samples=cfg.max_samples, round_samples=cfg.round_samples, **kw,
+            max_samples=cfg.max_samples, round_samples=rs, **kw,
         )  # fmt: skip
     colors = "all" if name == "traced-all" else "weighted"
     return lambda o, d, sl: render_traced(
@@ -106,8 +132,14 @@ def main():
                    "and the samples a frame (the run's own rendering)")  # fmt: skip
     a = p.parse_args()
     names = a.variants.split(",")
-    if not set(names) <= set(VARIANTS) or "rounds" not in names:
-        raise SystemExit(f"--variants: some of {VARIANTS}, with rounds (the reference)")
+    def known(n):
+        n = n.removesuffix("+fwd")
+        return n in VARIANTS or (n.startswith("rounds-") and n[7:].isdigit() and int(n[7:]) > 0)
+
+    if not all(known(n) for n in names) or "rounds" not in names:
+        raise SystemExit(f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
+                         "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
+                         "by forward differences), with rounds (the reference)")
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:
         raise SystemExit("a run with an occupancy grid is needed")
@@ -122,6 +154,7 @@ def main():
     quality = {k: [] for k in names}
     same = {k: [] for k in names if k != "rounds"}
     rounds = []
+    counts = {k: {} for k in names}  # each variant's sample counters, summed over the views
     with torch.no_grad():
         o, d = dataset_rays(cfg, ds, image=0)
         for k in names:  # warm-up: kernels compiled, allocator primed
@@ -141,6 +174,9 @@ def main():
                     ms[k].append(1e3 * (time.perf_counter() - t0))
                     imgs[k] = out
             for k in names:
+                for c, v in imgs[k].items():
+                    if c.startswith("n_") and isinstance(v, int):
+                        counts[k][c] = counts[k].get(c, 0) + v
                 quality[k].append(psnr(imgs[k]["rgb"].reshape(shape), gt))
                 if k != "rounds":
                     ref = imgs["rounds"]["rgb"].reshape(shape)
@@ -154,6 +190,7 @@ def main():
         "psnr_vs_rounds_min": {k: min(v) for k, v in same.items()},
         "psnr_vs_rounds_mean": {k: statistics.mean(v) for k, v in same.items()},
         "tracer_rounds_per_frame": rounds,
+        "samples_per_frame": {k: {c: v / n for c, v in cs.items()} for k, cs in counts.items()},
     }  # fmt: skip
     if cfg.device.startswith("cuda"):
         res["gpu"] = torch.cuda.get_device_name()

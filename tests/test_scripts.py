@@ -161,10 +161,15 @@ def test_tools_on_a_run(tmp_path, run):
 
     def frame():
         out = _run([SCRIPTS / "bench_frame.py", run, "--images", "1", "--repeat", "1", "--json",
-                    "f.json", "--profile", "1"], tmp_path)  # fmt: skip
+                    "f.json", "--profile", "1", "--variants", "rounds,traced,rounds-4"],
+                   tmp_path)  # fmt: skip
         res = json.loads((tmp_path / "f.json").read_text())
         assert json.loads(out.splitlines()[-1])["views"] == 1
-        assert min(res["psnr_vs_rounds_min"].values()) > 50  # the tracer: the rounds path's image
+        # the tracer and rounds of 4 samples: the rounds path's image
+        assert min(res["psnr_vs_rounds_min"].values()) > 50, res["psnr_vs_rounds_min"]
+        one, four = res["samples_per_frame"]["rounds"], res["samples_per_frame"]["rounds-4"]
+        assert 0 < four["n_marched"] <= one["n_marched"] and 0 < four["n_colored"]
+        assert one["n_colored"] <= one["n_marched"]
         prof = res["profile"]  # (the first variant's frame under the profiler; host times here)
         assert prof["frames"] == 1 and prof["top_ms_per_frame"] and prof["launches_per_frame"] >= 0
         assert prof["counters"]["n_marched"] >= prof["counters"]["n_kept"] > 0
@@ -251,3 +256,23 @@ def test_neus_ab_study_scores_the_true_surface_as_exact():
     assert e["chamfer"] < 0.02
     grown = torch.cat([s.sph_c + (s.sph_r + 0.05) * dirs, s.box_c + u * s.box_s]).numpy()
     assert shape_errors(grown)["sphere"]["signed_median"] == pytest.approx(0.05, abs=1e-4)
+
+
+def test_bench_frame_surface_variants(tmp_path):
+    """bench_frame.py on a tiny hash_sdf run: rounds of 4 samples and normals by forward
+    differences (``+fwd``) render, the latter near the run's own (central) image, and the
+    field's setting is what it was; ``+fwd`` on a NeRF run stops with a message."""
+    sdf = ["--data", "builtin", "--field", "hash_sdf", "--hash-levels", "3", "--hash-log2-size",
+           "8", "--hash-max-res", "16", "--grid-res", "8", "--builtin-size", "16", "--batch",
+           "64", "--val-images", "0", "--quiet", "--no-tensorboard", "--iters", "3"]  # fmt: skip
+    _run(["-m", "warpnerf.cli", "train", "volsdf", *sdf, "--out", "r"], tmp_path)
+    _run([SCRIPTS / "bench_frame.py", "r", "--images", "1", "--repeat", "1", "--json", "f.json",
+          "--variants", "rounds,rounds+fwd,rounds-4+fwd"], tmp_path)  # fmt: skip
+    res = json.loads((tmp_path / "f.json").read_text())
+    assert set(res["frame_ms_median"]) == {"rounds", "rounds+fwd", "rounds-4+fwd"}
+    assert min(res["psnr_vs_rounds_min"].values()) > 30, res["psnr_vs_rounds_min"]
+    cfg = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert cfg.get("sdf_gradient", "central") == "central"  # (the run itself is untouched)
+    p = _start([SCRIPTS / "bench_frame.py", "r", "--variants", "rounds,rounds+fwd+fwd"], tmp_path)
+    out, err = p.communicate(timeout=300)
+    assert p.returncode != 0 and "--variants" in err

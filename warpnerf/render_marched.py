@@ -70,7 +70,8 @@ def render_marched(
     path's only). The rounds path: the field's
     density runs once on the marched samples, their
     weights are composited, and the colour MLP runs only on samples whose weight reaches
-    ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight).
+    ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight;
+    ``n_colored`` in the result counts them).
     ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
     rays finish), compositing each round onto the rays' running colour and transmittance and
     dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
@@ -317,7 +318,7 @@ def _render_rounds(
     far = torch.as_tensor(far, device=dev, dtype=dt).expand(n_rays)
     alive = torch.arange(n_rays, device=dev)
     k = torch.zeros(n_rays, device=dev, dtype=torch.int32)
-    n_marched, budget = 0, round_samples * n_rays
+    n_marched, n_colored, budget = 0, 0, round_samples * n_rays
     while alive.numel():
         per_ray = min(max(round_samples, budget // alive.numel()), cap)
         oa, da = o[alive], d[alive]
@@ -356,6 +357,7 @@ def _render_rounds(
             on_weights(alive[ri], smp.t_starts, smp.t_ends, w * t_a[ri])
         seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
         rs = ri[seen]
+        n_colored += seen.shape[0]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
         with torch.autocast("cuda", dtype=torch.float16, enabled=use_half):
             if feats is not None:
@@ -381,4 +383,5 @@ def _render_rounds(
         "opacity": 1.0 - trans,
         "n_marched": n_marched,
         "n_kept": n_marched,
+        "n_colored": n_colored,
     }
