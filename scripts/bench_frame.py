@@ -132,14 +132,17 @@ def main():
                    "and the samples a frame (the run's own rendering)")  # fmt: skip
     a = p.parse_args()
     names = a.variants.split(",")
+
     def known(n):
         n = n.removesuffix("+fwd")
         return n in VARIANTS or (n.startswith("rounds-") and n[7:].isdigit() and int(n[7:]) > 0)
 
     if not all(known(n) for n in names) or "rounds" not in names:
-        raise SystemExit(f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
-                         "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
-                         "by forward differences), with rounds (the reference)")
+        raise SystemExit(
+            f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
+            "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
+            "by forward differences), with rounds (the reference)"
+        )
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:
         raise SystemExit("a run with an occupancy grid is needed")

@@ -117,11 +117,16 @@ def plot(paths, png, title):
     )
     if geo:
         ax = axes[1]
-        for d, c in zip(data, colors):
+        for d, c in zip(data, colors):  # the delivered mesh (solid) where measured, and the
+            # level set near the true surface (dashed)
+            rows = [r for r in d["rows"] if "chamfer" in (r.get("delivered") or {})]
+            if rows:
+                ax.plot([r["budget_s"] for r in rows], [r["delivered"]["chamfer"] for r in rows],
+                        "o-", color=c, label=d["label"] + " (delivered)")  # fmt: skip
             rows = [r for r in d["rows"] if "chamfer" in r]
             if rows:
-                ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o-",
-                        color=c, label=d["label"])  # fmt: skip
+                ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o--",
+                        color=c, alpha=0.6, label=d["label"] + " (near the surface)")  # fmt: skip
         log_x(ax)
         ax.set_yscale("log")
         label_axes(

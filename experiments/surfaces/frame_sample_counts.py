@@ -40,7 +40,8 @@ def main():
             keep, _ = live_samples(smp, sig, cfg.t_threshold, check=False)
             zero = sig.new_zeros(1, 3).expand(sig.shape[0], 3)
             w = render_packed(smp.t_starts, smp.t_ends, ri, sig, zero, o.shape[0],
-                              packed_info=smp.packed_info, return_weights=True, check=False)[3]  # fmt: skip
+                              packed_info=smp.packed_info, return_weights=True,
+                              check=False)[3]  # fmt: skip
             tot["rays"] += o.shape[0]
             tot["marched"] += smp.t_starts.shape[0]
             tot["live"] += int(keep.sum())

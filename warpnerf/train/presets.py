@@ -11,9 +11,9 @@ The ``cpu`` sizes train the built-in scene (``--data builtin`` / ``--points buil
 recognisable result in under a minute on 2 CPU cores once Warp's kernels are compiled (the first
 run compiles them, a few minutes once). Measured on the project's 2-core CPU, idle, whole command
 (wall): train nerf mlp 11 s, 20.7 dB val (the mean colour scores 9.6 dB); hash 22 s, 21.3 dB;
-train volsdf 20 s, 21.1 dB; hash_sdf 38 s, 23.2 dB (43.5 s, 23.0 dB on 2026-12-03
-with forward differences, after the mask loss and the weight cull); train sdf mlp 9 s, Chamfer 0.020; hash
-14 s, Chamfer 0.0046. Under heavy sharing (load 15) the same runs took 15-30 minutes.
+train volsdf 20 s, 21.1 dB; hash_sdf 38 s, 23.2 dB (43.5 s, 23.0 dB on 2026-12-03 with
+forward differences, after the mask loss and the weight cull); train sdf mlp 9 s, Chamfer 0.020;
+hash 14 s, Chamfer 0.0046. Under heavy sharing (load 15) the same runs took 15-30 minutes.
 """
 
 from __future__ import annotations
