@@ -117,23 +117,27 @@ def plot(paths, png, title):
     )
     if geo:
         ax = axes[1]
+        delivered = False
         for d, c in zip(data, colors):  # the delivered mesh (solid) where measured, and the
-            # level set near the true surface (dashed)
+            # raw level set (dashed, unlabelled: the run's colour says which)
             rows = [r for r in d["rows"] if "chamfer" in (r.get("delivered") or {})]
             if rows:
+                delivered = True
                 ax.plot([r["budget_s"] for r in rows], [r["delivered"]["chamfer"] for r in rows],
-                        "o-", color=c, label=d["label"] + " (delivered)")  # fmt: skip
+                        "o-", color=c, label=d["label"])  # fmt: skip
             rows = [r for r in d["rows"] if "chamfer" in r]
             if rows:
                 ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o--",
-                        color=c, alpha=0.6, label=d["label"] + " (near the surface)")  # fmt: skip
+                        color=c, alpha=0.5, label=None if delivered else d["label"])  # fmt: skip
         log_x(ax)
         ax.set_yscale("log")
         label_axes(
             ax,
             "training seconds",
             "mesh Chamfer distance (world units)",
-            "geometry against the analytic shapes",
+            "delivered mesh (solid), raw level set (dashed)"
+            if delivered
+            else "geometry against the analytic shapes",
             "upper right",
         )
     fig.tight_layout()
