@@ -11,7 +11,7 @@ import torch
 
 from warpnerf.data.materials_truth import MATERIALS_NAMES
 from warpnerf.fields.hash_sdf import HashSDFField
-from warpnerf.fields.sdf_volume import laplace_cdf
+from warpnerf.fields.sdf_volume import laplace_cdf, sdf_box
 from warpnerf.mesh import read_ply, vertex_colors, write_ply
 from warpnerf.ops.encoding import HashGrid
 
@@ -96,6 +96,30 @@ def test_coarse_to_fine_opens_levels_and_shrinks_the_step():
     assert not torch.equal(f.sdf(x), before)
     f.set_step(10**6)
     assert f.open_levels == 6 and f.level_mask.sum() == f.encoding.out_dim
+
+
+def test_without_coarse_to_fine_the_all_ones_mask_is_skipped_bit_for_bit():
+    """level_every = 0 (the default): every level is open from the start and the SDF skips the
+    mask's multiply; values and parameter gradients are those of the masked form exactly."""
+    f = field()
+    assert f.level_every == 0 and bool((f.level_mask == 1).all())
+    x = inside(64)
+    with torch.no_grad():
+        f.sdf_mlp[0].weight[:, 3:] = 0.1  # (the hash inputs start at zero weight)
+
+    def masked(p):  # the masked form, as with coarse to fine
+        lo, hi = f.aabb[:3], f.aabb[3:]
+        u = ((p - lo) / (hi - lo)).clamp(0.0, 1.0)
+        c = 2.0 * u - 1.0
+        h = f.sdf_mlp(torch.cat([c, f.encoding(u) * f.level_mask], -1))
+        d = (c.norm(dim=-1) - f.radius + h[:, 0]) * f.half
+        return torch.maximum(d, sdf_box(p, (lo + hi) * 0.5, hi - lo))
+
+    got, want = f.sdf(x), masked(x)
+    assert torch.equal(got, want)
+    g1 = torch.autograd.grad(got.sum(), f.encoding.table)[0]
+    g2 = torch.autograd.grad(want.sum(), f.encoding.table)[0]
+    assert torch.equal(g1, g2)
 
 
 def test_grid_density_bounds_the_density_in_the_cell():

@@ -53,9 +53,21 @@ g4)  # 47 / 49: the surface frame's levers on a central-differences run (a 45 s 
     --max-seconds 45 --iters 100000 --out $Q/g4 $F
   frames g4 $Q/g4 $S/materials rounds,rounds+fwd,rounds-16,rounds-16+fwd,rounds-32+fwd
   tail_out ;;
+g4b)  # g4 on the built-in scene at 200x200 (no data to carry: a lease's last minutes, when the
+      # warp part fills the call's carry), 30 s of training, 3 views
+  step g4b_train 50 python3 -m warpnerf.cli train volsdf --data builtin --builtin-size 200 \
+    --field hash_sdf --device cuda --fixed-beta --beta 0.01 --max-seconds 30 --iters 100000 \
+    --out $Q/g4b $F
+  step frame_g4b 90 python3 scripts/bench_frame.py $Q/g4b --device cuda --images 3 --repeat 2 \
+    --variants rounds,rounds+fwd,rounds-16,rounds-16+fwd --json $OUT/frame_g4b.json
+  python3 -c "import json,sys; r=json.load(open(sys.argv[1])); print(r['frame_ms_median'], r['psnr_vs_gt'], r['psnr_vs_rounds_min'], r['samples_per_frame'])" $OUT/frame_g4b.json
+  tail_out ;;
 p3|p4|p5|p6|p7|s0|p2)  # the earlier driver's phases (2026-12-03b.sh), unrun or to repeat
   trap - EXIT; OUT=$FINAL exec bash "$(dirname "$0")/2026-12-03b.sh" "$1" ;;
 esac
 # Budget (30 device minutes): setup ~1, g1 ~7.5, g2 ~7.5, g3 ~6.5, g4 ~2.5; in that order, then
-# p3 (lego hash_sdf with the anneal + frame), p4 (lego NeRF frame profile), p7 (beer, issue 48).
+# issue 44's hash_sdf rows (one change alone at 60 s, ~1.5 min each: `BUDGETS=60 WANT=80
+# LIMIT=120 bash experiments/gpu_sessions/issue44_grid.sh {lego,materials}-sdf-{base,random_bg,
+# view_cull,sparse_adam,huber,no_ema}`, several to a call), p3 (lego hash_sdf with the anneal +
+# frame), p4 (lego NeRF frame profile), p7 (beer, issue 48).
 # Carry: .gpu/data with lego and materials (32 MB); beer (8 MB) for p7.

@@ -16,7 +16,7 @@ declare -A CHANGES=(
   [view_cull]="--view-cull"                         # item 2
   [sparse_adam]="--sparse-adam --mlp-weight-decay 1e-6"  # item 3
   [no_ema]="--ema 0"                                # item 4, removed (NeRF's default has it)
-  [ema]="--ema 0.95"                                # item 4, added (hash_sdf's default lacks it)
+  [ema]="--ema 0.95"                                # item 4, added (hash_sdf's default lacked it before 2026-12-03)
   [huber]="--photometric-loss huber"                # item 5
   [reflect]="--color-direction reflect"             # hash_sdf only: Ref-NeRF's colour input
   [small_hash]="--hash-max-res 512 --hash-log2-size 16"  # materials' capacity (third round)
@@ -28,7 +28,8 @@ declare -A CHANGES=(
 )
 if [ "$1" = list ]; then
   for s in lego materials; do for f in nerf sdf; do for c in "${!CHANGES[@]}"; do
-    case $f-$c in nerf-ema|sdf-no_ema|nerf-reflect) continue ;; esac  # (defaults; reflect: SDF only)
+    # (the defaults: both fields have the weight average since 2026-12-03; reflect: SDF only)
+    case $f-$c in nerf-ema|sdf-ema|nerf-reflect) continue ;; esac
     echo "$s-$f-$c"; done; done; done
   exit 0
 fi
