@@ -40,7 +40,8 @@ VARIANTS = ("rounds", "traced", "traced-all")
 def forward_differences(field, fn):
     """``fn`` run with the surface field's normals by forward differences (``+fwd``: 3 more SDF
     evaluations a coloured sample instead of central differences' 6), whatever the run trained
-    with; the field's own setting is restored after each call."""
+    with (with ``--sdf-density neus`` the density's gradient too, so the marching's weights
+    change as well); the field's own setting is restored after each call."""
     if not hasattr(field, "forward_differences"):
         raise SystemExit("+fwd: a hash_sdf run's variant (its field takes finite differences)")
 
@@ -135,7 +136,7 @@ def main():
 
     def known(n):
         n = n.removesuffix("+fwd")
-        return n in VARIANTS or (n.startswith("rounds-") and n[7:].isdigit() and int(n[7:]) > 0)
+        return n in VARIANTS or (n.startswith("rounds-") and n[7:].isdecimal() and int(n[7:]) > 0)
 
     if not all(known(n) for n in names) or "rounds" not in names:
         raise SystemExit(

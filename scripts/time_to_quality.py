@@ -117,18 +117,19 @@ def plot(paths, png, title):
     )
     if geo:
         ax = axes[1]
-        delivered = False
+        delivered = any("chamfer" in (r.get("delivered") or {}) for d in data for r in d["rows"])
         for d, c in zip(data, colors):  # the delivered mesh (solid) where measured, and the
             # raw level set (dashed, unlabelled: the run's colour says which)
+            labelled = False
             rows = [r for r in d["rows"] if "chamfer" in (r.get("delivered") or {})]
             if rows:
-                delivered = True
+                labelled = True
                 ax.plot([r["budget_s"] for r in rows], [r["delivered"]["chamfer"] for r in rows],
                         "o-", color=c, label=d["label"])  # fmt: skip
             rows = [r for r in d["rows"] if "chamfer" in r]
             if rows:
                 ax.plot([r["budget_s"] for r in rows], [r["chamfer"] for r in rows], "o--",
-                        color=c, alpha=0.5, label=None if delivered else d["label"])  # fmt: skip
+                        color=c, alpha=0.5, label=None if labelled else d["label"])  # fmt: skip
         log_x(ax)
         ax.set_yscale("log")
         label_axes(

@@ -176,3 +176,16 @@ def test_cli_prints_the_hint_once_on_stderr(tmp_path, monkeypatch, capsys):
     assert main(["train", "nerf", "--data", "builtin", "--field", "hash", "--out", "b",
                  "--preset", "cpu"]) == 0  # fmt: skip
     assert "--preset cpu" not in capsys.readouterr().err
+
+
+def test_step_estimate_follows_the_surface_fields_differences():
+    """hash_sdf's CPU step estimate: forward differences cost the measured 0.58x of central ones;
+    the cpu preset takes them (and its run writes them into config.json)."""
+    from warpnerf.train.presets import FORWARD_DIFFERENCES_COST
+
+    central = VolSDFConfig(field="hash_sdf", device="cpu")
+    forward = VolSDFConfig(field="hash_sdf", device="cpu", sdf_gradient="forward")
+    assert step_seconds(forward) == pytest.approx(FORWARD_DIFFERENCES_COST * step_seconds(central))
+    assert _nerf("--preset", "cpu", "--field", "hash_sdf", model="volsdf").sdf_gradient == "forward"
+    assert _nerf("--preset", "cpu", "--field", "hash_sdf", "--sdf-gradient", "central",
+                 model="volsdf").sdf_gradient == "central"  # fmt: skip

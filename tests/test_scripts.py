@@ -261,7 +261,7 @@ def test_neus_ab_study_scores_the_true_surface_as_exact():
 def test_bench_frame_surface_variants(tmp_path):
     """bench_frame.py on a tiny hash_sdf run: rounds of 4 samples and normals by forward
     differences (``+fwd``) render, the latter near the run's own (central) image, and the
-    field's setting is what it was; ``+fwd`` on a NeRF run stops with a message."""
+    field's setting is what it was; a variant name it does not know stops it with a message."""
     sdf = ["--data", "builtin", "--field", "hash_sdf", "--hash-levels", "3", "--hash-log2-size",
            "8", "--hash-max-res", "16", "--grid-res", "8", "--builtin-size", "16", "--batch",
            "64", "--val-images", "0", "--quiet", "--no-tensorboard", "--iters", "3"]  # fmt: skip

@@ -3,7 +3,7 @@
 # session's H200, not run yet: what the day's third lease left open (docs/design/surfaces.md
 # "Issue 49, tenth round", training.md "Issue 47, sixth round"). Run from the tree root on the
 # device with Warp unpacked in /tmp/site and the data carried in .gpu/data:
-# LIMIT=... bash THIS PHASE (setup as in 2026-12-03b.sh: `bash 2026-12-03b.sh setup`)
+# LIMIT=... bash THIS PHASE (setup: the earlier driver's, delegated)
 . "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
 F="--quiet --no-tensorboard --val-images 0"
 MAT="--data $S/materials --field hash_sdf --device cuda --aabb 1.7"
@@ -32,7 +32,7 @@ g1)  # 47 / 49: lego hash_sdf trained with forward differences (0.72x the step i
   frames lego_sdf_forward $Q/lego_sdf_forward/run $S/lego rounds,rounds-16,rounds-32
   tail_out ;;
 g2)  # 49: the best materials recipe (beta -> 0.003) with forward differences, scored at 30, 60,
-     # 120 and 300 s (item 6's plot: the current recipe's missing points), against the tenth
+     # 120 and 300 s (item 6's plot: the current recipe's missing points), against the eighth
      # round's 0.0219 / 30.98 dB with central differences
   ttq materials_sdf_beta003_fwd 420 --budgets 30,60,120,300 --spp 1 $GEO \
     --label "materials hash_sdf, beta -> 0.003, forward differences" -- train volsdf $MAT $B003 \
@@ -60,10 +60,11 @@ g4b)  # g4 on the built-in scene at 200x200 (no data to carry: a lease's last mi
     --out $Q/g4b $F
   step frame_g4b 90 python3 scripts/bench_frame.py $Q/g4b --device cuda --images 3 --repeat 2 \
     --variants rounds,rounds+fwd,rounds-16,rounds-16+fwd --json $OUT/frame_g4b.json
-  python3 -c "import json,sys; r=json.load(open(sys.argv[1])); print(r['frame_ms_median'], r['psnr_vs_gt'], r['psnr_vs_rounds_min'], r['samples_per_frame'])" $OUT/frame_g4b.json
+  [ -f $OUT/frame_g4b.json ] && python3 -c "import json,sys; r=json.load(open(sys.argv[1])); print(r['frame_ms_median'], r['psnr_vs_gt'], r['psnr_vs_rounds_min'], r['samples_per_frame'])" $OUT/frame_g4b.json
   tail_out ;;
-p3|p4|p5|p6|p7|s0|p2)  # the earlier driver's phases (2026-12-03b.sh), unrun or to repeat
+setup|p3|p4|p5|p6|p7|s0|p2)  # the earlier driver's phases (2026-12-03b.sh), unrun or to repeat
   trap - EXIT; OUT=$FINAL exec bash "$(dirname "$0")/2026-12-03b.sh" "$1" ;;
+*) echo "unknown phase $1 (g1 g2 g3 g4 g4b setup p2-p7 s0)" >> $OUT/fail.txt; cat $OUT/fail.txt; exit 2 ;;
 esac
 # Budget (30 device minutes): setup ~1, g1 ~7.5, g2 ~7.5, g3 ~6.5, g4 ~2.5; in that order, then
 # issue 44's hash_sdf rows (one change alone at 60 s, ~1.5 min each: `BUDGETS=60 WANT=80

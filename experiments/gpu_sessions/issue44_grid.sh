@@ -11,7 +11,7 @@
 . "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
 F="--quiet --no-tensorboard --val-images 0"
 declare -A CHANGES=(
-  [base]=""                                         # the command as it is (NeRF: --ema 0.95)
+  [base]=""                                         # the command as it is (both with --ema 0.95)
   [random_bg]="--random-background on"              # item 1
   [view_cull]="--view-cull"                         # item 2
   [sparse_adam]="--sparse-adam --mlp-weight-decay 1e-6"  # item 3
