@@ -4,6 +4,15 @@
 # "Issue 49, tenth round", training.md "Issue 47, sixth round"). Run from the tree root on the
 # device with Warp unpacked in /tmp/site and the data carried in .gpu/data:
 # LIMIT=... bash THIS PHASE (setup: the earlier driver's, delegated)
+# The calls (the tree is about 22 MB and each warp part 41 MB, so a call carries one of the
+# parts or the data, never both; `git rev-parse --short HEAD > .commit` first, carried too):
+#   A  carry [.gpu/p1]:          mkdir -p /root/stage && cp .gpu/p1/warp.part1 /root/stage/
+#   B  carry [.gpu/p2, .commit]: cat /root/stage/warp.part1 .gpu/p2/warp.part2 | (mkdir -p
+#      /tmp/site && tar -xJ -C /tmp/site) && export PYTHONPATH=/tmp/site && pip install -q
+#      --no-deps --no-build-isolation -e . && LIMIT=200 bash experiments/gpu_sessions/2026-12-04.sh setup
+#   C  carry [.gpu/data, .commit]: export PYTHONPATH=/tmp/site; mkdir -p /root/stage &&
+#      cp -r .gpu/data/* /root/stage/; LIMIT=575 bash experiments/gpu_sessions/2026-12-04.sh g1
+#   then carry [.commit] alone, one phase a call (LIMIT=575), at once after the last returns.
 . "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
 F="--quiet --no-tensorboard --val-images 0"
 MAT="--data $S/materials --field hash_sdf --device cuda --aabb 1.7"
