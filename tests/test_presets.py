@@ -181,7 +181,7 @@ def test_cli_prints_the_hint_once_on_stderr(tmp_path, monkeypatch, capsys):
 def test_step_estimate_follows_the_surface_fields_differences():
     """hash_sdf's CPU step estimate: forward differences cost the measured 0.58x of central ones;
     the cpu preset takes them (and its run writes them into config.json)."""
-    from warpnerf.train.presets import FORWARD_DIFFERENCES_COST
+    from warpnerf.fields.hash_sdf import FORWARD_DIFFERENCES_COST
 
     central = VolSDFConfig(field="hash_sdf", device="cpu")
     forward = VolSDFConfig(field="hash_sdf", device="cpu", sdf_gradient="forward")

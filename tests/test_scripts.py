@@ -273,6 +273,10 @@ def test_bench_frame_surface_variants(tmp_path):
     assert min(res["psnr_vs_rounds_min"].values()) > 30, res["psnr_vs_rounds_min"]
     cfg = json.loads((tmp_path / "r" / "config.json").read_text())
     assert cfg.get("sdf_gradient", "central") == "central"  # (the run itself is untouched)
+    # experiments/surfaces/frame_sample_counts.py (the counts training.md's sixth round cites)
+    c = json.loads(_run([EXPERIMENTS / "surfaces" / "frame_sample_counts.py", "r", "--images",
+                         "1"], tmp_path))["totals"]  # fmt: skip
+    assert c["marched"] >= c["live"] >= c["colored"] > 0 and c["rays"] == 16 * 16
     p = _start([SCRIPTS / "bench_frame.py", "r", "--variants", "rounds,rounds+fwd+fwd"], tmp_path)
     out, err = p.communicate(timeout=300)
     assert p.returncode != 0 and "--variants" in err

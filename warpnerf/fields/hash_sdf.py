@@ -371,10 +371,20 @@ class HashSDFField(nn.Module):
 
 # the built-in field `hash_sdf`, registered as an added field is (docs/ARCHITECTURE.md)
 
+# The CPU work a sample against the plain hash estimate: 2.3 with central differences
+# (measured); forward ones take 0.58x the time (50.8 s against 87.2 s of training on the
+# built-in scene, 2 cores, 2026-12-03, docs/design/training.md "Issue 47, fifth round")
+CENTRAL_DIFFERENCES_COST, FORWARD_DIFFERENCES_COST = 2.3, 0.58
+
+
+def _cpu_cost(cfg) -> float:
+    forward = getattr(cfg, "sdf_gradient", "central") == "forward"
+    return CENTRAL_DIFFERENCES_COST * (FORWARD_DIFFERENCES_COST if forward else 1.0)
+
 
 @register_field("hash_sdf", FieldTraits(
     geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
-    eikonal_weight=0.01, cpu_cost=2.3,  # (2.3: the SDF's central differences, measured)
+    eikonal_weight=0.01, cpu_cost=_cpu_cost,
     config=(HashConfig, SDFDensityConfig),
 ))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:

@@ -147,8 +147,9 @@ class FieldTraits:
     and ``--color-direction``. ``lr``, ``lr_decay``: the default learning rate and its final
     value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields). ``cpu_cost``:
     the work per sample relative to the plain MLP or hash estimate (``--preset`` hints on a
-    CPU). ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds
-    the error to raise), or None. ``options``: the field's own settings, a dataclass declared
+    CPU): a number, or a function of the config where its options change it.
+    ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds the
+    error to raise), or None. ``options``: the field's own settings, a dataclass declared
     with :func:`~warpnerf.options.option`: their flags are on `train nerf|volsdf` (for this
     field only), the run saves them in its config's ``field_options`` and the builder reads them
     as ``cfg.field_settings()``. ``config``: the built-in config sections its builder reads
@@ -164,7 +165,7 @@ class FieldTraits:
     lr: float = 5e-4
     lr_decay: float = 10.0
     eikonal_weight: float = 0.1
-    cpu_cost: float = 1.0
+    cpu_cost: float | Callable = 1.0
     check: Callable | None = None
     options: type | None = None
     config: tuple = ()

@@ -193,12 +193,6 @@ SEC_PER_HASH_LOOKUP = 4e-7  # a sample through one hash level (8 corners, fwd + 
 HINT_STEP_SECONDS = 1.0  # an estimated step above this on a CPU is "GPU-sized"
 
 
-# hash_sdf's CPU step with forward differences against central ones (50.8 s against 87.2 s of
-# training on the built-in scene, 2 cores, 2026-12-03, docs/design/training.md "Issue 47, fifth
-# round")
-FORWARD_DIFFERENCES_COST = 0.58
-
-
 def step_seconds(cfg) -> float:
     """A rough estimate of one training step's seconds of a NeRF/VolSDF config on a 2-core CPU:
     rays x samples per ray x the work per sample (MLP flops or hash lookups). With an occupancy
@@ -214,12 +208,11 @@ def step_seconds(cfg) -> float:
         per_sample = mlp * SEC_PER_MLP_FLOP + cfg.hash_levels * SEC_PER_HASH_LOOKUP
     else:
         per_sample = 6 * cfg.n_layers * cfg.width**2 * SEC_PER_MLP_FLOP
-    # the field's own factor: hash_sdf's central differences (2.3, measured; forward ones 0.58x
-    # that, measured on the built-in scene), volsdf's eikonal double backward (3)
+    # the field's own factor (its traits': a number, or a function of the config): hash_sdf's
+    # finite differences (2.3 central, measured; forward 0.58x that), volsdf's eikonal double
+    # backward (3)
     cost = cfg.traits.cpu_cost
-    if cfg.field == "hash_sdf" and getattr(cfg, "sdf_gradient", "central") == "forward":
-        cost *= FORWARD_DIFFERENCES_COST
-    return cfg.batch * samples * per_sample * cost
+    return cfg.batch * samples * per_sample * (cost(cfg) if callable(cost) else cost)
 
 
 def cpu_hint(
