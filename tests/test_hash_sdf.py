@@ -392,11 +392,12 @@ def test_annealed_beta_sets_the_default_march_step():
     assert nerf.march_step == pytest.approx(default) and nerf.max_samples == 1024
 
 
-@pytest.mark.parametrize("flag,value,key,on", [
-    ("--color-direction", "reflect", "color_direction", lambda f: f.reflect),
-    ("--sdf-gradient", "forward", "sdf_gradient", lambda f: f.forward_differences),
+@pytest.mark.parametrize("flag,value,key,on,other", [
+    ("--color-direction", "reflect", "color_direction", lambda f: f.reflect, "reflect"),
+    # (forward is hash_sdf's default: the flag's other value; the MLP field has central only)
+    ("--sdf-gradient", "central", "sdf_gradient", lambda f: not f.forward_differences, "forward"),
 ])  # fmt: skip
-def test_hash_sdf_flags(tmp_path, capsys, flag, value, key, on):
+def test_hash_sdf_flags(tmp_path, capsys, flag, value, key, on, other):
     """A hash_sdf-only flag trains, is saved and reaches the loaded field; another value and
     another field are refused (exit 2, the flag named)."""
     from warpnerf.cli.parser import main
@@ -411,7 +412,7 @@ def test_hash_sdf_flags(tmp_path, capsys, flag, value, key, on):
                  "--out", str(run)]) == 0  # fmt: skip
     cfg, model, _ = load_run(run)
     assert getattr(cfg, key) == value and on(model.field)
-    assert main(["train", "volsdf", *tiny, "--field", "volsdf", flag, value,
+    assert main(["train", "volsdf", *tiny, "--field", "volsdf", flag, other,
                  "--out", str(tmp_path / "v")]) == 2  # fmt: skip
     assert flag in capsys.readouterr().err
     assert main(["train", "volsdf", *tiny, *hashed, "--field", "hash_sdf", flag, "bogus",

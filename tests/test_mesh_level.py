@@ -142,7 +142,7 @@ def test_delivered_mesh_of_a_surface_run_lies_on_the_scene(tmp_path, capsys, cli
     (95th percentile 0.029), Chamfer 0.0117; before the mask loss about 0.2 (the box's white
     faces invisible on the white background, its extent short by 0.22-0.26 on three sides).
     Seeds 1 / 2 (2026-12-02, one lane per block as the command): Chamfer 0.0132 / 0.0116.
-    Since 2026-12-03 the preset takes forward differences (`--sdf-gradient forward`): Chamfer
+    Since 2026-12-03 it takes forward differences (hash_sdf's default, `--sdf-gradient`): Chamfer
     0.0117 as with central ones, training 50.8 s against 87.2 s (docs/design/training.md)."""
     from warpnerf.cli.parser import main
 

@@ -179,13 +179,16 @@ def test_cli_prints_the_hint_once_on_stderr(tmp_path, monkeypatch, capsys):
 
 
 def test_step_estimate_follows_the_surface_fields_differences():
-    """hash_sdf's CPU step estimate: forward differences cost the measured 0.58x of central ones;
-    the cpu preset takes them (and its run writes them into config.json)."""
+    """hash_sdf's CPU step estimate: forward differences (its default since 2026-12-03) cost the
+    measured 0.58x of central ones; the cpu preset keeps the default, and the flag overrides it."""
     from warpnerf.fields.hash_sdf import FORWARD_DIFFERENCES_COST
 
-    central = VolSDFConfig(field="hash_sdf", device="cpu")
+    central = VolSDFConfig(field="hash_sdf", device="cpu", sdf_gradient="central")
     forward = VolSDFConfig(field="hash_sdf", device="cpu", sdf_gradient="forward")
+    default = VolSDFConfig(field="hash_sdf", device="cpu")
     assert step_seconds(forward) == pytest.approx(FORWARD_DIFFERENCES_COST * step_seconds(central))
-    assert _nerf("--preset", "cpu", "--field", "hash_sdf", model="volsdf").sdf_gradient == "forward"
+    assert step_seconds(default) == pytest.approx(step_seconds(forward))
+    preset = _nerf("--preset", "cpu", "--field", "hash_sdf", model="volsdf")
+    assert preset.resolve().sdf_gradient == "forward"
     assert _nerf("--preset", "cpu", "--field", "hash_sdf", "--sdf-gradient", "central",
                  model="volsdf").sdf_gradient == "central"  # fmt: skip

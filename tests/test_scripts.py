@@ -105,6 +105,16 @@ def test_bounds_and_checkpoint_costs(tmp_path):
     assert out.strip()
 
 
+def test_gemm_alignment_study(tmp_path):
+    """experiments/overheads/gemm_alignment.py: each field layer padded to the next multiple of
+    4 columns gives the same outputs (zero columns, zero weights)."""
+    _run([EXPERIMENTS / "overheads/gemm_alignment.py", "--device", "cpu", "--rows", "64",
+          "--repeat", "1", "--json", "g.json"], tmp_path)  # fmt: skip
+    layers = json.loads((tmp_path / "g.json").read_text())["layers"]
+    assert {v["padded_width"] % 4 for v in layers.values()} == {0}
+    assert max(v["max_abs_diff"] for v in layers.values()) < 1e-4
+
+
 def test_numerics_report(tmp_path):
     _run([SCRIPTS / "numerics_report.py", "--sizes", "4", "--budget", "64", "--json", "n.json"],
          tmp_path)  # fmt: skip
@@ -262,9 +272,11 @@ def test_bench_frame_surface_variants(tmp_path):
     """bench_frame.py on a tiny hash_sdf run: rounds of 4 samples and normals by forward
     differences (``+fwd``) render, the latter near the run's own (central) image, and the
     field's setting is what it was; a variant name it does not know stops it with a message."""
+    # (central differences, so that +fwd renders differently)
     sdf = ["--data", "builtin", "--field", "hash_sdf", "--hash-levels", "3", "--hash-log2-size",
            "8", "--hash-max-res", "16", "--grid-res", "8", "--builtin-size", "16", "--batch",
-           "64", "--val-images", "0", "--quiet", "--no-tensorboard", "--iters", "3"]  # fmt: skip
+           "64", "--val-images", "0", "--quiet", "--no-tensorboard", "--iters", "3",
+           "--sdf-gradient", "central"]  # fmt: skip
     _run(["-m", "warpnerf.cli", "train", "volsdf", *sdf, "--out", "r"], tmp_path)
     _run([SCRIPTS / "bench_frame.py", "r", "--images", "1", "--repeat", "1", "--json", "f.json",
           "--variants", "rounds,rounds+fwd,rounds-4+fwd"], tmp_path)  # fmt: skip
@@ -272,7 +284,7 @@ def test_bench_frame_surface_variants(tmp_path):
     assert set(res["frame_ms_median"]) == {"rounds", "rounds+fwd", "rounds-4+fwd"}
     assert min(res["psnr_vs_rounds_min"].values()) > 30, res["psnr_vs_rounds_min"]
     cfg = json.loads((tmp_path / "r" / "config.json").read_text())
-    assert cfg.get("sdf_gradient", "central") == "central"  # (the run itself is untouched)
+    assert cfg["sdf_gradient"] == "central"  # (the run itself is untouched)
     # experiments/surfaces/frame_sample_counts.py (the counts training.md's sixth round cites)
     c = json.loads(_run([EXPERIMENTS / "surfaces" / "frame_sample_counts.py", "r", "--images",
                          "1"], tmp_path))["totals"]  # fmt: skip

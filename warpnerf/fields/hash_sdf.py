@@ -378,13 +378,13 @@ CENTRAL_DIFFERENCES_COST, FORWARD_DIFFERENCES_COST = 2.3, 0.58
 
 
 def _cpu_cost(cfg) -> float:
-    forward = getattr(cfg, "sdf_gradient", "central") == "forward"
+    forward = getattr(cfg, "sdf_gradient", None) in (None, "forward")  # (None: the default)
     return CENTRAL_DIFFERENCES_COST * (FORWARD_DIFFERENCES_COST if forward else 1.0)
 
 
 @register_field("hash_sdf", FieldTraits(
     geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
-    eikonal_weight=0.01, cpu_cost=_cpu_cost,
+    eikonal_weight=0.01, sdf_gradient="forward", cpu_cost=_cpu_cost,
     config=(HashConfig, SDFDensityConfig),
 ))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:

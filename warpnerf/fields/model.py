@@ -145,7 +145,9 @@ class FieldTraits:
     unbounded scenes, appearance codes, the distortion loss; on a COLMAP/LLFF capture the finest
     hash level defaults to 1024). ``beta_schedule``: takes ``--beta-final``, ``--sdf-density``
     and ``--color-direction``. ``lr``, ``lr_decay``: the default learning rate and its final
-    value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields). ``cpu_cost``:
+    value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields);
+    ``sdf_gradient``: the default finite differences of a ``beta_schedule`` field's gradient
+    (central or forward; ``--sdf-gradient``). ``cpu_cost``:
     the work per sample relative to the plain MLP or hash estimate (``--preset`` hints on a
     CPU): a number, or a function of the config where its options change it.
     ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds the
@@ -165,6 +167,7 @@ class FieldTraits:
     lr: float = 5e-4
     lr_decay: float = 10.0
     eikonal_weight: float = 0.1
+    sdf_gradient: str = "central"
     cpu_cost: float | Callable = 1.0
     check: Callable | None = None
     options: type | None = None

@@ -104,6 +104,8 @@ class NeRFConfig(*reversed(SECTIONS)):
         if isinstance(d, dict) and not any(k in d for k in RECIPE_LEGACY):
             # a run from before the recipe's options: it trained without them
             fields = {**RECIPE_LEGACY, **fields}
+        if isinstance(d, dict) and "sdf_gradient" not in d:  # (before 2026-12-03: central)
+            fields["sdf_gradient"] = "central"
         cfg = cls(**fields).check_values(where)
         if cfg.traits.options is not None:  # (ints of float options as floats)
             cfg.field_options = cfg._typed_field_options(where)
@@ -142,6 +144,8 @@ class NeRFConfig(*reversed(SECTIONS)):
             self.lr = traits.lr
         if self.eikonal_weight is None:
             self.eikonal_weight = traits.eikonal_weight
+        if self.sdf_gradient is None:
+            self.sdf_gradient = traits.sdf_gradient
         if self.lr_final is None:
             self.lr_final = self.lr / traits.lr_decay
         if self.grid_res is None:
@@ -274,9 +278,13 @@ class NeRFConfig(*reversed(SECTIONS)):
             raise fail("pose_refine", f"is for NeRF fields ({_fields(geometry='density')}), not "
                        f"--field {self.field}")  # fmt: skip
         if traits.geometry == "sdf":
-            if not traits.beta_schedule and (self.beta_final > 0 or self.sdf_density != "laplace"
-                                             or self.color_direction != "view"
-                                             or self.sdf_gradient != "central"):  # fmt: skip
+            own = (
+                self.beta_final > 0,
+                self.sdf_density != "laplace",
+                self.color_direction != "view",
+                self.sdf_gradient not in (None, "central"),
+            )
+            if not traits.beta_schedule and any(own):
                 raise fail("field", "--beta-final, --sdf-density, --color-direction and "
                            f"--sdf-gradient need {_fields(beta_schedule=True)}")  # fmt: skip
             if self.color_direction == "reflect" and not self.view_dependence:

@@ -76,11 +76,11 @@ NERF_PRESETS = {
             "lr": 5e-3,
             "lr_final": 5e-4,
         },
-        # (300 steps: 28.0 dB but 2.5x the time of the others; 150: 23.2 dB.) Forward
-        # differences: 4 SDF evaluations a coloured sample instead of 7, the same delivered mesh
-        # (Chamfer 0.0117) and val (23.00 against 22.94 dB) in 0.58x the training time (50.8 s
-        # against 87.2 s on 2 cores, one run each, 2026-12-03, docs/design/training.md "Issue 47,
-        # fifth round"); the GPU recipe keeps central differences until its val is measured
+        # (300 steps: 28.0 dB but 2.5x the time of the others; 150: 23.2 dB.) hash_sdf's default
+        # forward differences: 4 SDF evaluations a coloured sample instead of 7, the same
+        # delivered mesh (Chamfer 0.0117) and val (23.00 against 22.94 dB) in 0.58x the training
+        # time (50.8 s against 87.2 s on 2 cores, one run each, 2026-12-03, docs/design/
+        # training.md "Issue 47, fifth round"; the field's default since the GPU's val agreed)
         "hash_sdf": {
             **_NERF_CPU,
             "iters": 150,
@@ -89,7 +89,6 @@ NERF_PRESETS = {
             "hash_log2_size": 14,
             "hash_max_res": 128,
             "hidden": 32,
-            "sdf_gradient": "forward",
         },
     },
 }
