@@ -16,10 +16,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 
 import torch
 import torch.nn.functional as F
+
+from warpnerf.bench import _time  # median seconds (CUDA events on a GPU)
 
 # (name, widths of the concatenated inputs, the layer's outputs)
 LAYERS = (
@@ -32,24 +33,6 @@ LAYERS = (
 def _layer(parts, w, b, pad: int):
     x = torch.cat([*parts, parts[0].new_zeros(parts[0].shape[0], pad)] if pad else parts, -1)
     return F.linear(x, F.pad(w, (0, pad)) if pad else w, b)
-
-
-def _time(fn, device, repeat: int) -> float:
-    """Median ms of ``fn`` over ``repeat`` calls (CUDA: events; CPU: perf_counter)."""
-    out = []
-    for _ in range(repeat):
-        if device.type == "cuda":
-            a, z = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            z.record()
-            torch.cuda.synchronize()
-            out.append(a.elapsed_time(z))
-        else:
-            t0 = time.perf_counter()
-            fn()
-            out.append(1e3 * (time.perf_counter() - t0))
-    return statistics.median(out)
 
 
 def measure(device: str, rows: int, align: int, repeat: int) -> dict:
@@ -79,7 +62,7 @@ def measure(device: str, rows: int, align: int, repeat: int) -> dict:
             step(0), step(pad)
         for _ in range(5):
             for p in (0, pad):
-                ms[p].append(_time(lambda p=p: step(p), dev, repeat))
+                ms[p].append(1e3 * _time(lambda p=p: step(p), dev, repeat, warmup=0))
         a, z = statistics.median(ms[0]), statistics.median(ms[pad])
         res["layers"][name] = {"width": k, "padded_width": k + pad, "ms": a, "ms_padded": z,
                                "ratio": z / a, "max_abs_diff": err}  # fmt: skip
