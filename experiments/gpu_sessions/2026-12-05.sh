@@ -50,7 +50,8 @@ h2)  # 49: the best materials recipe (beta 0.02 -> 0.003: mesh 0.0197 with centr
   ttq materials_sdf_w02_fwd 330 --budgets 60,300 --spp 1 $GEO \
     --label "materials hash_sdf, beta 0.02 -> 0.003 (forward)" -- train volsdf $MAT $W02 $F
   tail_out ;;
-h3)  # 49 / 44: h2 with Huber (does the mesh keep? the built-in scene's nearly did)
+h3)  # 49 / 44: h2 with Huber (does the mesh keep? the built-in scene's nearly did; at 50x50 on
+     # the CPU materials gained 0.99 dB and its mesh improved, 0.0729 -> 0.0662, the floor lower)
   ttq materials_sdf_w02_huber 330 --budgets 60,300 --spp 1 $GEO \
     --label "materials hash_sdf, beta 0.02 -> 0.003, Huber" -- train volsdf $MAT $W02 \
     --photometric-loss huber $F
@@ -76,4 +77,4 @@ esac
 # materials-sdf-{base,huber,random_bg,view_cull,sparse_adam,no_ema}, five to a call; the lego
 # rows of 2026-12-03 ran with central differences: base 31.11, random_bg 31.41, sparse_adam
 # 30.63, huber 32.81, view_cull 30.74), then p3 (lego hash_sdf with the anneal + frame), p4
-# (lego NeRF frame profile), p7 (beer, issue 48; carry beer, 8 MB).
+# (lego NeRF frame profile); issue 48's phases are in issue48.sh (b0 first: beer's 300 s baseline).
