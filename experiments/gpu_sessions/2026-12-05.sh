@@ -14,20 +14,14 @@
 #   C  carry [.gpu/data, .commit]: export PYTHONPATH=/tmp/site; mkdir -p /root/stage &&
 #      cp -r .gpu/data/* /root/stage/; LIMIT=575 bash experiments/gpu_sessions/2026-12-05.sh h1
 #   then carry [.commit] alone, one phase a call (LIMIT=575), at once after the last returns.
-. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
+. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq, cuda_setup, tail_out
 F="--quiet --no-tensorboard --val-images 0"
 MAT="--data $S/materials --field hash_sdf --device cuda --aabb 1.7"
 GEO="--geometry materials --mesh-resolution 384"
 W02="--beta 0.02 --beta-final 0.003 --beta-anneal-steps 6000 --march-step 0.0025 --max-samples 4096"
-tail_out() { cat $OUT/walls.txt; grep -h "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true; }
 case $1 in
 setup)  # the import, the data, the CUDA variants of the tests the session's code touches
-  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
-  cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
-  l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
-    tests/test_hash_sdf.py tests/test_sdf_gradient.py tests/test_graph_step.py \
-    > $OUT/cuda_tests.log 2>&1
-  echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log
+  cuda_setup tests/test_hash_sdf.py tests/test_sdf_gradient.py tests/test_graph_step.py
   # 47: the fields' first layers at widths 35 / 34 / 31 against padded to a multiple of 4 (a
   # surface frame ran cuBLAS's align1 TF32 kernel for 2.2 ms, training.md seventh round)
   for n in 262144 1048576; do step gemm_$n 30 python3 experiments/overheads/gemm_alignment.py \

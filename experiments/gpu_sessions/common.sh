@@ -24,3 +24,16 @@ ttq() {  # name want ttq-args...: scripts/time_to_quality.py run into $Q/name, i
   step "$name" "$want" python3 scripts/time_to_quality.py run "$Q/$name" "$@"
   cp "$Q/$name/ttq.json" "$OUT/$name.ttq.json" 2>/dev/null
 }
+cuda_setup() {  # test files...: the import, the data, the CUDA variants of those tests (a
+  # driver's setup phase since 2026-12-05.sh)
+  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
+  cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
+  local l; l=$(left 5)
+  timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider "$@" \
+    > $OUT/cuda_tests.log 2>&1
+  echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log
+}
+tail_out() {  # a phase's summary: the walls, the result tables' rows (each with its log's name),
+  # what failed or was skipped
+  cat $OUT/walls.txt; grep "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true
+}

@@ -34,13 +34,12 @@
 #           "--sampler proposal" after p1 wins): p1 and g1-g3 run on top of them
 #   FIX     the fog remedy g1/g2 pointed to, for g3's 300 s run
 #   FRUN    the run fr times (default b0's, $Q/beer_base/run)
-. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq
+. "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq, cuda_setup, tail_out
 F="--quiet --no-tensorboard --val-images 0"
 BEER="--data $S/beer --device cuda"
 FERN="--data $S/fern --device cuda"
 DW=${DW:-0.1}; DR=${DR:-256}; KEEP=${KEEP:-}
 FIX=${FIX:-"--distortion-loss 0.01 --distortion-space mipnerf360"}
-tail_out() { cat $OUT/walls.txt; grep "^|" $OUT/*.log; cat $OUT/fail.txt 2>/dev/null; true; }
 fog() {  # name: scripts/fog_report.py on $Q/NAME/run's final state, 8 spiral frames (as data.md's
          # 90 s table, 2026-12-02.sh r2b): the contact sheet and fog.json in $OUT/fog_NAME, a row
   step "fog_$1" 45 python3 scripts/fog_report.py "$Q/$1/run" --frames 8 --out "$OUT/fog_$1"
@@ -64,12 +63,8 @@ EOF
 case $1 in
 setup)  # the import, the data, the CUDA variants of the tests of the issue's code (near weights,
         # proposal sampling, the depth prior, the step's loss terms)
-  python3 -c "import warpnerf, warp, torch; print('ok', torch.__version__, warp.__version__, torch.cuda.get_device_name(0))"
-  cat "$R/.commit" 2>/dev/null; cp -r .gpu/data/* $S/ 2>/dev/null
-  l=$(left 5); timeout "$l" python3 -m pytest -o addopts=-ra -q -k cuda -p no:cacheprovider \
-    tests/test_near_weight.py tests/test_proposal.py tests/test_proposal_sampling.py \
-    tests/test_depth_prior.py tests/test_step_loss.py > $OUT/cuda_tests.log 2>&1
-  echo "pytest rc=$?" >> $OUT/cuda_tests.log; tail -8 $OUT/cuda_tests.log ;;
+  cuda_setup tests/test_near_weight.py tests/test_proposal.py tests/test_proposal_sampling.py \
+    tests/test_depth_prior.py tests/test_step_loss.py ;;
 b0)  # the baseline: beer 300 s with today's capture defaults (grid, codes, 1024, EMA), against
      # 25.00 dB at 300 s (data.md "Issue 20: what limits beer and fern", 8e3f300; 2026-12-03b.sh p7
      # never ran), and its fog at 300 s against 17.4 % of rays at 90 s (data.md "Issue 48: fog on
