@@ -377,16 +377,19 @@ class HashSDFField(nn.Module):
 # (measured); forward ones take 0.58x the time (50.8 s against 87.2 s of training on the
 # built-in scene, 2 cores, 2026-12-03, docs/design/training.md "Issue 47, fifth round")
 CENTRAL_DIFFERENCES_COST, FORWARD_DIFFERENCES_COST = 2.3, 0.58
+# the field's finite differences unless --sdf-gradient says otherwise (docs/design/surfaces.md,
+# "Issue 49, twelfth round")
+DEFAULT_GRADIENT = "forward"
 
 
 def _cpu_cost(cfg) -> float:
-    forward = getattr(cfg, "sdf_gradient", None) in (None, "forward")  # (None: the default)
+    forward = (getattr(cfg, "sdf_gradient", None) or DEFAULT_GRADIENT) == "forward"
     return CENTRAL_DIFFERENCES_COST * (FORWARD_DIFFERENCES_COST if forward else 1.0)
 
 
 @register_field("hash_sdf", FieldTraits(
     geometry="sdf", in_box=True, hash=True, grid=True, beta_schedule=True, lr=1e-2, lr_decay=20.0,
-    eikonal_weight=0.01, sdf_gradient="forward", cpu_cost=_cpu_cost,
+    eikonal_weight=0.01, sdf_gradient=DEFAULT_GRADIENT, cpu_cost=_cpu_cost,
     config=(HashConfig, SDFDensityConfig),
 ))  # fmt: skip
 def _hash_sdf(cfg) -> RadianceModel:

@@ -44,6 +44,9 @@ FINE_SAMPLES = 64  # fine samples per ray when --coarse-fine turns the fine netw
 BETA_FINAL_STEP = 5.0 / 6.0
 DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
+# keys whose default changed, with the value a run saved before the change trained with (its
+# config.json lacks the key): hash_sdf's finite differences became forward on 2026-12-03
+BEFORE_DEFAULT_CHANGED = {"sdf_gradient": "central"}
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
 BLENDER_AABB = 1.5  # a Blender-format scene's box (NeRF synthetic): larger where its alpha asks
 DATASET_NEAR, DATASET_FAR = 2.0, 6.0  # a dataset's depth range when its format gives none
@@ -104,8 +107,8 @@ class NeRFConfig(*reversed(SECTIONS)):
         if isinstance(d, dict) and not any(k in d for k in RECIPE_LEGACY):
             # a run from before the recipe's options: it trained without them
             fields = {**RECIPE_LEGACY, **fields}
-        if isinstance(d, dict) and "sdf_gradient" not in d:  # (before 2026-12-03: central)
-            fields["sdf_gradient"] = "central"
+        if isinstance(d, dict):  # a key whose default changed: what a run without it trained with
+            fields.update({k: v for k, v in BEFORE_DEFAULT_CHANGED.items() if k not in d})
         cfg = cls(**fields).check_values(where)
         if cfg.traits.options is not None:  # (ints of float options as floats)
             cfg.field_options = cfg._typed_field_options(where)

@@ -173,9 +173,7 @@ def preset_help(table: dict) -> dict:
             vals = {}
             for field, values in fields.items():
                 if field_name in values:
-                    v = values[field_name]
-                    text = v if isinstance(v, str) else f"{v:.4g}"
-                    vals.setdefault(text, []).append(field)
+                    vals.setdefault(f"{values[field_name]:.4g}", []).append(field)
             text = ", ".join(
                 v if len(vals) == 1 and len(fs) == len(fields) else f"{v} ({'/'.join(fs)})"
                 for v, fs in vals.items()
