@@ -348,6 +348,15 @@ CASES = [
     (["train", "box", "--data", "bl", "--out", "OUT", "--near", "6"], ["--near", "--far"]),
     (["train", "nerf", "--data", "builtin", "--out", "OUT", "--near", "4", "--far", "1"], ["near"]),
     (["train", "volsdf", "--data", "builtin", "--out", "OUT", "--beta-min", "1"], ["--beta-min"]),
+    # a surface field under `train nerf`, which has none of its flags or defaults
+    (
+        ["train", "nerf", "--data", "builtin", "--out", "OUT", "--field", "hash_sdf"],
+        ["surface field", "train volsdf --field hash_sdf"],
+    ),
+    (
+        ["train", "nerf", "--data", "builtin", "--out", "OUT", "--field", "volsdf"],
+        ["train volsdf --field volsdf"],
+    ),
     (["train", "sdf", "--points", "ok.npz", "--out", "OUT", "--resolution", "4"], ["--resolution"]),
     (["train", "sdf", "--points", "ok.npz", "--out", "OUT", "--eikonal-weight", "-1"], ["--eik"]),
     (["mesh", "--sdf", "torus", "--out", "OUT/m.ply", "--resolution", "0"], ["--resolution"]),

@@ -239,6 +239,13 @@ def nerf_config_from_args(args):
     # the measured GPU recipe (presets.NERF_PRESETS["gpu"]), saved as "gpu"
     auto = "auto" if cls is NeRFConfig else cls.field
     kw["field"] = default_field(kw.get("field") or auto, kw["device"])
+    if cls is NeRFConfig and field_traits(kw["field"]).geometry == "sdf":
+        # `train nerf` shows no SDF flags (beta, its schedule, --sdf-gradient) and lacks
+        # VolSDF's defaults (the opacity loss, 6 frequencies): a run here would train a recipe
+        # nobody measured, with no way to set its beta
+        raise UserError(f"--field {kw['field']} is a surface field: train it with `warpnerf "
+                        f"train volsdf --field {kw['field']}` (VolSDF's defaults and its flags: "
+                        "--beta, --beta-final, --sdf-gradient, ...)")  # fmt: skip
     kw["preset"] = resolved_preset(kw["preset"], kw["device"])
     # the preset's sizes for the flags not given (explicit flags win)
     kw = apply_preset(kw, preset_values(NERF_PRESETS, kw["preset"], kw["field"]))
@@ -496,8 +503,9 @@ register_train_command(NERF_MODEL, "nerf", TrainCommand(
     "train a NeRF (coarse, or coarse/fine) on a dataset", partial(add_nerf_flags, model="nerf"),
     cmd_train_nerf))  # fmt: skip
 register_train_command(NERF_MODEL, "volsdf", TrainCommand(
-    "train VolSDF (neural SDF + Laplace density) on a dataset; = train nerf --field volsdf with "
-    "VolSDF's defaults", partial(add_nerf_flags, model="volsdf"), cmd_train_nerf))  # fmt: skip
+    "train VolSDF (neural SDF + Laplace density) on a dataset: the surface fields (--field "
+    "volsdf, hash_sdf) with VolSDF's defaults and flags", partial(add_nerf_flags,
+    model="volsdf"), cmd_train_nerf))  # fmt: skip
 register_train_command(SDF_MODEL, "sdf", TrainCommand(
     "fit a neural SDF to a point cloud (eikonal loss) + mesh", add_sdf_flags,
     cmd_train_sdf))  # fmt: skip
