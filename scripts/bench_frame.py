@@ -10,7 +10,11 @@ python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [-
 ``rounds-N``: the rounds path marching N samples a live ray a round (more as rays finish), so
 that rays stop marching once opaque; ``samples_per_frame`` gives each variant's counters (samples
 marched, coloured) a frame. A ``+fwd`` suffix (``rounds+fwd``, ``rounds-16+fwd``; hash_sdf runs)
-renders the normals by forward differences whatever the run trained with.
+renders the normals by forward differences whatever the run trained with; a ``+epsE`` suffix
+(``rounds+eps1e-3``, ``rounds-32+fwd+eps1e-4``; rounds variants) colours only the samples whose
+weight in the image reaches E instead of ``COLOR_WEIGHT_EPS`` (1e-5): fewer colour-head
+evaluations, each skipped sample's colour counted black (the image darkens by at most the
+skipped weights' sum).
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -29,7 +33,7 @@ import time
 import torch
 
 from warpnerf.metrics import psnr
-from warpnerf.ops.tracer import MAX_STEPS, MIN_STEPS
+from warpnerf.ops.tracer import COLOR_WEIGHT_EPS, MAX_STEPS, MIN_STEPS
 from warpnerf.render import render_chunks, render_marched
 from warpnerf.render_traced import render_traced
 from warpnerf.train.nerf import dataset_rays, load_data, load_run, with_refined_poses
@@ -55,18 +59,41 @@ def forward_differences(field, fn):
     return run
 
 
+def parse_variant(name: str):
+    """(base, fwd, eps) of a variant's name, e.g. "rounds-32+fwd+eps1e-3" -> ("rounds-32",
+    True, 0.001); None when it is not one (eps: the rounds path's only, in (0, 1))."""
+    base, *mods = name.split("+")
+    fwd, eps = "fwd" in mods, COLOR_WEIGHT_EPS
+    for m in mods:
+        if m == "fwd":
+            continue
+        try:
+            eps = float(m[3:]) if m.startswith("eps") else float("nan")
+        except ValueError:
+            return None
+        if not 0.0 < eps < 1.0 or not base.startswith("rounds"):
+            return None
+    rounds_n = base.startswith("rounds-") and base[7:].isdecimal() and int(base[7:]) > 0
+    if len(mods) != len(set(mods)) or not (base in VARIANTS or rounds_n):
+        return None
+    return base, fwd, eps
+
+
 def renderer(name, model, cfg, a):
     """render(o, d) -> dict for a variant: the rounds path with the run's settings, or the
     tracer with --min-steps/--max-steps and its colour rule; a ``+fwd`` suffix renders a
-    surface field's normals by forward differences."""
-    if name.endswith("+fwd"):
-        return forward_differences(model.coarse, renderer(name[:-4], model, cfg, a))
+    surface field's normals by forward differences, ``+epsE`` colours the samples weighing at
+    least E in the image (the rounds path)."""
+    base, fwd, eps = parse_variant(name)
+    if fwd:
+        plain = base + (f"+eps{eps:g}" if eps != COLOR_WEIGHT_EPS else "")
+        return forward_differences(model.coarse, renderer(plain, model, cfg, a))
     kw = dict(background=cfg.background, t_threshold=cfg.t_threshold, half=a.half)
-    if name == "rounds" or name.startswith("rounds-"):  # rounds-N: N samples a live ray a round
-        rs = cfg.round_samples if name == "rounds" else int(name.split("-", 1)[1])
+    if base == "rounds" or base.startswith("rounds-"):  # rounds-N: N samples a live ray a round
+        rs = cfg.round_samples if base == "rounds" else int(base.split("-", 1)[1])
         return lambda o, d, sl: render_marched(
             model.grid, model.coarse, o[sl], d[sl], cfg.near, cfg.far, tracer="rounds",
-            max_samples=cfg.max_samples, round_samples=rs, **kw,
+            max_samples=cfg.max_samples, round_samples=rs, color_eps=eps, **kw,
         )  # fmt: skip
     colors = "all" if name == "traced-all" else "weighted"
     return lambda o, d, sl: render_traced(
@@ -134,15 +161,12 @@ def main():
     a = p.parse_args()
     names = a.variants.split(",")
 
-    def known(n):
-        n = n.removesuffix("+fwd")
-        return n in VARIANTS or (n.startswith("rounds-") and n[7:].isdecimal() and int(n[7:]) > 0)
-
-    if not all(known(n) for n in names) or "rounds" not in names:
+    if not all(parse_variant(n) for n in names) or "rounds" not in names:
         raise SystemExit(
             f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
             "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
-            "by forward differences), with rounds (the reference)"
+            "by forward differences) and, for rounds variants, +epsE (colour the samples "
+            "weighing at least E, 0 < E < 1), with rounds (the reference)"
         )
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:

@@ -122,6 +122,35 @@ def test_early_termination_equals_the_twin_and_stays_near_the_rounds_path(device
     assert new["n_marched"] < old["n_marched"]  # nothing marched behind the opaque ball
 
 
+def test_color_eps_skips_light_samples_within_their_weight(device):
+    """The rounds path's ``color_eps``: a larger one colours fewer samples, and each pixel moves
+    by at most the weight of the samples it no longer colours (counted black); densities,
+    opacity and depth are untouched; 0 colours every sample; outside [0, 1) it refuses."""
+    field = Ball(sigma=8.0, everywhere=0.3)  # soft: many light samples before the ball
+    grid = ball_grid(field, device)
+    o, d = rays(48, device, seed=3)
+    out = {e: rounds(grid, field, o, d, background=0.0, color_eps=e) for e in (0.0, 1e-5, 1e-2)}
+    n = [out[e]["n_colored"] for e in (0.0, 1e-5, 1e-2)]
+    assert n[0] >= n[1] > n[2] > 0, n
+    assert n[0] == out[0.0]["n_kept"]  # (every composited sample, weightless ones too)
+    for e in (1e-5, 1e-2):
+        close(out[e], out[0.0], 0.0, ("opacity", "depth"))
+        gap = (out[0.0]["rgb"] - out[e]["rgb"]).double()  # (sigmoid colours < 1: darker)
+        assert float(gap.min()) >= -1e-6
+    ws = []  # each ray's weight in samples lighter than 1e-2: the bound of its colour change
+    with torch.no_grad():
+        render_marched(grid, field, o, d, 0.0, 9.0, tracer="rounds", color_eps=0.0,
+                       on_weights=lambda ri, t0, t1, w: ws.append((ri, w)))  # fmt: skip
+    light = torch.zeros(o.shape[0], dtype=torch.float64, device=device)
+    for ri, w in ws:
+        light.index_add_(0, ri.long(), torch.where(w < 1e-2, w, 0.0).double())
+    gap = (out[0.0]["rgb"] - out[1e-2]["rgb"]).double().amax(-1)
+    assert bool((gap <= light + 1e-6).all()) and float(gap.max()) > 0
+    for bad in (-1e-3, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="color_eps"):
+            rounds(grid, field, o, d, color_eps=bad)
+
+
 @pytest.mark.parametrize("steps", [(1, 1), (1, 8), (3, 5), (64, 64)])
 def test_step_counts_per_round_do_not_change_the_image(device, steps):
     field = Ball(sigma=5.0, everywhere=0.2)

@@ -45,6 +45,7 @@ def render_marched(
     tracer: str = "auto",
     colors: str = "weighted",
     on_weights=None,
+    color_eps: float = COLOR_WEIGHT_EPS,
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -70,8 +71,8 @@ def render_marched(
     path's only). The rounds path: the field's
     density runs once on the marched samples, their
     weights are composited, and the colour MLP runs only on samples whose weight reaches
-    ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, an error below their summed weight;
-    ``n_colored`` in the result counts them).
+    ``color_eps`` (default ``COLOR_WEIGHT_EPS``, 1e-5; the others count as black, an error
+    below their summed weight; ``n_colored`` in the result counts them).
     ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
     rays finish), compositing each round onto the rays' running colour and transmittance and
     dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
@@ -107,6 +108,8 @@ def render_marched(
     max_samples = check_int("max_samples", max_samples, lo=1)
     round_samples = check_int("round_samples", round_samples)
     sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
+    if not 0.0 <= float(color_eps) < 1.0:  # (also refuses NaN)
+        raise ValueError(f"color_eps must be in [0, 1), got {color_eps!r}")
     if tracer not in TRACERS:
         raise ValueError(f"tracer must be one of {TRACERS}, got {tracer!r}")
     if colors not in TRACE_COLORS:  # (the tracer's option, checked whatever the path)
@@ -120,6 +123,7 @@ def render_marched(
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
             round_samples or max_samples, max_samples, half, sample_budget, on_weights,
+            float(color_eps),
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     if jitter is None and perturb:
@@ -307,7 +311,7 @@ def _in_range(ray_indices, packed_info, values):
 
 def _render_rounds(
     grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
-    sample_budget=SAMPLE_BUDGET, on_weights=None,
+    sample_budget=SAMPLE_BUDGET, on_weights=None, color_eps=COLOR_WEIGHT_EPS,
 ):  # fmt: skip
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     use_half = half and dev.type == "cuda"
@@ -340,7 +344,7 @@ def _render_rounds(
                 feats = None
         sig = sig.to(dt)
         # Weights first (no colours): the colour MLP runs only where a sample's weight in the
-        # image, T_ray * w, reaches COLOR_WEIGHT_EPS; the rest add at most their weight's sum.
+        # image, T_ray * w, reaches color_eps; the rest add at most their weight's sum.
         _, z, op, w = render_packed(
             smp.t_starts,
             smp.t_ends,
@@ -355,7 +359,7 @@ def _render_rounds(
         t_a = trans[alive]
         if on_weights is not None:  # each sample's share of its ray's pixel
             on_weights(alive[ri], smp.t_starts, smp.t_ends, w * t_a[ri])
-        seen = torch.nonzero(w * t_a[ri] >= COLOR_WEIGHT_EPS).squeeze(1)
+        seen = torch.nonzero(w * t_a[ri] >= color_eps).squeeze(1)
         rs = ri[seen]
         n_colored += seen.shape[0]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)

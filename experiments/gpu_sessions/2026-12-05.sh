@@ -38,6 +38,15 @@ h1)  # 44 / 49: Huber on lego hash_sdf (+1.70 dB at 60 s on 2026-12-03, one run,
   ttq lego_sdf_weak_terms 90 --budgets 60 --spp 1 \
     --label "lego hash_sdf, eikonal 0.002, mask 0.02" -- train volsdf --data $S/lego \
     --field hash_sdf --device cuda --eikonal-weight 0.002 --mask-loss 0.02 $F
+  # 47 / 49: the lego surface frame (28.0 ms, target 25) colours 1.23 M samples a frame, 4 SDF
+  # evaluations each with forward differences, about as many as the density pass's 5.1 M:
+  # colour only the samples weighing at least 1e-4 / 1e-3 in the image (1e-5 now; the rest
+  # count black), and with rounds of 32 (0.62x the samples marched, the same 28.2 ms on
+  # 2026-12-03); the rule: the same image within 0.05 dB against the val images
+  step frame_lego_eps 120 python3 scripts/bench_frame.py $Q/lego_sdf_huber/run --data $S/lego \
+    --device cuda --images 5 --repeat 2 --json $OUT/frame_lego_sdf_eps.json \
+    --variants rounds,rounds+eps1e-4,rounds+eps1e-3,rounds-32+eps1e-3
+  python3 -c "import json,sys; r=json.load(open(sys.argv[1])); [print(k, r[k]) for k in ('frame_ms_median', 'psnr_vs_gt', 'psnr_vs_rounds_min', 'samples_per_frame')]" $OUT/frame_lego_sdf_eps.json
   tail_out ;;
 h2)  # 49: the best materials recipe (beta 0.02 -> 0.003: mesh 0.0197 with central differences)
      # with the forward default (from 0.01 forward gave the same mesh as central: 0.0223 / 0.0219)
