@@ -14,7 +14,8 @@ renders the normals by forward differences whatever the run trained with; a ``+e
 (``rounds+eps1e-3``, ``rounds-32+fwd+eps1e-4``; rounds variants) colours only the samples whose
 weight in the image reaches E instead of ``COLOR_WEIGHT_EPS`` (1e-5): fewer colour-head
 evaluations, each skipped sample's colour counted black (the image darkens by at most the
-skipped weights' sum).
+skipped weights' sum), and ``+mean`` (rounds variants) counts them as the coloured samples' mean
+colour along the same ray instead (``render_marched``'s ``color_fill``).
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -60,12 +61,15 @@ def forward_differences(field, fn):
 
 
 def parse_variant(name: str):
-    """(base, fwd, eps) of a variant's name, e.g. "rounds-32+fwd+eps1e-3" -> ("rounds-32",
-    True, 0.001); None when it is not one (eps: the rounds path's only, in (0, 1))."""
+    """(base, fwd, eps, fill) of a variant's name, e.g. "rounds-32+fwd+eps1e-3+mean" ->
+    ("rounds-32", True, 0.001, "mean"); None when it is not one (eps and mean: the rounds
+    path's only; eps in (0, 1))."""
     base, *mods = name.split("+")
-    fwd, eps = "fwd" in mods, COLOR_WEIGHT_EPS
+    fwd, eps, fill = "fwd" in mods, COLOR_WEIGHT_EPS, "mean" if "mean" in mods else "black"
+    if fill == "mean" and not base.startswith("rounds"):
+        return None
     for m in mods:
-        if m == "fwd":
+        if m in ("fwd", "mean"):
             continue
         try:
             eps = float(m[3:]) if m.startswith("eps") else float("nan")
@@ -76,7 +80,7 @@ def parse_variant(name: str):
     rounds_n = base.startswith("rounds-") and base[7:].isdecimal() and int(base[7:]) > 0
     if len(mods) != len(set(mods)) or not (base in VARIANTS or rounds_n):
         return None
-    return base, fwd, eps
+    return base, fwd, eps, fill
 
 
 def renderer(name, model, cfg, a):
@@ -84,16 +88,16 @@ def renderer(name, model, cfg, a):
     tracer with --min-steps/--max-steps and its colour rule; a ``+fwd`` suffix renders a
     surface field's normals by forward differences, ``+epsE`` colours the samples weighing at
     least E in the image (the rounds path)."""
-    base, fwd, eps = parse_variant(name)
+    base, fwd, eps, fill = parse_variant(name)
     if fwd:
-        plain = base + (f"+eps{eps:g}" if eps != COLOR_WEIGHT_EPS else "")
+        plain = name.replace("+fwd", "")
         return forward_differences(model.coarse, renderer(plain, model, cfg, a))
     kw = dict(background=cfg.background, t_threshold=cfg.t_threshold, half=a.half)
     if base == "rounds" or base.startswith("rounds-"):  # rounds-N: N samples a live ray a round
         rs = cfg.round_samples if base == "rounds" else int(base.split("-", 1)[1])
         return lambda o, d, sl: render_marched(
             model.grid, model.coarse, o[sl], d[sl], cfg.near, cfg.far, tracer="rounds",
-            max_samples=cfg.max_samples, round_samples=rs, color_eps=eps, **kw,
+            max_samples=cfg.max_samples, round_samples=rs, color_eps=eps, color_fill=fill, **kw,
         )  # fmt: skip
     colors = "all" if name == "traced-all" else "weighted"
     return lambda o, d, sl: render_traced(
@@ -166,7 +170,8 @@ def main():
             f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
             "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
             "by forward differences) and, for rounds variants, +epsE (colour the samples "
-            "weighing at least E, 0 < E < 1), with rounds (the reference)"
+            "weighing at least E, 0 < E < 1) and +mean (the others take the coloured ones' "
+            "mean colour), with rounds (the reference)"
         )
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:

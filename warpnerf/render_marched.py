@@ -20,6 +20,7 @@ __all__ = [
 
 
 TRACERS = ("auto", "traced", "rounds")  # render_marched's rendering paths (without gradients)
+COLOR_FILLS = ("black", "mean")  # the rounds path's colour of the samples it does not colour
 
 
 def render_marched(
@@ -46,6 +47,7 @@ def render_marched(
     colors: str = "weighted",
     on_weights=None,
     color_eps: float = COLOR_WEIGHT_EPS,
+    color_fill: str = "black",
 ):
     """Volume rendering with an occupancy grid: packed marching + early termination.
 
@@ -71,8 +73,11 @@ def render_marched(
     path's only). The rounds path: the field's
     density runs once on the marched samples, their
     weights are composited, and the colour MLP runs only on samples whose weight reaches
-    ``color_eps`` (default ``COLOR_WEIGHT_EPS``, 1e-5; the others count as black, an error
-    below their summed weight; ``n_colored`` in the result counts them).
+    ``color_eps`` (default ``COLOR_WEIGHT_EPS``, 1e-5; ``n_colored`` in the result counts
+    them). ``color_fill`` says what the others count as: ``"black"`` (an error below their
+    summed weight, always darker) or ``"mean"`` (the weighted mean colour of the coloured
+    samples of the same ray and round: exact where a ray's colour is uniform, an error below
+    the skipped weight times the ray's colour spread; black where none is coloured).
     ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
     rays finish), compositing each round onto the rays' running colour and transmittance and
     dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
@@ -110,6 +115,8 @@ def render_marched(
     sample_budget = check_int("sample_budget", sample_budget, lo=1, hi=2**62)
     if not 0.0 <= float(color_eps) < 1.0:  # (also refuses NaN)
         raise ValueError(f"color_eps must be in [0, 1), got {color_eps!r}")
+    if color_fill not in COLOR_FILLS:
+        raise ValueError(f"color_fill must be one of {COLOR_FILLS}, got {color_fill!r}")
     if tracer not in TRACERS:
         raise ValueError(f"tracer must be one of {TRACERS}, got {tracer!r}")
     if colors not in TRACE_COLORS:  # (the tracer's option, checked whatever the path)
@@ -123,7 +130,7 @@ def render_marched(
         return _render_rounds(
             grid, field, origins, directions, near, far, background, t_threshold,
             round_samples or max_samples, max_samples, half, sample_budget, on_weights,
-            float(color_eps),
+            float(color_eps), color_fill == "mean",
         )  # fmt: skip
     n_rays, dev = origins.shape[0], origins.device
     if jitter is None and perturb:
@@ -311,7 +318,7 @@ def _in_range(ray_indices, packed_info, values):
 
 def _render_rounds(
     grid, field, o, d, near, far, background, t_threshold, round_samples, cap, half=False,
-    sample_budget=SAMPLE_BUDGET, on_weights=None, color_eps=COLOR_WEIGHT_EPS,
+    sample_budget=SAMPLE_BUDGET, on_weights=None, color_eps=COLOR_WEIGHT_EPS, fill_mean=False,
 ):  # fmt: skip
     n_rays, dev, dt = o.shape[0], o.device, o.dtype
     use_half = half and dev.type == "cuda"
@@ -372,6 +379,9 @@ def _render_rounds(
                     for sl in seen.split(sample_budget)
                 ])  # fmt: skip
         c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))
+        if fill_mean:  # the skipped weight takes the coloured samples' mean colour: c * op / w_seen
+            w_seen = torch.zeros_like(op).index_add_(0, rs, w[seen])
+            c = c * torch.where(w_seen > 0, op / w_seen.clamp_min(1e-30), 0.0).unsqueeze(-1)
         rgb[alive] += t_a.unsqueeze(-1) * c
         depth[alive] += t_a * z
         t_a = t_a * (1.0 - op)

@@ -147,7 +147,8 @@ class FieldTraits:
     and ``--color-direction``. ``lr``, ``lr_decay``: the default learning rate and its final
     value's divisor. ``eikonal_weight``: the default eikonal weight (SDF fields);
     ``sdf_gradient``: the default finite differences of a ``beta_schedule`` field's gradient
-    (central or forward; ``--sdf-gradient``). ``cpu_cost``:
+    (central or forward; ``--sdf-gradient``). ``photometric_loss``: the default colour loss
+    (mse or huber; ``--photometric-loss``). ``cpu_cost``:
     the work per sample relative to the plain MLP or hash estimate (``--preset`` hints on a
     CPU): a number, or a function of the config where its options change it.
     ``check(cfg, fail)``: the field's own checks of a config (``fail(name, rule)`` builds the
@@ -168,6 +169,7 @@ class FieldTraits:
     lr_decay: float = 10.0
     eikonal_weight: float = 0.1
     sdf_gradient: str = "central"
+    photometric_loss: str = "mse"
     cpu_cost: float | Callable = 1.0
     check: Callable | None = None
     options: type | None = None

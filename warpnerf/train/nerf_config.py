@@ -45,8 +45,9 @@ BETA_FINAL_STEP = 5.0 / 6.0
 DEFAULT_GRID_RES = 128  # --grid-res of a field that marches the occupancy grid (its traits' grid)
 MODEL = "nerf"  # config.json's "model" of a NeRF/VolSDF run (written without one before 2026-11-27)
 # keys whose default changed, with the value a run saved before the change trained with (its
-# config.json lacks the key): hash_sdf's finite differences became forward on 2026-12-03
-BEFORE_DEFAULT_CHANGED = {"sdf_gradient": "central"}
+# config.json lacks the key): on 2026-12-03 hash_sdf's finite differences became forward and
+# its colour loss huber
+BEFORE_DEFAULT_CHANGED = {"sdf_gradient": "central", "photometric_loss": "mse"}
 CONTRACT_FAR = 1000.0  # --contract on: the default far plane, in inner-cube half-sizes
 BLENDER_AABB = 1.5  # a Blender-format scene's box (NeRF synthetic): larger where its alpha asks
 DATASET_NEAR, DATASET_FAR = 2.0, 6.0  # a dataset's depth range when its format gives none
@@ -149,6 +150,8 @@ class NeRFConfig(*reversed(SECTIONS)):
             self.eikonal_weight = traits.eikonal_weight
         if self.sdf_gradient is None:
             self.sdf_gradient = traits.sdf_gradient
+        if self.photometric_loss is None:
+            self.photometric_loss = traits.photometric_loss
         if self.lr_final is None:
             self.lr_final = self.lr / traits.lr_decay
         if self.grid_res is None:

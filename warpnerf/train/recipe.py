@@ -71,8 +71,10 @@ class RecipeConfig:
         "used by eval, render, mesh and the viewer and saved in the checkpoint; 0: off",
         check="nonnegative",
     )  # fmt: skip
-    photometric_loss: str = option(
-        "mse", f"the colour loss: mse, or huber (delta {HUBER_DELTA}, instant-ngp)",
+    photometric_loss: str | None = option(
+        None, f"the colour loss: mse, or huber (delta {HUBER_DELTA}, instant-ngp); default: the "
+        "field's, huber for hash_sdf (on an H200 lego +1.3 dB after 300 s and a closer "
+        "materials mesh, docs/design/nerf.md \"Issue 44, eleventh round\"), mse for the others",
         choices=("mse", "huber"),
     )  # fmt: skip
     mask_loss: float = option(
@@ -113,7 +115,7 @@ class RecipeConfig:
             raise fail(
                 "random_background", f"must be one of auto, on, off, got {self.random_background!r}"
             )
-        if self.photometric_loss not in ("mse", "huber"):
+        if self.photometric_loss not in ("mse", "huber", None):  # (None: the field's)
             raise fail("photometric_loss", f"must be mse or huber, got {self.photometric_loss!r}")
         w = self.mlp_weight_decay
         if not (isinstance(w, (int, float)) and math.isfinite(w) and 0 <= w <= 1):
