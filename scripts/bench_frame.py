@@ -10,12 +10,12 @@ python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [-
 ``rounds-N``: the rounds path marching N samples a live ray a round (more as rays finish), so
 that rays stop marching once opaque; ``samples_per_frame`` gives each variant's counters (samples
 marched, coloured) a frame. A ``+fwd`` suffix (``rounds+fwd``, ``rounds-16+fwd``; hash_sdf runs)
-renders the normals by forward differences whatever the run trained with; a ``+epsE`` suffix
-(``rounds+eps1e-3``, ``rounds-32+fwd+eps1e-4``; rounds variants) colours only the samples whose
-weight in the image reaches E instead of ``COLOR_WEIGHT_EPS`` (1e-5): fewer colour-head
-evaluations, each skipped sample's colour counted black (the image darkens by at most the
-skipped weights' sum), and ``+mean`` (rounds variants) counts them as the coloured samples' mean
-colour along the same ray instead (``render_marched``'s ``color_fill``).
+renders the normals by forward differences whatever the run trained with. The rounds variants
+colour the samples whose weight in the image reaches ``render_marched``'s ``RENDER_COLOR_EPS``
+(1e-3) and give the others the coloured ones' mean colour along their ray, as the library
+renders; ``+epsE`` (``rounds+eps1e-4``, ``rounds-32+fwd+eps1e-2``) colours those reaching E
+instead, and ``+black`` counts the others black (``rounds+eps1e-5+black``: the rule before
+2026-12-03, and the tracer's; on 2026-12-03 an ``+epsE`` variant without a fill was black).
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -34,8 +34,8 @@ import time
 import torch
 
 from warpnerf.metrics import psnr
-from warpnerf.ops.tracer import COLOR_WEIGHT_EPS, MAX_STEPS, MIN_STEPS
-from warpnerf.render import render_chunks, render_marched
+from warpnerf.ops.tracer import MAX_STEPS, MIN_STEPS
+from warpnerf.render import RENDER_COLOR_EPS, render_chunks, render_marched
 from warpnerf.render_traced import render_traced
 from warpnerf.train.nerf import dataset_rays, load_data, load_run, with_refined_poses
 
@@ -61,15 +61,15 @@ def forward_differences(field, fn):
 
 
 def parse_variant(name: str):
-    """(base, fwd, eps, fill) of a variant's name, e.g. "rounds-32+fwd+eps1e-3+mean" ->
-    ("rounds-32", True, 0.001, "mean"); None when it is not one (eps and mean: the rounds
+    """(base, fwd, eps, fill) of a variant's name, e.g. "rounds-32+fwd+eps1e-4+black" ->
+    ("rounds-32", True, 0.0001, "black"); None when it is not one (eps and black: the rounds
     path's only; eps in (0, 1))."""
     base, *mods = name.split("+")
-    fwd, eps, fill = "fwd" in mods, COLOR_WEIGHT_EPS, "mean" if "mean" in mods else "black"
-    if fill == "mean" and not base.startswith("rounds"):
+    fwd, eps, fill = "fwd" in mods, RENDER_COLOR_EPS, "black" if "black" in mods else "mean"
+    if fill == "black" and not base.startswith("rounds"):
         return None
     for m in mods:
-        if m in ("fwd", "mean"):
+        if m in ("fwd", "black"):
             continue
         try:
             eps = float(m[3:]) if m.startswith("eps") else float("nan")
@@ -170,8 +170,8 @@ def main():
             f"--variants: some of {VARIANTS} or rounds-N (the rounds path with N "
             "samples a live ray a round), each optionally +fwd (hash_sdf: normals "
             "by forward differences) and, for rounds variants, +epsE (colour the samples "
-            "weighing at least E, 0 < E < 1) and +mean (the others take the coloured ones' "
-            "mean colour), with rounds (the reference)"
+            "weighing at least E, 0 < E < 1) and +black (the others count black, not the "
+            "coloured ones' mean colour), with rounds (the reference)"
         )
     cfg, model, _ = load_run(a.run, a.device)
     if model.grid is None:

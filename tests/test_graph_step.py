@@ -96,8 +96,9 @@ def test_static_step_trains_the_surface_field_as_the_eager_step_on_cpu(density, 
     lb, hb, _ = _train(static, 10, static=True, force=(4096, 1 << 16, 1 << 15))
     assert lb == pytest.approx(la, rel=1e-5)
     assert hb["beta"] == pytest.approx(ha["beta"], rel=1e-6)
-    # (the eikonal means sum in another order; Adam's steps are 1e-2: far above this)
-    assert (_params(eager) - _params(static)).abs().max() < 1e-4
+    # (the eikonal means sum in another order; Adam's steps are 1e-2: far above this. With
+    # Huber, hash_sdf's default colour loss since 2026-12-03, neus-forward measured 2e-4)
+    assert (_params(eager) - _params(static)).abs().max() < 5e-4
 
 
 def test_overflow_is_deterministic_counted_and_finite():

@@ -143,7 +143,8 @@ def test_delivered_mesh_of_a_surface_run_lies_on_the_scene(tmp_path, capsys, cli
     faces invisible on the white background, its extent short by 0.22-0.26 on three sides).
     Seeds 1 / 2 (2026-12-02, one lane per block as the command): Chamfer 0.0132 / 0.0116.
     Since 2026-12-03 it takes forward differences (hash_sdf's default, `--sdf-gradient`): Chamfer
-    0.0117 as with central ones, training 50.8 s against 87.2 s (docs/design/training.md)."""
+    0.0117 as with central ones, training 50.8 s against 87.2 s (docs/design/training.md); and
+    Huber (hash_sdf's default colour loss since the same day): Chamfer 0.0136, p95 0.034."""
     from warpnerf.cli.parser import main
 
     run = tmp_path / "surface"

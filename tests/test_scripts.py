@@ -279,21 +279,28 @@ def test_bench_frame_surface_variants(tmp_path):
            "--sdf-gradient", "central"]  # fmt: skip
     _run(["-m", "warpnerf.cli", "train", "volsdf", *sdf, "--out", "r"], tmp_path)
     _run([SCRIPTS / "bench_frame.py", "r", "--images", "1", "--repeat", "1", "--json", "f.json",
-          "--variants", "rounds,rounds+fwd,rounds-4+fwd,rounds+fwd+eps1e-2"], tmp_path)  # fmt: skip
+          "--variants", "rounds,rounds+fwd,rounds-4+fwd,rounds+fwd+eps1e-2,rounds+eps1e-5+black"],
+         tmp_path)  # fmt: skip
     res = json.loads((tmp_path / "f.json").read_text())
-    names = {"rounds", "rounds+fwd", "rounds-4+fwd", "rounds+fwd+eps1e-2"}
+    names = {"rounds", "rounds+fwd", "rounds-4+fwd", "rounds+fwd+eps1e-2", "rounds+eps1e-5+black"}
     assert set(res["frame_ms_median"]) == names
     same = {k: v for k, v in res["psnr_vs_rounds_min"].items() if "eps" not in k}
     assert min(same.values()) > 30, same  # (a 3-step field is soft: its light samples count)
     n = {k: v["n_colored"] for k, v in res["samples_per_frame"].items()}
     assert 0 < n["rounds+fwd+eps1e-2"] < n["rounds+fwd"], n  # (+eps: fewer samples coloured)
+    assert n["rounds"] <= n["rounds+eps1e-5+black"], n  # (the default colours from 1e-3 on)
     cfg = json.loads((tmp_path / "r" / "config.json").read_text())
     assert cfg["sdf_gradient"] == "central"  # (the run itself is untouched)
     # experiments/surfaces/frame_sample_counts.py (the counts training.md's sixth round cites)
     c = json.loads(_run([EXPERIMENTS / "surfaces" / "frame_sample_counts.py", "r", "--images",
                          "1"], tmp_path))["totals"]  # fmt: skip
     assert c["marched"] >= c["live"] >= c["colored"] > 0 and c["rays"] == 16 * 16
-    for bad in ("rounds,rounds+fwd+fwd", "rounds,traced+eps1e-3", "rounds,rounds+eps2"):
+    for bad in (
+        "rounds,rounds+fwd+fwd",
+        "rounds,traced+eps1e-3",
+        "rounds,rounds+eps2",
+        "rounds,traced+black",
+    ):
         p = _start([SCRIPTS / "bench_frame.py", "r", "--variants", bad], tmp_path)
         out, err = p.communicate(timeout=300)
         assert p.returncode != 0 and "--variants" in err, bad

@@ -12,6 +12,7 @@ from warpnerf.fields.hash_nerf import HashNeRFField
 from warpnerf.occupancy import OccupancyGrid
 from warpnerf.ops import HashGrid
 from warpnerf.ops import occupancy as O
+from warpnerf.ops.tracer import COLOR_WEIGHT_EPS
 from warpnerf.reference import tracer as R
 from warpnerf.render import render_marched
 from warpnerf.render_traced import render_traced
@@ -56,6 +57,9 @@ def ball_grid(field, device, res=16, dt=0.02):
 
 
 def rounds(grid, field, o, d, near=0.0, far=9.0, **kw):
+    """The rounds path; by default with the tracer's colour rule (samples under
+    COLOR_WEIGHT_EPS black), so that the two compare up to float error."""
+    kw = {"color_eps": COLOR_WEIGHT_EPS, "color_fill": "black", **kw}
     with torch.no_grad():
         return render_marched(grid, field, o, d, near, far, tracer="rounds", **kw)
 
@@ -149,6 +153,45 @@ def test_color_eps_skips_light_samples_within_their_weight(device):
     for bad in (-1e-3, 1.0, float("nan")):
         with pytest.raises(ValueError, match="color_eps"):
             rounds(grid, field, o, d, color_eps=bad)
+
+
+class GreyBall(Ball):
+    """Ball with one colour everywhere."""
+
+    def color(self, h, d):
+        return torch.full_like(h, 0.25)
+
+
+def test_mean_fill_is_exact_for_one_colour_and_nearer_than_black(device):
+    """``color_fill="mean"`` (the rounds path's default, with ``RENDER_COLOR_EPS``): a ray's
+    skipped samples take its coloured samples' mean colour, so one colour everywhere renders
+    exactly as colouring every sample; with colours that vary, the image is nearer the full one
+    than black's on average (a ray none of whose samples is coloured stays black)."""
+    o, d = rays(48, device, seed=4)
+    for field, exact in ((GreyBall(sigma=8.0), True),  # (every ray that meets it colours some)
+                         (Ball(sigma=8.0, everywhere=0.3), False)):  # fmt: skip
+        grid = ball_grid(field, device)
+        full = rounds(grid, field, o, d, background=0.0, color_eps=0.0)
+        mean = rounds(grid, field, o, d, background=0.0, color_eps=1e-2, color_fill="mean")
+        black = rounds(grid, field, o, d, background=0.0, color_eps=1e-2)
+        assert mean["n_colored"] == black["n_colored"] < full["n_colored"]
+        e_mean = (mean["rgb"] - full["rgb"]).abs().mean().item()  # (over rays: a ray with
+        e_black = (black["rgb"] - full["rgb"]).abs().mean().item()  # none coloured is black)
+        if exact:  # (rays whose samples all weigh under eps stay black: none here)
+            assert e_mean < 1e-5 < e_black, (e_mean, e_black)
+        else:
+            assert e_mean < 0.5 * e_black, (e_mean, e_black)
+        with torch.no_grad():  # the defaults: the mean fill
+            dflt = render_marched(grid, field, o, d, 0.0, 9.0, tracer="rounds", background=0.0)
+        assert dflt["n_colored"] <= full["n_colored"]
+        close(dflt, full, 5e-3 if not exact else 1e-5, ("rgb",))  # (measured 2.3e-3 in fog)
+    one = rounds(grid, field, o, d, color_eps=1e-2, color_fill="mean", t_threshold=0.0)
+    for rs in (1, 4):  # (the mean is the ray's over all its rounds: no split changes it)
+        split = rounds(grid, field, o, d, color_eps=1e-2, color_fill="mean", t_threshold=0.0,
+                       round_samples=rs)  # fmt: skip
+        close(split, one, 1e-5)
+    with pytest.raises(ValueError, match="color_fill"):
+        rounds(grid, field, o, d, color_fill="grey")
 
 
 @pytest.mark.parametrize("steps", [(1, 1), (1, 8), (3, 5), (64, 64)])

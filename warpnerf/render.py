@@ -14,6 +14,7 @@ import torch
 from .ops import generate_rays, ray_aabb_intersect, render_packed, stratified_samples
 from .ops.bridge import check_int
 from .render_marched import (
+    RENDER_COLOR_EPS,
     SAMPLE_BUDGET,
     render_marched,
     render_marched_fixed,
@@ -34,6 +35,7 @@ __all__ = [
     "render_chunks",
     "render_sphere_traced",
     "SAMPLE_BUDGET",
+    "RENDER_COLOR_EPS",
 ]
 
 

@@ -42,7 +42,9 @@ h1)  # 44 / 49: Huber on lego hash_sdf (+1.70 dB at 60 s on 2026-12-03, one run,
   # evaluations each with forward differences, about as many as the density pass's 5.1 M:
   # colour only the samples weighing at least 1e-4 / 1e-3 in the image (1e-5 now; the rest
   # count black), and with rounds of 32 (0.62x the samples marched, the same 28.2 ms on
-  # 2026-12-03); the rule: the same image within 0.05 dB against the val images
+  # 2026-12-03); the rule: the same image within 0.05 dB against the val images. (Run at
+  # 5a11a7f, where +epsE counted the skipped samples black; since 249a0e8's successor the
+  # rounds path's default is 1e-3 with their ray's mean colour, and +black names black)
   step frame_lego_eps 120 python3 scripts/bench_frame.py $Q/lego_sdf_huber/run --data $S/lego \
     --device cuda --images 5 --repeat 2 --json $OUT/frame_lego_sdf_eps.json \
     --variants rounds,rounds+eps1e-4,rounds+eps1e-3,rounds-32+eps1e-3
