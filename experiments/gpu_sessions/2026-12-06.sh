@@ -10,7 +10,7 @@
 F="--quiet --no-tensorboard --val-images 0"
 frames() {  # name run data variants: 5 val views by variant (bench_frame.py), the summary
   step "frame_$1" 120 python3 scripts/bench_frame.py "$2" --data "$3" --device cuda --images 5 \
-    --repeat 2 --variants "$4" --json "$OUT/frame_$1.json"
+    --repeat 2 --variants "$4" --profile 3 --json "$OUT/frame_$1.json"
   python3 -c "import json,sys; r=json.load(open(sys.argv[1])); [print(k, r[k]) for k in ('frame_ms_median', 'psnr_vs_gt', 'psnr_vs_rounds_min', 'samples_per_frame')]" "$OUT/frame_$1.json"
 }
 case $1 in

@@ -83,9 +83,9 @@ class NeRFConfig(*reversed(SECTIONS)):
     batch: int = option(1024, "rays per step, uniform across all training images", check="positive")
     field: str = option(
         "mlp", "mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in minutes); "
-        "volsdf: neural SDF with VolSDF's density (see `train volsdf`); hash_sdf: hash-grid SDF "
-        "with VolSDF's density on the occupancy grid (`train nerf` without --field: hash on "
-        "CUDA, mlp on a CPU)", choices=FIELDS,
+        "volsdf: neural SDF with VolSDF's density; hash_sdf: hash-grid SDF with VolSDF's "
+        "density on the occupancy grid (the two surface fields train with `train volsdf`; "
+        "`train nerf` without --field: hash on CUDA, mlp on a CPU)", choices=FIELDS,
     )  # fmt: skip
     view_dependence: bool = option(True, "colour depends on the viewing direction")
     tf32: bool = option(True, "TF32 matrix products on CUDA (kernels stay float32; the field's "
