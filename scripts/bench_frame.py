@@ -78,7 +78,8 @@ def parse_variant(name: str):
         if not 0.0 < eps < 1.0 or not base.startswith("rounds"):
             return None
     rounds_n = base.startswith("rounds-") and base[7:].isdecimal() and int(base[7:]) > 0
-    if len(mods) != len(set(mods)) or not (base in VARIANTS or rounds_n):
+    twice = len(mods) != len(set(mods)) or sum(m.startswith("eps") for m in mods) > 1
+    if twice or not (base in VARIANTS or rounds_n):
         return None
     return base, fwd, eps, fill
 

@@ -328,7 +328,8 @@ def test_render_in_rounds_matches_single_pass(device):
     grid = OccupancyGrid(BOX, 32, dt=0.01).to(device)  # all occupied: long rays, many rounds
     o, d = hard_rays(96, device, seed=7)
     # (the colour rule before RENDER_COLOR_EPS: every sample above 1e-5 coloured, the rest
-    # black, which no split into rounds changes; the mean fill is a mean per round)
+    # black, which no split into rounds changes; the default's threshold follows each round's
+    # heaviest sample)
     kw = {"color_eps": 1e-5, "color_fill": "black"}
     with torch.no_grad():
         one = render_marched(grid, field, o, d, 0.0, 9.0, background=0.3, t_threshold=0.0, **kw)

@@ -156,3 +156,16 @@ def test_huber_is_hash_sdfs_default_and_older_runs_keep_mse():
     assert VolSDFConfig.from_dict(saved).photometric_loss == "huber"
     del saved["photometric_loss"]
     assert VolSDFConfig.from_dict(saved).resolve().photometric_loss == "mse"
+
+
+def test_resume_compares_a_missing_key_with_the_value_it_trained_with():
+    """`--resume --photometric-loss mse` (or `--sdf-gradient central`) on a run whose
+    config.json predates the key compares with what it trained with, not with None."""
+    from warpnerf.cli.train import _saved_value
+    from warpnerf.train.nerf_config import VolSDFConfig
+
+    saved = VolSDFConfig(field="hash_sdf", data="builtin").resolve().to_dict()
+    assert _saved_value("photometric_loss", saved, VolSDFConfig) == "huber"
+    for key, before in (("photometric_loss", "mse"), ("sdf_gradient", "central")):
+        old = {k: v for k, v in saved.items() if k != key}
+        assert _saved_value(key, old, VolSDFConfig) == before

@@ -186,12 +186,31 @@ def test_mean_fill_is_exact_for_one_colour_and_nearer_than_black(device):
         assert dflt["n_colored"] <= full["n_colored"]
         close(dflt, full, 5e-3 if not exact else 1e-5, ("rgb",))  # (measured 2.3e-3 in fog)
     one = rounds(grid, field, o, d, color_eps=1e-2, color_fill="mean", t_threshold=0.0)
-    for rs in (1, 4):  # (the mean is the ray's over all its rounds: no split changes it)
+    full = rounds(grid, field, o, d, color_eps=0.0, t_threshold=0.0)
+    err = (one["rgb"] - full["rgb"]).abs().max().item()
+    for rs in (1, 4):  # (the mean is the ray's over all its rounds; a later round's heaviest
+        # sample is lighter, so rounds colour at least as many: no farther from the full image)
         split = rounds(grid, field, o, d, color_eps=1e-2, color_fill="mean", t_threshold=0.0,
                        round_samples=rs)  # fmt: skip
-        close(split, one, 1e-5)
+        assert split["n_colored"] >= one["n_colored"]
+        assert (split["rgb"] - full["rgb"]).abs().max().item() <= err + 1e-6
     with pytest.raises(ValueError, match="color_fill"):
         rounds(grid, field, o, d, color_fill="grey")
+
+
+def test_the_default_colours_a_fog_of_light_samples(device):
+    """A thin fog (every sample under 1e-3 of weight in the image at this step, opacity about
+    0.4 along a ray) keeps its colour by default: the threshold is relative to each ray's
+    heaviest sample, so a ray of many light samples colours them."""
+    field = Ball(sigma=0.0, everywhere=0.19)
+    grid = OccupancyGrid(BOX, 8, dt=0.005).to(device)  # all occupied
+    o, d = rays(24, device, seed=5)
+    full = rounds(grid, field, o, d, background=0.0, color_eps=0.0, t_threshold=0.0)
+    with torch.no_grad():
+        dflt = render_marched(grid, field, o, d, 0.0, 9.0, tracer="rounds", background=0.0,
+                              t_threshold=0.0)  # fmt: skip
+    assert float(full["opacity"].max()) > 0.3
+    close(dflt, full, 1e-4, ("rgb", "opacity"))
 
 
 @pytest.mark.parametrize("steps", [(1, 1), (1, 8), (3, 5), (64, 64)])

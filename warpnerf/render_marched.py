@@ -11,6 +11,7 @@ from .field_protocol import density as field_density
 from .field_protocol import needs_directions
 from .ops import render_packed
 from .ops.bridge import check_int
+from .ops.tracer import COLOR_WEIGHT_EPS
 from .render_traced import SAMPLE_BUDGET, TRACE_COLORS, render_traced
 
 __all__ = [
@@ -20,12 +21,14 @@ __all__ = [
 
 TRACERS = ("auto", "traced", "rounds")  # render_marched's rendering paths (without gradients)
 COLOR_FILLS = ("black", "mean")  # the rounds path's colour of the samples it does not colour
-# The rounds path colours the samples weighing at least this much in the image, the others
-# taking the coloured ones' mean colour along their ray: on an H200 a lego hash_sdf frame 22.1
-# ms against 27.8 with every sample above 1e-5 coloured (-0.024 dB against the val images with
-# black for the rest; on the CPU the mean gives +0.006 dB where black gives -0.015; docs/design/
-# training.md "Issue 47, eighth round"). The tracer (render_traced) keeps COLOR_WEIGHT_EPS.
+# The rounds path colours the samples weighing at least this much in the image (or a 100th of
+# their ray's heaviest sample, if less), the others taking the coloured ones' mean colour along
+# their ray: on an H200 a lego hash_sdf frame 22.1 ms colouring from 1e-3 (the rest black)
+# against 27.8 with every sample above 1e-5 coloured (-0.024 dB against the val images; on the
+# CPU the mean gives +0.006 dB where black gives -0.015; docs/design/training.md "Issue 47,
+# eighth round"). The tracer (render_traced) keeps COLOR_WEIGHT_EPS.
 RENDER_COLOR_EPS = 1e-3
+COLOR_RELATIVE = 1e-2  # (a ray whose heaviest sample weighs under 0.1 colours from a 100th of it)
 
 
 def render_marched(
@@ -77,13 +80,17 @@ def render_marched(
     docs/design/rendering.md "Issue 47"; ``round_samples`` and ``max_samples`` are the rounds
     path's only). The rounds path: the field's
     density runs once on the marched samples, their
-    weights are composited, and the colour MLP runs only on samples whose weight reaches
-    ``color_eps`` (default ``RENDER_COLOR_EPS``, 1e-3; ``n_colored`` in the result counts
-    them). ``color_fill`` says what the others count as: ``"mean"`` (the default: the weighted
-    mean colour of the ray's coloured samples (over all its rounds), exact where a ray's colour
-    is uniform, an error below the skipped weight times the ray's colour spread; black where
-    none is coloured) or ``"black"`` (an error below their summed weight, always darker; with
-    ``color_eps=COLOR_WEIGHT_EPS`` the rule before 2026-12-03, and the tracer's).
+    weights are composited, and the colour MLP runs only on samples whose weight in the image
+    reaches ``color_eps`` (default ``RENDER_COLOR_EPS``, 1e-3) or, if less, ``COLOR_RELATIVE``
+    (1e-2) of their ray's heaviest sample in the round, and at least ``COLOR_WEIGHT_EPS`` (1e-5;
+    ``color_eps`` if smaller, which then is the rule: 1e-5 is the rule before 2026-12-03);
+    ``n_colored`` in the result counts them. ``color_fill`` says what the others count as:
+    ``"mean"`` (the default: the weighted mean colour of the ray's coloured samples over all
+    its rounds, exact where a ray's colour is uniform, an error below the skipped weight times
+    the ray's colour spread, e.g. a thin fog before a surface takes the surface's colour; every
+    ray weighing 1e-5 colours its heaviest sample) or ``"black"`` (an error below their summed
+    weight, always darker; with ``color_eps=COLOR_WEIGHT_EPS`` the rule before 2026-12-03, and
+    the tracer's).
     ``round_samples > 0`` marches in rounds of at most that many samples per live ray (more as
     rays finish), compositing each round onto the rays' running colour and transmittance and
     dropping rays once T < t_threshold, so samples behind opaque surfaces are never marched
@@ -373,7 +380,16 @@ def _render_rounds(
         t_a = trans[alive]
         if on_weights is not None:  # each sample's share of its ray's pixel
             on_weights(alive[ri], smp.t_starts, smp.t_ends, w * t_a[ri])
-        seen = torch.nonzero(w * t_a[ri] >= color_eps).squeeze(1)
+        wt = w * t_a[ri]  # each sample's weight in the image
+        # coloured: weighing color_eps, or COLOR_RELATIVE of its ray's heaviest sample in this
+        # round if that is less (so that every ray with weight colours some, whatever the march
+        # step: a fog of many light samples colours them all), and at least COLOR_WEIGHT_EPS
+        # (the tracer's rule; color_eps if smaller, which then is the rule)
+        heaviest = torch.zeros_like(op).scatter_reduce_(0, ri.long(), wt, "amax")
+        thr = torch.clamp(
+            COLOR_RELATIVE * heaviest[ri], min(color_eps, COLOR_WEIGHT_EPS), color_eps
+        )
+        seen = torch.nonzero(wt >= thr).squeeze(1)
         rs = ri[seen]
         n_colored += seen.shape[0]
         c = torch.zeros(alive.numel(), 3, device=dev, dtype=dt)
@@ -397,7 +413,7 @@ def _render_rounds(
     bg = torch.as_tensor(background, device=dev, dtype=dt)
     bg = bg.expand(3) if bg.dim() == 0 else bg
     if fill_mean:  # the skipped weight takes the ray's coloured samples' mean colour (over all
-        # its rounds, so that no split into rounds changes it): rgb * opacity / coloured weight
+        # its rounds): rgb * opacity / coloured weight
         scale = torch.where(seen_w > 0, (1.0 - trans) / seen_w.clamp_min(1e-30), 0.0)
         rgb = rgb * scale.unsqueeze(-1)  # (<= opacity: the coloured part is <= seen_w)
     rgb = rgb + trans.unsqueeze(-1) * bg

@@ -46,7 +46,8 @@ def render_traced(
     T < ``t_threshold`` (the compositing kernels' rule), and rays that are done or opaque leave
     the list. ``colors="weighted"`` (the default) runs the colour MLP only on samples whose
     weight in the image reaches ``COLOR_WEIGHT_EPS`` (1e-5; the others count as black, as in the
-    rounds path), at the cost of a gather and a scatter of those samples; ``"all"`` runs it on
+    rounds path with ``color_eps=COLOR_WEIGHT_EPS, color_fill="black"``, its rule before
+    2026-12-03), at the cost of a gather and a scatter of those samples; ``"all"`` runs it on
     every slot of the round with the densities (no gather; more MLP work: every slot, unused ones
     included). ``half`` (CUDA only) runs the MLPs under float16 autocast; compositing stays
     float32. ``sample_budget``: most samples the field sees in one call (larger rounds are
@@ -54,8 +55,9 @@ def render_traced(
     samples to colour).
 
     Host syncs: one after priming (live count and refused rays), one per round (next live count,
-    slots to colour, samples marched). The image equals the rounds path's
-    (``render_marched(..., tracer="rounds")``) up to float error, the samples behind the point
+    slots to colour, samples marched). The image equals the rounds path's with that colour
+    rule (``render_marched(..., tracer="rounds", color_eps=COLOR_WEIGHT_EPS,
+    color_fill="black")``) up to float error, the samples behind the point
     where T < ``t_threshold`` (which the rounds path composites: at most T < t_threshold of
     weight) and the colour-skip rule (``tests/test_tracer.py``).
 

@@ -3,7 +3,8 @@
 # session's H200, not run yet: what 2026-12-05.sh's lease (nerf.md "Issue 44, eleventh round",
 # surfaces.md "Issue 49, thirteenth round", training.md "Issue 47, eighth round") left open.
 # hash_sdf trains with Huber and forward differences by default, and the rounds path colours
-# the samples weighing 1e-3 with their ray's mean colour for the rest (all since 2026-12-03).
+# the samples weighing 1e-3 (or a 100th of their ray's heaviest sample where less) with their
+# ray's mean colour for the rest (all since 2026-12-03).
 # The calls are 2026-12-05.sh's (A: warp part 1; B: part 2 + `setup`; C: the data + the first
 # phase; then one phase a call with [.commit] alone).
 . "$(dirname "$0")/common.sh"  # R, OUT, S, Q, left, pin, step, ttq, cuda_setup, tail_out
@@ -16,8 +17,8 @@ frames() {  # name run data variants: 5 val views by variant (bench_frame.py), t
 case $1 in
 setup)  # the CUDA variants of the tests this session's code touches
   cuda_setup tests/test_tracer.py tests/test_sdf_gradient.py tests/test_hash_sdf.py ;;
-f1)  # 47 / 49: the frame with the rounds path's new default (colour from 1e-3, the rest their
-     # ray's mean colour) timed against the old rule (1e-5, black) and the measured black 1e-3,
+f1)  # 47 / 49: the frame with the rounds path's new default (colour from 1e-3 or a 100th of
+     # the ray's heaviest sample, the rest their ray's mean colour) timed against the old rule (1e-5, black) and the measured black 1e-3,
      # on a 60 s lego hash_sdf run with the defaults (Huber) and a 60 s lego NeRF run; the
      # rule: the same image within 0.05 dB of val; lego hash_sdf target 25 ms (22.1 measured
      # for black at 1e-3, 27.8 for the old rule)

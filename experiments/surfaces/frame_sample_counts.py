@@ -1,8 +1,11 @@
 """Where a grid run's frame spends its field evaluations, counted (device-independent): for the
 first ``--images`` val views, the samples one round marches (``render_marched``'s rounds path
 with ``round_samples=0``), those before compositing stops at T < t_threshold, and those whose
-weight reaches the colour threshold (the samples the colour head, and a surface field's normal,
-is evaluated on). Counts, not times: run it on a CPU with a small run.
+weight reaches the colour threshold of the rule before 2026-12-03, ``COLOR_WEIGHT_EPS`` (the
+samples the colour head, and a surface field's normal, was evaluated on; since then the rounds
+path colours fewer, ``render_marched``'s ``RENDER_COLOR_EPS``, whose count is its own
+``n_colored``, as ``scripts/bench_frame.py`` reports). Counts, not times: run it on a CPU with
+a small run.
 
 python3 experiments/surfaces/frame_sample_counts.py RUN [--images 2] [--device cpu]
 """

@@ -16,7 +16,7 @@ from ..options import CHECKS, add_flags, apply_preset, flag_of, from_flags
 from ..outputs import json_dumps
 from ..train.box_fit import MODEL as BOX_MODEL
 from ..train.box_fit import BoxFitConfig
-from ..train.nerf_config import FINE_SAMPLES, GRID, NeRFConfig, VolSDFConfig
+from ..train.nerf_config import BEFORE_DEFAULT_CHANGED, FINE_SAMPLES, GRID, NeRFConfig, VolSDFConfig
 from ..train.nerf_config import MODEL as NERF_MODEL
 from ..train.presets import (
     NERF_PRESETS,
@@ -158,8 +158,8 @@ def _saved_value(dest: str, saved: dict, cls):
         return (saved.get("n_fine", defaults.get("n_fine")) or 0) > 0
     if dest == "fine_samples":
         return saved.get("n_fine", defaults.get("n_fine"))
-    if dest in defaults or dest in saved:
-        return saved.get(dest, defaults.get(dest))
+    if dest in defaults or dest in saved:  # (a key whose default changed: its value before)
+        return saved.get(dest, BEFORE_DEFAULT_CHANGED.get(dest, defaults.get(dest)))
     opts = saved.get("field_options")  # a field's own flags (train nerf|volsdf)
     if isinstance(opts, dict) and dest in opts:
         return opts[dest]
