@@ -11,11 +11,12 @@ python3 scripts/bench_frame.py RUN [--data PATH] [--device cuda] [--images 0] [-
 that rays stop marching once opaque; ``samples_per_frame`` gives each variant's counters (samples
 marched, coloured) a frame. A ``+fwd`` suffix (``rounds+fwd``, ``rounds-16+fwd``; hash_sdf runs)
 renders the normals by forward differences whatever the run trained with. The rounds variants
-colour the samples whose weight in the image reaches ``render_marched``'s ``RENDER_COLOR_EPS``
-(1e-3) and give the others the coloured ones' mean colour along their ray, as the library
-renders; ``+epsE`` (``rounds+eps1e-4``, ``rounds-32+fwd+eps1e-2``) colours those reaching E
-instead, and ``+black`` counts the others black (``rounds+eps1e-5+black``: the rule before
-2026-12-03, and the tracer's; on 2026-12-03 an ``+epsE`` variant without a fill was black).
+colour as the library renders (``render_marched``'s default: from ``RENDER_COLOR_EPS``, 1e-3,
+in the image, or a 100th of the ray's heaviest sample where less, the others taking the
+coloured ones' mean colour along their ray); ``+epsE`` (``rounds+eps1e-4``,
+``rounds-32+fwd+eps1e-2``) takes E for 1e-3, and ``+black`` counts the others black
+(``rounds+eps1e-5+black``: the rule before 2026-12-03, and the tracer's; on 2026-12-03 an
+``+epsE`` variant without a fill was black, and E was a plain threshold).
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s

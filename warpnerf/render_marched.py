@@ -385,10 +385,10 @@ def _render_rounds(
         # round if that is less (so that every ray with weight colours some, whatever the march
         # step: a fog of many light samples colours them all), and at least COLOR_WEIGHT_EPS
         # (the tracer's rule; color_eps if smaller, which then is the rule)
-        heaviest = torch.zeros_like(op).scatter_reduce_(0, ri.long(), wt, "amax")
-        thr = torch.clamp(
-            COLOR_RELATIVE * heaviest[ri], min(color_eps, COLOR_WEIGHT_EPS), color_eps
-        )
+        thr = color_eps
+        if color_eps > COLOR_WEIGHT_EPS:  # (at most 1e-5 the relative part cannot lower it)
+            heaviest = torch.zeros_like(op).scatter_reduce_(0, ri.long(), wt, "amax")
+            thr = torch.clamp(COLOR_RELATIVE * heaviest[ri], COLOR_WEIGHT_EPS, color_eps)
         seen = torch.nonzero(wt >= thr).squeeze(1)
         rs = ri[seen]
         n_colored += seen.shape[0]
@@ -403,7 +403,7 @@ def _render_rounds(
                 ])  # fmt: skip
         c.index_add_(0, rs, w[seen].unsqueeze(-1) * col.to(dt))
         if fill_mean:  # each ray's coloured weight in the image, over all its rounds
-            seen_w[alive] += t_a * torch.zeros_like(op).index_add_(0, rs, w[seen])
+            seen_w.index_add_(0, alive[rs], wt[seen])
         rgb[alive] += t_a.unsqueeze(-1) * c
         depth[alive] += t_a * z
         t_a = t_a * (1.0 - op)

@@ -144,14 +144,9 @@ class NeRFConfig(*reversed(SECTIONS)):
             self.lr_decay_steps = self.iters
         if traits.options is not None and isinstance(self.field_options, dict):
             self.field_options = self._typed_field_options()
-        if self.lr is None:
-            self.lr = traits.lr
-        if self.eikonal_weight is None:
-            self.eikonal_weight = traits.eikonal_weight
-        if self.sdf_gradient is None:
-            self.sdf_gradient = traits.sdf_gradient
-        if self.photometric_loss is None:
-            self.photometric_loss = traits.photometric_loss
+        for key in ("lr", "eikonal_weight", "sdf_gradient", "photometric_loss"):
+            if getattr(self, key) is None:  # (not given: the field's default, its traits')
+                setattr(self, key, getattr(traits, key))
         if self.lr_final is None:
             self.lr_final = self.lr / traits.lr_decay
         if self.grid_res is None:
