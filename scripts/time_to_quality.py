@@ -26,7 +26,7 @@ import re
 import tempfile
 from pathlib import Path
 
-from warpnerf.bench import label_axes
+from warpnerf.bench import label_axes, step_times
 from warpnerf.outputs import atomic_path, write_json
 
 
@@ -50,9 +50,14 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(Non
 
     rows = []
     for s in snapshots(run):
-        _, _, ckpt = load_run(run, snapshot=s)
+        cfg, _, ckpt = load_run(run, snapshot=s)
         h = ckpt["history"]
         row = {"budget_s": s, "step": ckpt["step"], "train_seconds": h["seconds"][-1]}
+        # where the training time went, step by step (the gap between a profiled step and a
+        # run's mean: grid updates, checkpoints, new captured shapes)
+        grid_every = int(getattr(cfg, "grid_every", 0) or 0) if getattr(cfg, "grid_res", 0) else 0
+        row["step_times"] = step_times(h["seconds"], grid_every,
+                                       int(getattr(cfg, "ckpt_every", 0) or 0))  # fmt: skip
         if "beta" in h and h["beta"]:
             row["beta"] = h["beta"][-1]
         for k, n in enumerate(spp):
@@ -73,6 +78,13 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(Non
         print(json.dumps(row), flush=True)
     write_json(out, {"run": str(run), "label": label or str(run), "rows": rows,
                      "geometry": geometry})  # fmt: skip
+    for r in rows:  # the step times (bench.step_times), a line a snapshot
+        st = r["step_times"]
+        if st.get("steps"):
+            ex = ", ".join(f"{k} {v:.2f}" for k, v in st["excess_ms_per_step"].items())
+            print(f"steps to {r['budget_s']:g} s: mean {st['mean_ms']:.2f} ms, median "
+                  f"{st['median_ms']:.2f}, p99 {st['p99_ms']:.1f}; the mean's excess (ms a step): "
+                  f"{ex}")  # fmt: skip
     md = ["| training s | steps | val PSNR | val SSIM | frame ms |"
           + (" Chamfer | accuracy | completeness |" if geometry else ""),
           "|---|---|---|---|---|" + ("---|---|---|" if geometry else "")]  # fmt: skip

@@ -71,6 +71,8 @@ def test_help_stays_whole(capsys):
     for flag in ("--iters", "--preset", "--data", "--out", "--field", "--hash-levels"):
         assert flag in out, flag
     assert len(out.splitlines()) > 100
+    # the fields `train nerf` trains (the surface fields are refused, with a pointer)
+    assert "--field {mlp,hash} " in out and "train with `train volsdf`" in " ".join(out.split())
     with pytest.raises(SystemExit):
         main(["--help"])
     out = capsys.readouterr().out

@@ -193,7 +193,10 @@ def test_tools_on_a_run(tmp_path, run):
     def quality():
         _run([SCRIPTS / "time_to_quality.py", "eval", run, "t.json", "--images", "1"], tmp_path)
         _run([SCRIPTS / "time_to_quality.py", "plot", "t.json", "--png", "t.png"], tmp_path)
-        assert json.loads((tmp_path / "t.json").read_text()) and (tmp_path / "t.png").is_file()
+        rows = json.loads((tmp_path / "t.json").read_text())["rows"]
+        assert rows and (tmp_path / "t.png").is_file()
+        st = rows[0]["step_times"]  # (bench.step_times of the snapshot's history)
+        assert st["steps"] == rows[0]["step"] and st["median_ms"] > 0
 
     _side_by_side(speed, quality, frame, profile)
 

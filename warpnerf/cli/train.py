@@ -480,6 +480,16 @@ def add_nerf_flags(tn, model: str) -> None:
               titles=_section_title)  # fmt: skip
     from ..fields.model import FIELD_TRAITS
 
+    if model == "nerf":  # the surface fields are refused here (they train with `train volsdf`):
+        # the help lists the fields this command trains
+        act = tn._option_string_actions["--field"]
+        mine = [n for n in act.choices if FIELD_TRAITS[n].geometry != "sdf"]
+        surface = [n for n in act.choices if n not in mine]
+        act.metavar = "{" + ",".join(mine) + "}"
+        act.help = ("mlp: NeRF's MLP; hash: hash-grid encoding + small MLPs (trains in "
+                    "minutes); not given: hash on CUDA, mlp on a CPU (the surface fields, "
+                    f"{', '.join(surface)}, train with `train volsdf`)")  # fmt: skip
+
     taken = {a.dest for a in tn._actions}
     for opts in _field_option_classes():  # each registered field's own flags ("not given": None)
         fields = [n for n, t in FIELD_TRAITS.items() if t.options is opts]
