@@ -22,9 +22,18 @@ def main():
     def own(p):
         p.add_argument("--cprofile", type=int, default=50,
                        help="steps run under cProfile for the host side (0: none)")  # fmt: skip
+        p.add_argument("--softplus", choices=("torch", "warp"), default="torch",
+                       help="the SDF networks' softplus: torch's op or the Warp kernels "
+                       "(warpnerf.ops.activations; issue 47's A/B)")  # fmt: skip
 
     a, train_argv = step_tool_args(__doc__, 300, 50, add=own)
+    from warpnerf.ops.activations import activation_kernels
 
+    with activation_kernels(a.softplus):
+        _profile(a, train_argv)
+
+
+def _profile(a, train_argv):
     import torch
     from torch.profiler import ProfilerActivity, profile
 
@@ -89,6 +98,7 @@ def main():
         "top_device_ops_ms_per_step": {k.key: getattr(k, dev_key) / 1e3 / n_prof for k in top},
         "device": torch.cuda.get_device_name() if cuda else "cpu",
     }
+    res["softplus"] = a.softplus
     if a.cprofile:
         res["host_python"] = host_profile(step, a.warm + a.steps + n_prof, a.cprofile, sync)
     print(json.dumps(res, indent=1))

@@ -105,6 +105,16 @@ def test_bounds_and_checkpoint_costs(tmp_path):
     assert out.strip()
 
 
+def test_softplus_study(tmp_path):
+    """experiments/overheads/softplus_ab.py: torch's softplus against the Warp kernels, alone
+    and in hash_sdf's SDF network, the same outputs."""
+    _run([EXPERIMENTS / "overheads/softplus_ab.py", "--device", "cpu", "--rows", "64",
+          "--repeat", "1", "--json", "s.json"], tmp_path)  # fmt: skip
+    r = json.loads((tmp_path / "s.json").read_text())["rows"]["64"]
+    assert set(r["net_fwd_bwd_ms"]) == {"torch", "warp"}
+    assert r["max_abs_diff"]["out"] < 1e-6 and r["max_abs_diff"]["grad"] < 1e-5
+
+
 def test_gemm_alignment_study(tmp_path):
     """experiments/overheads/gemm_alignment.py: each field layer padded to the next multiple of
     4 columns gives the same outputs (zero columns, zero weights)."""
@@ -282,11 +292,13 @@ def test_bench_frame_surface_variants(tmp_path):
            "--sdf-gradient", "central"]  # fmt: skip
     _run(["-m", "warpnerf.cli", "train", "volsdf", *sdf, "--out", "r"], tmp_path)
     _run([SCRIPTS / "bench_frame.py", "r", "--images", "1", "--repeat", "1", "--json", "f.json",
-          "--variants", "rounds,rounds+fwd,rounds-4+fwd,rounds+fwd+eps1e-2,rounds+eps1e-5+black"],
-         tmp_path)  # fmt: skip
+          "--variants", "rounds,rounds+fwd,rounds-4+fwd,rounds+fwd+eps1e-2,rounds+eps1e-5+black,"
+          "rounds+wsp"], tmp_path)  # fmt: skip
     res = json.loads((tmp_path / "f.json").read_text())
-    names = {"rounds", "rounds+fwd", "rounds-4+fwd", "rounds+fwd+eps1e-2", "rounds+eps1e-5+black"}
+    names = {"rounds", "rounds+fwd", "rounds-4+fwd", "rounds+fwd+eps1e-2", "rounds+eps1e-5+black",
+             "rounds+wsp"}  # fmt: skip
     assert set(res["frame_ms_median"]) == names
+    assert res["psnr_vs_rounds_min"]["rounds+wsp"] > 60  # (the Warp softplus: the same image)
     same = {k: v for k, v in res["psnr_vs_rounds_min"].items() if "eps" not in k}
     assert min(same.values()) > 30, same  # (a 3-step field is soft: its light samples count)
     n = {k: v["n_colored"] for k, v in res["samples_per_frame"].items()}
@@ -304,6 +316,7 @@ def test_bench_frame_surface_variants(tmp_path):
         "rounds,traced+eps1e-3",
         "rounds,rounds+eps2",
         "rounds,traced+black",
+        "rounds,rounds+wsp+wsp",
     ):
         p = _start([SCRIPTS / "bench_frame.py", "r", "--variants", bad], tmp_path)
         out, err = p.communicate(timeout=300)

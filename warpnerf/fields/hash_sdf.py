@@ -58,6 +58,7 @@ import math
 import torch
 from torch import nn
 
+from ..ops.activations import Softplus
 from ..ops.encoding import HashGrid
 from .encoding import HashEncoding, SphericalHarmonics
 from .hash_nerf import hash_grid_of, with_occupancy_grid
@@ -185,8 +186,8 @@ class HashSDFField(nn.Module):
         self.set_step(0)
         e = self.encoding.out_dim
         self.sdf_mlp = nn.Sequential(
-            nn.Linear(3 + e, hidden), nn.Softplus(beta=100), nn.Linear(hidden, hidden),
-            nn.Softplus(beta=100), nn.Linear(hidden, 1 + n_features),
+            nn.Linear(3 + e, hidden), Softplus(beta=100), nn.Linear(hidden, hidden),
+            Softplus(beta=100), nn.Linear(hidden, 1 + n_features),
         )  # fmt: skip
         self._geometric_init(radius, e)
         self.sh = SphericalHarmonics(4) if view_dependence else None

@@ -1,6 +1,7 @@
 """Torch bridge: one private autograd.Function per kernel family, behind a checking
 public function."""
 
+from .activations import softplus
 from .composite import packed_info_from_ray_indices, render_dense, render_packed
 from .distortion import distortion_loss
 from .encoding import HashGrid, hash_encode
@@ -23,4 +24,5 @@ __all__ = [
     "interlevel_loss",
     "HashGrid",
     "hash_encode",
+    "softplus",
 ]

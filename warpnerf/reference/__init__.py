@@ -1,5 +1,6 @@
 """Pure-PyTorch twins of every Warp op, same names and signatures (for tests and benchmarks)."""
 
+from .activations import softplus
 from .composite import render_dense, render_packed
 from .distortion import distortion_loss
 from .encoding import hash_encode
@@ -17,4 +18,5 @@ __all__ = [
     "proposal_resample",
     "interlevel_loss",
     "hash_encode",
+    "softplus",
 ]
