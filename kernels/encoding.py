@@ -105,17 +105,22 @@ def hash_encode_fwd(
     x: wp.array2d(dtype=Any),  # [n, 3] in [0, 1]
     table: wp.array2d(dtype=Any),  # [total_rows, F]
     levels: Levels,
-    out: wp.array2d(dtype=Any),  # [n, L * F]
+    col0: int,  # 0, or 3: the first three columns are 2 x - 1 (the level-0 thread writes them)
+    out: wp.array2d(dtype=Any),  # [n, col0 + L * F]
 ):
     tid = wp.tid()
     i = tid // levels.res.shape[0]
     lvl = tid - i * levels.res.shape[0]
     r, off, size, dense = level(levels, lvl)
     n_feat = table.shape[1]
+    if col0 == 3 and lvl == 0:  # (NaN/Inf positions: NaN or Inf there too)
+        for k in range(3):
+            out[i, k] = x.dtype(2.0) * x[i, k] - x.dtype(1.0)
+    base = col0 + lvl * n_feat
     if not finite3(x, i):
         # NaN/Inf positions give NaN features (never a plausible value, never an index)
         for q in range(n_feat):
-            out[i, lvl * n_feat + q] = x.dtype(wp.nan)
+            out[i, base + q] = x.dtype(wp.nan)
         return
     cx, cy, cz, fx, fy, fz = cell(x, i, r)
     for q in range(n_feat):  # accumulate in a register, write each feature once
@@ -123,7 +128,7 @@ def hash_encode_fwd(
         for v in range(8):
             row, w = corner(v, cx, cy, cz, fx, fy, fz, r, size, dense)
             acc = acc + w * table[off + row, q]
-        out[i, lvl * n_feat + q] = acc
+        out[i, base + q] = acc
 
 
 # sm_90 adds two float32 values to adjacent, 8-byte aligned addresses in one atomic (CUDA's
@@ -185,8 +190,9 @@ def add_corner(
 @wp.kernel(enable_backward=False)
 def hash_encode_bwd(
     x: wp.array2d(dtype=Any),  # [n, 3]
-    v_out: wp.array2d(dtype=Any),  # [n, L * F]
+    v_out: wp.array2d(dtype=Any),  # [n, col0 + L * F]
     levels: Levels,
+    col0: int,  # the features' first column in v_out (3 after the centred positions)
     pairs: int,  # float32 tables of an even F: two features per atomic (add_corner)
     v_table: wp.array2d(dtype=Any),  # [total_rows, F] accumulated (zeroed by the caller)
 ):
@@ -197,7 +203,7 @@ def hash_encode_bwd(
         return
     r, off, size, dense = level(levels, lvl)
     cx, cy, cz, fx, fy, fz = cell(x, i, r)
-    col = lvl * v_table.shape[1]
+    col = col0 + lvl * v_table.shape[1]
     for v in range(8):
         row, w = corner(v, cx, cy, cz, fx, fy, fz, r, size, dense)
         add_corner(v_table, off + row, v_out, i, col, w, pairs)
@@ -220,8 +226,9 @@ def inside01(x: Any):
 def hash_encode_bwd_x(
     x: wp.array2d(dtype=Any),  # [n, 3]
     table: wp.array2d(dtype=Any),  # [total_rows, F]
-    v_out: wp.array2d(dtype=Any),  # [n, L * F]
+    v_out: wp.array2d(dtype=Any),  # [n, col0 + L * F]
     levels: Levels,
+    col0: int,  # 0, or 3: the centred positions 2 x - 1 (gradient 2) before the features
     v_x: wp.array2d(dtype=Any),  # [n, 3] written
 ):
     i = wp.tid()
@@ -251,7 +258,7 @@ def hash_encode_bwd_x(
             row = vertex_row(cx + bx, cy + by, cz + bz, r, size, dense)
             s = zero  # d loss / d (this corner's weight)
             for q in range(n_feat):
-                s = s + v_out[i, lvl * n_feat + q] * table[off + row, q]
+                s = s + v_out[i, col0 + lvl * n_feat + q] * table[off + row, q]
             lx = lx + s * dx * wy * wz
             ly = ly + s * wx * dy * wz
             lz = lz + s * wx * wy * dz
@@ -259,16 +266,23 @@ def hash_encode_bwd_x(
         gx = gx + lx * rr
         gy = gy + ly * rr
         gz = gz + lz * rr
-    v_x[i, 0] = gx * inside01(x[i, 0])
-    v_x[i, 1] = gy * inside01(x[i, 1])
-    v_x[i, 2] = gz * inside01(x[i, 2])
+    cx2 = zero  # the centred columns' gradient, 2 v_out (no clamp: 2 x - 1 of x as given)
+    cy2 = zero
+    cz2 = zero
+    if col0 == 3:
+        cx2 = x.dtype(2.0) * v_out[i, 0]
+        cy2 = x.dtype(2.0) * v_out[i, 1]
+        cz2 = x.dtype(2.0) * v_out[i, 2]
+    v_x[i, 0] = gx * inside01(x[i, 0]) + cx2
+    v_x[i, 1] = gy * inside01(x[i, 1]) + cy2
+    v_x[i, 2] = gz * inside01(x[i, 2]) + cz2
 
 
 def _overloads(dtype):
     a2 = wp.array2d(dtype=dtype)
-    wp.overload(hash_encode_fwd, [a2, a2, Levels, a2])
-    wp.overload(hash_encode_bwd, [a2, a2, Levels, int, a2])
-    wp.overload(hash_encode_bwd_x, [a2, a2, a2, Levels, a2])
+    wp.overload(hash_encode_fwd, [a2, a2, Levels, int, a2])
+    wp.overload(hash_encode_bwd, [a2, a2, Levels, int, int, a2])
+    wp.overload(hash_encode_bwd_x, [a2, a2, a2, Levels, int, a2])
 
 
 for _dt in (wp.float32, wp.float64):

@@ -18,7 +18,8 @@ coloured ones' mean colour along their ray); ``+epsE`` (``rounds+eps1e-4``,
 (``rounds+eps1e-5+black``: the rule before 2026-12-03, and the tracer's; on 2026-12-03 an
 ``+epsE`` variant without a fill was black, and E was a plain threshold). ``+wsp`` runs the SDF
 network's softplus by the Warp kernels (``warpnerf.ops.activations``, the A/B of issue 47) instead
-of torch's op.
+of torch's op, ``+cen`` reads its input [2 u - 1, features] from the encoding's kernel
+(``hash_encode(..., centred=True)``) instead of a concatenation.
 
 Each variant renders every selected view ``--repeat`` times after one warm-up frame (the first
 view, untimed); a frame's time is from a device sync before to one after (as ``warpnerf eval``'s
@@ -38,6 +39,7 @@ import torch
 
 from warpnerf.metrics import psnr
 from warpnerf.ops.activations import activation_kernels
+from warpnerf.ops.encoding import encoding_kernels
 from warpnerf.ops.tracer import MAX_STEPS, MIN_STEPS
 from warpnerf.render import RENDER_COLOR_EPS, render_chunks, render_marched
 from warpnerf.render_traced import render_traced
@@ -69,7 +71,8 @@ def parse_variant(name: str):
     ("rounds-32", True, 0.0001, "black"); None when it is not one (eps and black: the rounds
     path's only; eps in (0, 1))."""
     base, *mods = name.split("+")
-    mods = [m for m in mods if m != "wsp"] if mods.count("wsp") == 1 else mods
+    for k in ("wsp", "cen"):  # (kernel switches: any variant, once)
+        mods = [m for m in mods if m != k] if mods.count(k) == 1 else mods
     fwd, eps, fill = "fwd" in mods, RENDER_COLOR_EPS, "black" if "black" in mods else "mean"
     if fill == "black" and not base.startswith("rounds"):
         return None
@@ -95,11 +98,13 @@ def renderer(name, model, cfg, a):
     surface field's normals by forward differences, ``+epsE`` colours the samples weighing at
     least E in the image (the rounds path)."""
     base, fwd, eps, fill = parse_variant(name)
-    if "+wsp" in name:  # the SDF network's softplus by the Warp kernels (ops/activations.py)
-        inner = renderer(name.replace("+wsp", ""), model, cfg, a)
+    if "+wsp" in name or "+cen" in name:  # the SDF network's softplus by the Warp kernels
+        # (ops/activations.py), its input [2 u - 1, features] from the encoding's kernel
+        wsp, cen = "+wsp" in name, "+cen" in name
+        inner = renderer(name.replace("+wsp", "").replace("+cen", ""), model, cfg, a)
 
         def run(o, d, sl):
-            with activation_kernels("warp"):
+            with activation_kernels("warp" if wsp else "torch"), encoding_kernels(centred=cen):
                 return inner(o, d, sl)
 
         return run

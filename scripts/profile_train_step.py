@@ -25,11 +25,15 @@ def main():
         p.add_argument("--softplus", choices=("torch", "warp"), default="torch",
                        help="the SDF networks' softplus: torch's op or the Warp kernels "
                        "(warpnerf.ops.activations; issue 47's A/B)")  # fmt: skip
+        p.add_argument("--centred", action="store_true",
+                       help="the SDF networks' input [2 u - 1, features] from the encoding's "
+                       "kernel instead of a concatenation (issue 47's A/B)")  # fmt: skip
 
     a, train_argv = step_tool_args(__doc__, 300, 50, add=own)
     from warpnerf.ops.activations import activation_kernels
+    from warpnerf.ops.encoding import encoding_kernels
 
-    with activation_kernels(a.softplus):
+    with activation_kernels(a.softplus), encoding_kernels(centred=a.centred):
         _profile(a, train_argv)
 
 
@@ -98,7 +102,7 @@ def _profile(a, train_argv):
         "top_device_ops_ms_per_step": {k.key: getattr(k, dev_key) / 1e3 / n_prof for k in top},
         "device": torch.cuda.get_device_name() if cuda else "cpu",
     }
-    res["softplus"] = a.softplus
+    res["softplus"], res["centred"] = a.softplus, a.centred
     if a.cprofile:
         res["host_python"] = host_profile(step, a.warm + a.steps + n_prof, a.cprofile, sync)
     print(json.dumps(res, indent=1))

@@ -26,8 +26,9 @@ import re
 import tempfile
 from pathlib import Path
 
-from warpnerf.bench import label_axes, step_times
+from warpnerf.bench import label_axes
 from warpnerf.outputs import atomic_path, write_json
+from warpnerf.train.step_times import step_times
 
 
 def snapshots(run) -> list:
@@ -78,7 +79,7 @@ def evaluate(run, out, label, images, chunk, geometry, mesh_resolution, spp=(Non
         print(json.dumps(row), flush=True)
     write_json(out, {"run": str(run), "label": label or str(run), "rows": rows,
                      "geometry": geometry})  # fmt: skip
-    for r in rows:  # the step times (bench.step_times), a line a snapshot
+    for r in rows:  # the step times (train/step_times.py), a line a snapshot
         st = r["step_times"]
         if st.get("steps"):
             ex = ", ".join(f"{k} {v:.2f}" for k, v in st["excess_ms_per_step"].items())

@@ -91,6 +91,71 @@ def test_position_gradient_matches_twin(device, name, dtype):
     )
 
 
+@pytest.mark.parametrize("name", list(GRIDS))
+@pytest.mark.parametrize("dtype", [F32, F64])
+def test_centred_rows_match_twin(device, name, dtype):
+    """``centred=True``: rows [2 x - 1, features] from the one kernel (an SDF network's input
+    without a concatenation), values and the x and table gradients against the twin; the
+    features are bit for bit the plain op's, the centred columns bit for bit 2 x - 1."""
+    grid = GRIDS[name]
+    tol = {F64: {"rtol": 1e-12, "atol": 1e-12}, F32: {"rtol": 2e-5, "atol": 2e-5}}
+    grad_tol = {F64: {"rtol": 1e-10, "atol": 1e-10}, F32: {"rtol": 1e-3, "atol": 1e-3}}
+    x, table = _points(600, dtype, device), _table(grid, dtype, device)
+    r = assert_matches_twin(
+        lambda x, table: hash_encode(x, table, grid, centred=True),
+        lambda x, table: ref_hash_encode(x, table, grid, centred=True),
+        {"x": x, "table": table},
+        grad=["x", "table"],
+        tol=tol,
+        grad_tol=grad_tol,
+        twin_dtype=F64,
+    )
+    out = r.out["out"]
+    assert out.shape == (600, 3 + grid.out_dim)
+    assert torch.equal(out[:, 3:], hash_encode(x, table, grid))
+    assert torch.equal(out[:, :3], 2.0 * x - 1.0)
+
+
+def test_centred_gradcheck_float64(device):
+    grid = GRIDS["collisions"]  # (a 64-row table: small enough for the numerical Jacobian)
+    x = torch.rand(8, 3, dtype=F64, device=device) * 0.9 + 0.05
+    gradcheck_op(
+        lambda x, table: hash_encode(x, table, grid, centred=True),
+        {"x": x, "table": _table(grid, F64, device)},
+        ["x", "table"],
+        eps=1e-7,
+        atol=1e-5,
+    )
+
+
+def test_centred_input_gives_hash_sdf_the_same_network(device):
+    """hash_sdf's SDF network reads [2 u - 1, features] from the centred kernel within
+    ``encoding_kernels(centred=True)``: the same values and gradients as the concatenation."""
+    from warpnerf.fields.hash_sdf import HashSDFField
+    from warpnerf.ops.encoding import centred_input, encoding_kernels
+
+    torch.manual_seed(0)
+    field = HashSDFField([-1.5] * 3 + [1.5] * 3, HashGrid(n_levels=4, log2_size=10, max_res=32))
+    field = field.to(device)
+    with torch.no_grad():
+        for lin in (m for m in field.sdf_mlp if isinstance(m, torch.nn.Linear)):
+            lin.weight.add_(0.05 * torch.randn_like(lin.weight))
+        field.encoding.table.normal_(0.0, 0.1)
+    p = (torch.rand(3000, 3) * 3.4 - 1.7).to(device)  # (some outside the box)
+    params = [*field.sdf_mlp.parameters(), field.encoding.table]
+    d0, f0 = field._geometry(p)
+    g0 = torch.autograd.grad(d0.sum() + f0.sum(), params)
+    assert not centred_input()
+    with encoding_kernels(centred=True):
+        assert centred_input()
+        d1, f1 = field._geometry(p)
+        g1 = torch.autograd.grad(d1.sum() + f1.sum(), params)
+    assert not centred_input()
+    assert torch.equal(d0, d1) and torch.equal(f0, f1)
+    for a, b in zip(g0, g1):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
 def test_position_gradient_gradcheck_float64(device):
     grid = GRIDS["dense+hashed"]
     x = torch.rand(10, 3, dtype=F64, device=device) * 0.9 + 0.05

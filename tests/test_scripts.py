@@ -113,6 +113,7 @@ def test_softplus_study(tmp_path):
     r = json.loads((tmp_path / "s.json").read_text())["rows"]["64"]
     assert set(r["net_fwd_bwd_ms"]) == {"torch", "warp"}
     assert r["max_abs_diff"]["out"] < 1e-6 and r["max_abs_diff"]["grad"] < 1e-5
+    assert r["max_abs_diff"]["input"] == 0.0 and r["max_abs_diff"]["input_grad"] < 1e-6
 
 
 def test_gemm_alignment_study(tmp_path):
@@ -205,7 +206,7 @@ def test_tools_on_a_run(tmp_path, run):
         _run([SCRIPTS / "time_to_quality.py", "plot", "t.json", "--png", "t.png"], tmp_path)
         rows = json.loads((tmp_path / "t.json").read_text())["rows"]
         assert rows and (tmp_path / "t.png").is_file()
-        st = rows[0]["step_times"]  # (bench.step_times of the snapshot's history)
+        st = rows[0]["step_times"]  # (train/step_times.py of the snapshot's history)
         assert st["steps"] == rows[0]["step"] and st["median_ms"] > 0
 
     _side_by_side(speed, quality, frame, profile)
@@ -293,12 +294,13 @@ def test_bench_frame_surface_variants(tmp_path):
     _run(["-m", "warpnerf.cli", "train", "volsdf", *sdf, "--out", "r"], tmp_path)
     _run([SCRIPTS / "bench_frame.py", "r", "--images", "1", "--repeat", "1", "--json", "f.json",
           "--variants", "rounds,rounds+fwd,rounds-4+fwd,rounds+fwd+eps1e-2,rounds+eps1e-5+black,"
-          "rounds+wsp"], tmp_path)  # fmt: skip
+          "rounds+wsp,rounds+cen+wsp"], tmp_path)  # fmt: skip
     res = json.loads((tmp_path / "f.json").read_text())
     names = {"rounds", "rounds+fwd", "rounds-4+fwd", "rounds+fwd+eps1e-2", "rounds+eps1e-5+black",
-             "rounds+wsp"}  # fmt: skip
+             "rounds+wsp", "rounds+cen+wsp"}  # fmt: skip
     assert set(res["frame_ms_median"]) == names
-    assert res["psnr_vs_rounds_min"]["rounds+wsp"] > 60  # (the Warp softplus: the same image)
+    # (the Warp softplus, the centred encoding: the same image)
+    assert min(res["psnr_vs_rounds_min"][k] for k in ("rounds+wsp", "rounds+cen+wsp")) > 60
     same = {k: v for k, v in res["psnr_vs_rounds_min"].items() if "eps" not in k}
     assert min(same.values()) > 30, same  # (a 3-step field is soft: its light samples count)
     n = {k: v["n_colored"] for k, v in res["samples_per_frame"].items()}
@@ -317,6 +319,7 @@ def test_bench_frame_surface_variants(tmp_path):
         "rounds,rounds+eps2",
         "rounds,traced+black",
         "rounds,rounds+wsp+wsp",
+        "rounds,rounds+cen+cen",
     ):
         p = _start([SCRIPTS / "bench_frame.py", "r", "--variants", bad], tmp_path)
         out, err = p.communicate(timeout=300)

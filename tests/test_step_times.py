@@ -1,9 +1,9 @@
-"""bench.step_times: a run's per-step clock split into the median step and what the slower
+"""train/step_times.py: a run's per-step clock split into the median step and what the slower
 steps add (warm-up, grid updates, checkpoints, the rest)."""
 
 import pytest
 
-from warpnerf.bench import step_times
+from warpnerf.train.step_times import step_times
 
 
 def _clock(dts_ms):

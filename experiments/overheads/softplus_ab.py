@@ -11,6 +11,11 @@ count:
   softplus, Linear 64 -> 16, TF32, no gradient) and as a training step does (forward +
   backward), with either softplus;
 
+- the network's input [2 u - 1, features] (hash_sdf's default grid: 16 levels of 2 features):
+  ``hash_encode`` then ``torch.cat`` against ``hash_encode(..., centred=True)``, one kernel
+  (3.3 ms of the frame went to concatenations), forward and forward + backward (the table's
+  gradient);
+
 and the largest difference of the outputs (and gradients) between the two.
 
     python experiments/overheads/softplus_ab.py [--device cuda] [--rows 262144,1048576,7471104]
@@ -28,6 +33,7 @@ import torch.nn.functional as F
 
 from warpnerf.bench import _time, measure_copy_bandwidth  # median seconds (CUDA events)
 from warpnerf.ops.activations import Softplus, activation_kernels
+from warpnerf.ops.encoding import HashGrid, hash_encode
 
 BETA = 100.0
 
@@ -59,6 +65,8 @@ def measure(device: str, rows_list, repeat: int) -> dict:
         res["gpu"] = torch.cuda.get_device_name(dev)
         res["copy_gbs"] = measure_copy_bandwidth(dev, 1 << 30) / 1e9
     net = _network(dev)
+    grid = HashGrid()  # (hash_sdf's default: 16 levels of 2 features, 2^19 rows a level)
+    table = (torch.rand(grid.n_rows, grid.n_features, device=dev) * 2e-2 - 1e-2).requires_grad_()
     for rows in rows_list:
         g = torch.Generator(device=dev).manual_seed(1)
         x = (torch.randn(rows, 64, device=dev, generator=g) * 0.05).requires_grad_(True)
@@ -101,8 +109,33 @@ def measure(device: str, rows_list, repeat: int) -> dict:
                            repeat)  # fmt: skip
         n_both = _alternate({k: (lambda k=k: net_run(k, True)) for k in ("torch", "warp")}, dev,
                             repeat)  # fmt: skip
+        u = torch.rand(rows, 3, device=dev, generator=g)
+        gin = torch.randn(rows, 3 + grid.out_dim, device=dev, generator=g)
+
+        def encode(kind, backward, u=u, gin=gin):
+            table.grad = None
+            with torch.set_grad_enabled(backward):
+                if kind == "centred":
+                    x = hash_encode(u, table, grid, centred=True)
+                else:
+                    x = torch.cat([2.0 * u - 1.0, hash_encode(u, table, grid)], -1)
+                if backward:
+                    x.backward(gin)
+            return x
+
+        x_c, x_k = encode("cat", True), None
+        gk = table.grad.clone()
+        x_k = encode("centred", True)
+        err["input"] = (x_c - x_k).abs().max().item()
+        err["input_grad"] = (gk - table.grad).abs().max().item()
+        del x_c, x_k, gk
+        e_fwd = _alternate({k: (lambda k=k: encode(k, False)) for k in ("cat", "centred")}, dev,
+                           repeat)  # fmt: skip
+        e_both = _alternate({k: (lambda k=k: encode(k, True)) for k in ("cat", "centred")}, dev,
+                            repeat)  # fmt: skip
         row = {"act_fwd_ms": t_fwd, "act_fwd_bwd_ms": t_both, "net_fwd_ms": n_fwd,
-               "net_fwd_bwd_ms": n_both, "max_abs_diff": err}  # fmt: skip
+               "net_fwd_bwd_ms": n_both, "input_fwd_ms": e_fwd, "input_fwd_bwd_ms": e_both,
+               "max_abs_diff": err}  # fmt: skip
         if "copy_gbs" in res:
             vals = rows * 64
             row["act_fwd_pct_copy"] = {
@@ -115,8 +148,9 @@ def measure(device: str, rows_list, repeat: int) -> dict:
         print(f"rows {rows}: softplus fwd torch {t_fwd['torch']:.3f} / warp {t_fwd['warp']:.3f} "
               f"ms, fwd+bwd {t_both['torch']:.3f} / {t_both['warp']:.3f}; SDF network fwd "
               f"{n_fwd['torch']:.3f} / {n_fwd['warp']:.3f}, fwd+bwd {n_both['torch']:.3f} / "
-              f"{n_both['warp']:.3f}; max diff {err['out']:.1e} / {err['grad']:.1e}",
-              flush=True)  # fmt: skip
+              f"{n_both['warp']:.3f}; input cat / centred fwd {e_fwd['cat']:.3f} / "
+              f"{e_fwd['centred']:.3f}, fwd+bwd {e_both['cat']:.3f} / {e_both['centred']:.3f}; "
+              f"max diff {err}", flush=True)  # fmt: skip
     return res
 
 

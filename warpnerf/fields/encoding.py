@@ -54,14 +54,18 @@ class HashEncoding(nn.Module):
         )
         self.out_dim = self.grid.out_dim
 
-    def forward(self, x: torch.Tensor, given: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, given: torch.Tensor | None = None,
+                centred: bool = False) -> torch.Tensor:  # fmt: skip
         """``given``: this encoding of ``x`` computed before without gradients (returned with
-        the gradient attached, see :func:`warpnerf.ops.encoding.hash_encode_given`)."""
+        the gradient attached, see :func:`warpnerf.ops.encoding.hash_encode_given`);
+        ``centred``: rows [2 x - 1, features] (:func:`~warpnerf.ops.encoding.hash_encode`)."""
         from ..ops.encoding import hash_encode, hash_encode_given
 
         if given is not None:
+            if centred:
+                raise ValueError("given features are never centred")
             return hash_encode_given(x, self.table.to(x.dtype), self.grid, given)
-        return hash_encode(x, self.table.to(x.dtype), self.grid)
+        return hash_encode(x, self.table.to(x.dtype), self.grid, centred=centred)
 
 
 class SphericalHarmonics(nn.Module):

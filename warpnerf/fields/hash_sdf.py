@@ -59,7 +59,7 @@ import torch
 from torch import nn
 
 from ..ops.activations import Softplus
-from ..ops.encoding import HashGrid
+from ..ops.encoding import HashGrid, centred_input
 from .encoding import HashEncoding, SphericalHarmonics
 from .hash_nerf import hash_grid_of, with_occupancy_grid
 from .model import FieldTraits, RadianceModel, register_field
@@ -244,12 +244,18 @@ class HashSDFField(nn.Module):
         """(sdf [n] world units, features [n, F]) at positions [n, 3] (world)."""
         lo, hi = self.aabb[:3].to(positions.dtype), self.aabb[3:].to(positions.dtype)
         u = ((positions.detach() - lo) / (hi - lo)).clamp(0.0, 1.0)
-        c = 2.0 * u - 1.0
-        enc = self.encoding(u)
-        if self.level_every > 0:  # (coarse to fine; otherwise the mask is all ones, and x * 1 = x:
-            # skipping it saves an elementwise pass over [n, L * F] and its backward)
-            enc = enc * self.level_mask.to(u.dtype)
-        h = self.sdf_mlp(torch.cat([c, enc.to(c.dtype)], -1))
+        if self.level_every == 0 and centred_input():  # [c, enc] from the encoding's kernel
+            x = self.encoding(u, centred=True)
+            c = x[:, :3]
+        else:
+            c = 2.0 * u - 1.0
+            enc = self.encoding(u)
+            if self.level_every > 0:  # (coarse to fine; otherwise the mask is all ones, and
+                # x * 1 = x: skipping it saves an elementwise pass over [n, L * F] and its
+                # backward)
+                enc = enc * self.level_mask.to(u.dtype)
+            x = torch.cat([c, enc.to(c.dtype)], -1)
+        h = self.sdf_mlp(x)
         d = (c.norm(dim=-1) - self.radius + h[:, 0]) * self.half
         # bounded: at least the distance to the scene box, so that no surface lies outside it
         # (inside the box the zero set is the network's own; outside, where the encoding sees

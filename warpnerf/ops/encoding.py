@@ -105,15 +105,25 @@ def _levels(grid: HashGrid, device: torch.device):
 # The table's backward for float32 tables of an even number of features: "pairs" adds two
 # features per atomic on sm_90 (kernels/encoding.py, add_corner; the same sums one by
 # one elsewhere), False: one atomic per feature. Switched only through encoding_kernels().
-_IMPL = {"pairs": True}
+_IMPL = {"pairs": True, "centred": False}
+
+
+def centred_input() -> bool:
+    """Whether an SDF network takes its input [2 u - 1, features] from one encoding kernel
+    (``hash_encode(..., centred=True)``) instead of a concatenation after it (the A/B of issue
+    47; the default until measured on a GPU: the concatenation)."""
+    return _IMPL["centred"]
 
 
 @contextlib.contextmanager
-def encoding_kernels(pairs: bool = True):
+def encoding_kernels(pairs: bool = True, centred: bool = False):
     """Within the block the hash encoding's table gradient uses paired atomics (``pairs``, the
-    default) or one atomic per feature; restored on exit (tests and benchmarks compare them)."""
+    default) or one atomic per feature, and SDF networks read the centred encoding
+    (``centred``, :func:`centred_input`); restored on exit (tests and benchmarks compare
+    them)."""
     saved = dict(_IMPL)
     _IMPL["pairs"] = bool(pairs)
+    _IMPL["centred"] = bool(centred)
     try:
         yield
     finally:
@@ -121,68 +131,74 @@ def encoding_kernels(pairs: bool = True):
         _IMPL.update(saved)
 
 
+def _encode_backward(ctx, v_out):
+    """(v_x, v_table) of :class:`_HashEncode` and :class:`_HashEncodeGiven` (``ctx.col0``: the
+    features' first column in ``v_out``, 3 after the centred positions)."""
+    from warpnerf.kernels import encoding as K
+
+    x, table = ctx.saved_tensors
+    grid = ctx.grid
+    lv = _levels(grid, x.device)
+    a = bridge.arr
+    v_out = v_out.contiguous()
+    v_table = v_x = None
+    if ctx.needs_input_grad[1]:
+        v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
+        pairs = _IMPL["pairs"] and x.dtype == torch.float32 and grid.n_features % 2 == 0
+        bridge.launch(
+            K.hash_encode_bwd,
+            x.shape[0] * grid.n_levels,
+            [a(x), a(v_out), lv, ctx.col0, int(pairs), a(v_table)],
+            x.device,
+        )
+    if ctx.needs_input_grad[0]:
+        v_x = torch.empty_like(x)
+        bridge.launch(
+            K.hash_encode_bwd_x,
+            x.shape[0],
+            [a(x), a(table), a(v_out), lv, ctx.col0, a(v_x)],
+            x.device,
+        )
+    return v_x, v_table
+
+
 class _HashEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, grid):
+    def forward(ctx, x, table, grid, col0):
         from warpnerf.kernels import encoding as K
 
-        out = torch.empty(x.shape[0], grid.out_dim, device=x.device, dtype=x.dtype)
+        out = torch.empty(x.shape[0], col0 + grid.out_dim, device=x.device, dtype=x.dtype)
         a = bridge.arr
         bridge.launch(
             K.hash_encode_fwd,
             x.shape[0] * grid.n_levels,
-            [a(x), a(table), _levels(grid, x.device), a(out)],
+            [a(x), a(table), _levels(grid, x.device), col0, a(out)],
             x.device,
         )
         ctx.save_for_backward(x, table if ctx.needs_input_grad[0] else None)
-        ctx.grid, ctx.table_shape = grid, table.shape
+        ctx.grid, ctx.table_shape, ctx.col0 = grid, table.shape, col0
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, v_out):
-        from warpnerf.kernels import encoding as K
-
-        x, table = ctx.saved_tensors
-        grid = ctx.grid
-        lv = _levels(grid, x.device)
-        a = bridge.arr
-        v_out = v_out.contiguous()
-        v_table = v_x = None
-        if ctx.needs_input_grad[1]:
-            v_table = torch.zeros(ctx.table_shape, device=x.device, dtype=x.dtype)
-            pairs = _IMPL["pairs"] and x.dtype == torch.float32 and grid.n_features % 2 == 0
-            bridge.launch(
-                K.hash_encode_bwd,
-                x.shape[0] * grid.n_levels,
-                [a(x), a(v_out), lv, int(pairs), a(v_table)],
-                x.device,
-            )
-        if ctx.needs_input_grad[0]:
-            v_x = torch.empty_like(x)
-            bridge.launch(
-                K.hash_encode_bwd_x,
-                x.shape[0],
-                [a(x), a(table), a(v_out), lv, a(v_x)],
-                x.device,
-            )
-        return v_x, v_table, None
+        return (*_encode_backward(ctx, v_out), None, None)
 
 
-class _HashEncodeGiven(_HashEncode):
+class _HashEncodeGiven(torch.autograd.Function):
     """:class:`_HashEncode` whose forward returns features already computed for these points
     (by the same kernel, without gradients); the backward is the same."""
 
     @staticmethod
     def forward(ctx, x, table, grid, features):
         ctx.save_for_backward(x, table if ctx.needs_input_grad[0] else None)
-        ctx.grid, ctx.table_shape = grid, table.shape
+        ctx.grid, ctx.table_shape, ctx.col0 = grid, table.shape, 0
         return features.view_as(features)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, v_out):
-        return (*_HashEncode.backward(ctx, v_out), None)
+        return (*_encode_backward(ctx, v_out), None, None)
 
 
 def hash_encode_given(x: torch.Tensor, table: torch.Tensor, grid, features: torch.Tensor):
@@ -204,12 +220,17 @@ def hash_encode(
     x: torch.Tensor,  # [n, 3] points in [0, 1]^3 (clamped); NaN/Inf rows give NaN features
     table: torch.Tensor,  # [grid.n_rows, grid.n_features] learnable features
     grid: HashGrid,
-) -> torch.Tensor:  # [n, grid.n_levels * grid.n_features]
+    centred: bool = False,
+) -> torch.Tensor:  # [n, grid.n_levels * grid.n_features], or [n, 3 + ...] when centred
     """Multiresolution hash-grid features of points (trilinear per level, levels concatenated).
+    ``centred``: the rows start with the points' centred coordinates ``2 x - 1`` (of x as
+    given, not clamped), what an SDF network reads beside the features: written by the same
+    kernel, instead of a concatenation after it.
 
     Differentiable in ``table`` (hand-written scatter backward) and in ``x`` when it requires a
     gradient (hand-written, per point: the trilinear weights' derivatives; zero along an axis
-    where x is outside [0, 1] and for non-finite points). Not twice differentiable.
+    where x is outside [0, 1] and for non-finite points; plus 2 for the centred columns). Not
+    twice differentiable.
     """
     if not isinstance(grid, HashGrid):
         raise TypeError(f"grid must be a HashGrid, got {type(grid).__name__}")
@@ -222,7 +243,7 @@ def hash_encode(
             f"{x.shape[0]} points x {grid.n_levels} levels exceed int32 thread indices: "
             "encode fewer points at once"
         )
-    return _HashEncode.apply(x.contiguous(), table.contiguous(), grid)
+    return _HashEncode.apply(x.contiguous(), table.contiguous(), grid, 3 if centred else 0)
 
 
 def spherical_harmonics(d: torch.Tensor, degree: int = 4) -> torch.Tensor:

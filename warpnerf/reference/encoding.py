@@ -13,8 +13,11 @@ _MASK = 0xFFFFFFFF
 _PRIMES = (1, 2654435761, 805459861)
 
 
-def hash_encode(x, table, grid):
-    """x [n, 3] in [0, 1]^3, table [rows, F], grid: warpnerf.ops.HashGrid -> [n, L * F]."""
+def hash_encode(x, table, grid, centred=False):
+    """x [n, 3] in [0, 1]^3, table [rows, F], grid: warpnerf.ops.HashGrid -> [n, L * F];
+    ``centred``: [2 x - 1, features] ([n, 3 + L * F])."""
+    if centred:
+        return torch.cat([2.0 * x - 1.0, hash_encode(x, table, grid)], -1)
     xc = x.clamp(0.0, 1.0)
     bad = ~torch.isfinite(x).all(-1)
     outs = []
