@@ -233,10 +233,11 @@ def hash_encode_bwd_x(
 ):
     i = wp.tid()
     zero = x.dtype(0.0)
-    if not finite3(x, i):
-        v_x[i, 0] = zero
-        v_x[i, 1] = zero
-        v_x[i, 2] = zero
+    if not finite3(x, i):  # (no feature gradient; the centred columns' 2 v_out stays)
+        for k in range(3):
+            v_x[i, k] = zero
+            if col0 == 3:
+                v_x[i, k] = x.dtype(2.0) * v_out[i, k]
         return
     n_feat = table.shape[1]
     gx = zero

@@ -81,6 +81,10 @@ def test_the_module_switch_and_the_sdf_network(device):
 
     m = Softplus(beta=100)
     assert not list(m.parameters()) and not m.state_dict()
+    x = torch.randn(8, 4, requires_grad=True)  # (which implementation ran: the autograd node)
+    assert "Softplus" in type(m(x).grad_fn).__name__ and "_Softplus" not in str(m(x).grad_fn)
+    with activation_kernels("warp"):
+        assert "_SoftplusBackward" in type(m(x).grad_fn).__name__
     torch.manual_seed(0)
     field = HashSDFField([-1.5] * 3 + [1.5] * 3, HashGrid(n_levels=4, log2_size=10, max_res=32))
     field = field.to(device)

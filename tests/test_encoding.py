@@ -116,6 +116,23 @@ def test_centred_rows_match_twin(device, name, dtype):
     assert torch.equal(out[:, :3], 2.0 * x - 1.0)
 
 
+def test_centred_columns_keep_their_gradient_on_nonfinite_rows(device):
+    """A NaN/Inf point: NaN features and no feature gradient, but its centred columns are
+    2 x - 1 with gradient 2, as the twin's (and the concatenation's)."""
+    grid = GRIDS["dense+hashed"]
+    x = torch.tensor([[float("nan"), 0.5, 0.5], [float("inf"), 0.2, 0.3], [0.3, 0.4, 0.5]],
+                     dtype=F64, device=device, requires_grad=True)  # fmt: skip
+    out = hash_encode(x, _TABLE64.to(device), grid, centred=True)
+    assert torch.isnan(out[:2, 3:]).all() and torch.isfinite(out[2]).all()
+    v = torch.zeros_like(out)
+    v[:, :3] = torch.tensor([1.0, -2.0, 0.5], dtype=F64)
+    out.backward(v)
+    assert torch.equal(x.grad[:2], 2.0 * v[:2, :3])
+    xr = x.detach().clone().requires_grad_(True)
+    ref_hash_encode(xr, _TABLE64.to(device), grid, centred=True).backward(v)
+    assert torch.allclose(x.grad, xr.grad, rtol=1e-12, atol=1e-12)
+
+
 def test_centred_gradcheck_float64(device):
     grid = GRIDS["collisions"]  # (a 64-row table: small enough for the numerical Jacobian)
     x = torch.rand(8, 3, dtype=F64, device=device) * 0.9 + 0.05
@@ -128,9 +145,10 @@ def test_centred_gradcheck_float64(device):
     )
 
 
-def test_centred_input_gives_hash_sdf_the_same_network(device):
+def test_centred_input_gives_hash_sdf_the_same_network(device, monkeypatch):
     """hash_sdf's SDF network reads [2 u - 1, features] from the centred kernel within
     ``encoding_kernels(centred=True)``: the same values and gradients as the concatenation."""
+    import warpnerf.ops.encoding as enc_ops
     from warpnerf.fields.hash_sdf import HashSDFField
     from warpnerf.ops.encoding import centred_input, encoding_kernels
 
@@ -143,14 +161,24 @@ def test_centred_input_gives_hash_sdf_the_same_network(device):
         field.encoding.table.normal_(0.0, 0.1)
     p = (torch.rand(3000, 3) * 3.4 - 1.7).to(device)  # (some outside the box)
     params = [*field.sdf_mlp.parameters(), field.encoding.table]
+    calls = []  # (the centred kernel really ran under the switch, the plain one without it)
+    real = enc_ops.hash_encode
+
+    def spy(*a, **k):
+        calls.append(k.get("centred"))
+        return real(*a, **k)
+
+    monkeypatch.setattr(enc_ops, "hash_encode", spy)
     d0, f0 = field._geometry(p)
     g0 = torch.autograd.grad(d0.sum() + f0.sum(), params)
-    assert not centred_input()
+    assert not centred_input() and calls == [False]
     with encoding_kernels(centred=True):
         assert centred_input()
+        with encoding_kernels(pairs=False):  # (None: the other switch stays)
+            assert centred_input()
         d1, f1 = field._geometry(p)
         g1 = torch.autograd.grad(d1.sum() + f1.sum(), params)
-    assert not centred_input()
+    assert not centred_input() and calls == [False, True]
     assert torch.equal(d0, d1) and torch.equal(f0, f1)
     for a, b in zip(g0, g1):
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-7)

@@ -33,6 +33,10 @@ COMMANDS = {
     "box": (BoxFitConfig, (), ("iters",)),
 }
 
+# flags whose help a command rewrites (train nerf --field lists only the fields it trains; see
+# tests/test_cli_first_hour.py): their help names each choice the command offers
+OWN_HELP = {("nerf", "field")}
+
 
 def _subparser(model):
     args = build_parser().parse_args(["train", model, "--out", "x"])
@@ -61,7 +65,10 @@ def test_flag_defaults_are_the_config_defaults(model):
         want = None if f.name in unset else f.default
         assert a.default == want, (model, f.name, a.default, f.default)
         assert (f.metadata["negate"] or flag_of(f)) in a.option_strings
-        assert f.metadata["help"] and f.metadata["help"] in a.help
+        if (model, f.name) in OWN_HELP:  # the command writes this flag's help itself
+            assert all(c in a.help for c in a.metavar.strip("{}").split(",")), a.help
+        else:
+            assert f.metadata["help"] and f.metadata["help"] in a.help
     # the parsed defaults build exactly the config's defaults
     kw = from_flags(cls, args, groups=groups)
     cfg = cls(**kw)

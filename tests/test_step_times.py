@@ -50,3 +50,23 @@ def test_empty_and_gridless_histories():
     assert r["steps"] == 3 and r["median_ms"] == pytest.approx(10.0)
     assert r["excess_ms_per_step"]["other"] == pytest.approx(10.0 / 3)
     assert r["excess_ms_per_step"]["grid"] == 0.0
+
+
+def test_a_checkpoint_on_a_grid_step_counts_as_the_checkpoint():
+    """With grid_every 16 and ckpt_every 32 every checkpoint's step is a grid step too: the
+    (far larger) checkpoint cost is what the class names."""
+    dts = []
+    for i in range(200):
+        done = i + 1
+        d = 10.0
+        if done > 1 and (done - 1) % 32 == 0:
+            d = 110.0
+        elif (done - 1) % 16 == 0:
+            d = 12.0
+        dts.append(d)
+    r = step_times(_clock(dts), grid_every=16, ckpt_every=32, warm=0)
+    n_ckpt = sum(1 for i in range(1, 200) if i % 32 == 0)
+    n_grid = sum(1 for i in range(200) if i % 16 == 0) - n_ckpt
+    assert r["slow_steps"]["checkpoint"] == n_ckpt and r["slow_steps"]["grid"] == 0
+    assert r["excess_ms_per_step"]["checkpoint"] == pytest.approx(n_ckpt * 100.0 / 200)
+    assert r["excess_ms_per_step"]["grid"] == pytest.approx(n_grid * 2.0 / 200)

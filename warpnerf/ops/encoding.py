@@ -20,7 +20,14 @@ import torch
 
 from . import bridge
 
-__all__ = ["HashGrid", "hash_encode", "hash_encode_given", "spherical_harmonics", "sh_concat"]
+__all__ = [
+    "HashGrid",
+    "hash_encode",
+    "hash_encode_given",
+    "encoding_kernels",
+    "spherical_harmonics",
+    "sh_concat",
+]
 
 
 @dataclass(frozen=True)
@@ -116,14 +123,16 @@ def centred_input() -> bool:
 
 
 @contextlib.contextmanager
-def encoding_kernels(pairs: bool = True, centred: bool = False):
-    """Within the block the hash encoding's table gradient uses paired atomics (``pairs``, the
-    default) or one atomic per feature, and SDF networks read the centred encoding
-    (``centred``, :func:`centred_input`); restored on exit (tests and benchmarks compare
-    them)."""
+def encoding_kernels(pairs: bool | None = None, centred: bool | None = None):
+    """Within the block the hash encoding's table gradient uses paired atomics (``pairs``: True,
+    the default, or one atomic per feature) and SDF networks read the centred encoding
+    (``centred``, :func:`centred_input`); None leaves a switch as it is; restored on exit
+    (tests and benchmarks compare them)."""
     saved = dict(_IMPL)
-    _IMPL["pairs"] = bool(pairs)
-    _IMPL["centred"] = bool(centred)
+    if pairs is not None:
+        _IMPL["pairs"] = bool(pairs)
+    if centred is not None:
+        _IMPL["centred"] = bool(centred)
     try:
         yield
     finally:

@@ -3,7 +3,7 @@
 import torch
 
 
-def softplus(x: torch.Tensor, beta: float = 100.0, threshold: float = 20.0) -> torch.Tensor:
+def softplus(x: torch.Tensor, beta: float = 1.0, threshold: float = 20.0) -> torch.Tensor:
     """``x`` where ``beta x > threshold``, else ``log(1 + exp(beta x)) / beta`` (differentiable
     by autograd)."""
     z = x * beta

@@ -17,9 +17,11 @@ def step_times(seconds, grid_every: int = 0, ckpt_every: int = 0, warm: int = 50
     mean and the median milliseconds a step, the 90th and 99th percentiles, and the mean's
     excess over the median (ms a step) split by the kind of step that paid it. The classes,
     first match wins: ``warm`` (the first ``warm`` steps: compilation, the first captures),
-    ``grid`` (the steps that update the occupancy grid: ``(done - 1) % grid_every == 0``),
     ``checkpoint`` (the step after a periodic checkpoint, whose host copy that step's clock
-    counts), ``other`` (the rest: new captured shapes among them). Excess = the step's time
+    counts; before ``grid``: with grid_every 16 and ckpt_every 1000 every other checkpoint
+    falls on a grid update, and the checkpoint costs far more), ``grid`` (the steps that
+    update the occupancy grid: ``(done - 1) % grid_every == 0``), ``other`` (the rest: new
+    captured shapes among them). Excess = the step's time
     minus the median, summed over the class, over all steps."""
     t = [float(v) for v in seconds]
     if not t:
@@ -32,16 +34,16 @@ def step_times(seconds, grid_every: int = 0, ckpt_every: int = 0, warm: int = 50
     def pct(q):
         return order[min(n - 1, int(q * (n - 1) + 0.5))]
 
-    excess = dict.fromkeys(("warm", "grid", "checkpoint", "other"), 0.0)
+    excess = dict.fromkeys(("warm", "checkpoint", "grid", "other"), 0.0)
     slow = dict.fromkeys(excess, 0)  # steps over twice the median, by class
     for i, d in enumerate(dt):
         done = i + 1
         if i < warm:
             k = "warm"
-        elif grid_every > 0 and (done - 1) % grid_every == 0:
-            k = "grid"
         elif ckpt_every > 0 and done > 1 and (done - 1) % ckpt_every == 0:
             k = "checkpoint"
+        elif grid_every > 0 and (done - 1) % grid_every == 0:
+            k = "grid"
         else:
             k = "other"
         excess[k] += d - med
